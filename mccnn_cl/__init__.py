@@ -1,0 +1,16 @@
+"""mccnn_cl: MC-CNN stereo matching with OpenCL inference.
+
+Žbontar & LeCun, "Computing the Stereo Matching Cost with a Convolutional
+Neural Network" (CVPR 2015).  The network is trained with PyTorch
+(:mod:`mccnn_cl.train`); inference runs as OpenCL kernels through PyOpenCL.
+"""
+
+__version__ = "0.1.0"
+
+from .errors import (  # noqa: F401
+    MccnnError,
+    InputError,
+    WeightsError,
+    OpenCLError,
+    NoOpenCLDeviceError,
+)
