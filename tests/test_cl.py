@@ -1,0 +1,82 @@
+"""The OpenCL runtime module: device choice, program cache, clear errors."""
+
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mccnn_cl.cl import ClContext, list_devices, select_device
+from mccnn_cl.errors import InputError, NoOpenCLDeviceError, OpenCLError
+
+
+def test_device_choice_by_type_name_and_index(ctx):
+    devices = list_devices()
+    assert devices, "no OpenCL device"
+    first = devices[0]
+    dev, reason = select_device(first.type.lower())
+    assert dev == first.handle and first.type.lower() in reason
+    dev, _ = select_device(first.platform[:6] + ":" + first.device[:4])
+    assert dev.name.strip() == first.device
+    dev, _ = select_device(f"{first.platform_index}:{first.device_index}")
+    assert dev == first.handle
+    with pytest.raises(NoOpenCLDeviceError, match="no OpenCL device matches"):
+        select_device("no-such-platform-xyz")
+    with pytest.raises(NoOpenCLDeviceError, match="index"):
+        select_device("97:3")
+
+
+def test_preference_order_is_by_type_then_version():
+    ranks = [d.rank() for d in list_devices()]
+    assert ranks == sorted(ranks)
+
+
+def test_pyopencl_ctx_is_honoured(monkeypatch):
+    d = list_devices()[-1]
+    monkeypatch.setenv("PYOPENCL_CTX", f"{d.platform_index}:{d.device_index}")
+    dev, reason = select_device(None)
+    assert dev == d.handle and reason.startswith("PYOPENCL_CTX")
+
+
+def test_program_cache_and_defines(ctx, tmp_path, monkeypatch):
+    src = os.path.join(ctx.kernel_dir, "common.h")
+    assert os.path.exists(src)
+    # build a probe kernel from a private copy of the kernel directory
+    shutil.copy(src, tmp_path / "common.h")
+    monkeypatch.setattr(ctx, "kernel_dir", str(tmp_path))
+    # a program built twice with the same defines is the same object; other defines rebuild
+    probe = "_probe_test.cl"
+    path = os.path.join(ctx.kernel_dir, probe)
+    with open(path, "w") as f:
+        f.write('#include "common.h"\n#ifndef N\n#error N required\n#endif\n'
+                "__kernel void probe_fill(__global float *out) { size_t i = get_global_id(0);"
+                " out[i] = (float)(N) + (float)VIDX(0, 0, i, 1, 1); }\n")
+    if True:
+        k1 = ctx.kernel(probe, "probe_fill", N=3)
+        assert ctx.kernel(probe, "probe_fill", N=3) is k1
+        assert ctx.program(probe, N=3) is ctx.program(probe, N=3)
+        assert ctx.program(probe, N=4) is not ctx.program(probe, N=3)
+        buf = ctx.empty(16 * 4)
+        k1(ctx.queue, (16,), None, buf)
+        np.testing.assert_array_equal(ctx.from_device(buf, (16,)), 3 + np.arange(16, dtype=np.float32))
+        with pytest.raises(OpenCLError, match=r"_probe_test.cl.*failed"):
+            ctx.program(probe)  # N missing -> #error, message names file
+
+
+def test_check_alloc(ctx):
+    with pytest.raises(InputError, match="max allocation"):
+        ctx.check_alloc(ctx.max_alloc + 1, "cost volume")
+    ctx.check_alloc(1024, "small")
+
+
+def test_no_platform_gives_install_hint(tmp_path):
+    env = dict(os.environ, OCL_ICD_VENDORS=str(tmp_path))
+    env.pop("PYOPENCL_CTX", None)
+    code = ("from mccnn_cl.cl import ClContext\n"
+            "from mccnn_cl.errors import NoOpenCLDeviceError\n"
+            "try:\n    ClContext()\nexcept NoOpenCLDeviceError as e:\n    print('ERR', e)\n")
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert "ERR no OpenCL platform found" in r.stdout, (r.stdout, r.stderr)
+    assert "pocl-opencl-icd" in r.stdout
