@@ -53,16 +53,15 @@ def test_program_cache_and_defines(ctx, tmp_path, monkeypatch):
         f.write('#include "common.h"\n#ifndef N\n#error N required\n#endif\n'
                 "__kernel void probe_fill(__global float *out) { size_t i = get_global_id(0);"
                 " out[i] = (float)(N) + (float)VIDX(0, 0, i, 1, 1); }\n")
-    if True:
-        k1 = ctx.kernel(probe, "probe_fill", N=3)
-        assert ctx.kernel(probe, "probe_fill", N=3) is k1
-        assert ctx.program(probe, N=3) is ctx.program(probe, N=3)
-        assert ctx.program(probe, N=4) is not ctx.program(probe, N=3)
-        buf = ctx.empty(16 * 4)
-        k1(ctx.queue, (16,), None, buf)
-        np.testing.assert_array_equal(ctx.from_device(buf, (16,)), 3 + np.arange(16, dtype=np.float32))
-        with pytest.raises(OpenCLError, match=r"_probe_test.cl.*failed"):
-            ctx.program(probe)  # N missing -> #error, message names file
+    k1 = ctx.kernel(probe, "probe_fill", N=3)
+    assert ctx.kernel(probe, "probe_fill", N=3) is k1
+    assert ctx.program(probe, N=3) is ctx.program(probe, N=3)
+    assert ctx.program(probe, N=4) is not ctx.program(probe, N=3)
+    buf = ctx.empty(16 * 4)
+    k1(ctx.queue, (16,), None, buf)
+    np.testing.assert_array_equal(ctx.from_device(buf, (16,)), 3 + np.arange(16, dtype=np.float32))
+    with pytest.raises(OpenCLError, match=r"_probe_test.cl.*failed"):
+        ctx.program(probe)  # N missing -> #error, message names file
 
 
 def test_check_alloc(ctx):
