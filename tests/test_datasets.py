@@ -1,0 +1,106 @@
+"""Dataset readers on the real data in /work/shared/data (see its README for the table checked here)."""
+
+import shutil
+
+import numpy as np
+import pytest
+
+from mccnn_cl.datasets import (discover, find_pairs, load_kitti2012, load_kitti2015,
+                               load_middlebury)
+from mccnn_cl.errors import InputError
+from mccnn_cl.io import write_pfm
+
+# README.md of the shared data: scene -> (width, height, GT min, GT max, has mask)
+MIDDLEBURY = {
+    "Tsukuba": (384, 288, 5, 14, True),
+    "Venus": (434, 383, 3, 19.75, True),
+    "Cones": (450, 375, 5.5, 55, True),
+    "Cloth3": (626, 555, 22.5, 83, False),
+    "Reindeer": (671, 555, 5.5, 100.5, False),
+    "Aloe": (1282, 1110, 43, 211, False),
+    "Motorcycle": (741, 500, 7.2, 59.9, False),
+}
+
+
+def test_every_pair_loads(shared_data):
+    pairs = find_pairs(shared_data)
+    keys = [p.key for p in pairs]
+    assert keys == ["kitti2012/000000", "kitti2012/000001", "kitti2015/000000", "kitti2015/000001"] + \
+        [f"middlebury/{s}" for s in sorted(MIDDLEBURY)]
+    for p in pairs:
+        assert p.left.dtype == np.uint8 and p.right.shape == p.left.shape
+        assert p.disp.dtype == np.float32 and p.disp.shape == p.shape
+        assert p.valid_all.dtype == bool
+        np.testing.assert_array_equal(np.isfinite(p.disp), p.valid_all)
+        if p.valid_noc is not None:
+            assert not (p.valid_noc & ~p.valid_all).any()
+            assert 0.5 < p.valid_noc.sum() / p.valid_all.sum() <= 1
+        lg, rg = p.gray()
+        assert lg.shape == p.shape and lg.dtype == np.uint8 and lg.std() > 5
+
+
+def test_middlebury_table(shared_data):
+    for scene, (w, h, lo, hi, has_mask) in MIDDLEBURY.items():
+        p = load_middlebury(shared_data / "middlebury" / scene)
+        assert p.shape == (h, w) and p.kind == "middlebury" and p.name == scene
+        assert p.ndisp % 16 == 0 and p.ndisp > hi
+        assert np.nanmin(p.disp) == pytest.approx(lo, abs=0.05)
+        assert np.nanmax(p.disp) == pytest.approx(hi, abs=0.05)
+        assert (p.valid_noc is not None) == has_mask
+        assert p.calib.endswith("calib.txt")
+
+
+def test_kitti(shared_data):
+    k12 = load_kitti2012(shared_data / "kitti2012", 0)  # dataset root with training/
+    assert k12.shape == (370, 1226) and k12.left.ndim == 3 and k12.valid_noc is None
+    assert 4 < np.nanmin(k12.disp) and np.nanmax(k12.disp) < 130
+    k15 = load_kitti2015(shared_data / "kitti2015" / "training", "000000_10.png")
+    assert k15.shape == (375, 1242) and k15.name == "000000"
+    assert k15.valid_noc is not None and k15.valid_noc.sum() < k15.valid_all.sum()
+    assert k15.calib.endswith("000000.txt")
+    k15b = load_kitti2015(shared_data / "kitti2015" / "training", 1)
+    assert k15b.valid_noc is None and k15b.valid_all.sum() > 50000
+    # Ground truth is sparse (LiDAR) but spans the disparity range.
+    assert np.nanmax(k15.disp) > 60
+
+
+def test_layout_detection(shared_data):
+    assert [r.key for r in discover(shared_data / "kitti2015")] == ["kitti2015/000000", "kitti2015/000001"]
+    assert [r.key for r in discover(shared_data / "kitti2012" / "training")] == \
+        ["kitti2012/000000", "kitti2012/000001"]
+    assert [r.key for r in discover(shared_data / "middlebury" / "Cones")] == ["middlebury/Cones"]
+    assert len(discover(shared_data / "middlebury")) == 7
+    assert len(discover(shared_data, dataset="kitti2015")) == 2
+    with pytest.raises(InputError, match="unknown dataset"):
+        discover(shared_data, dataset="sintel")
+
+
+def test_errors(tmp_path, shared_data):
+    with pytest.raises(InputError, match="not found"):
+        find_pairs(tmp_path / "nothing")
+    with pytest.raises(InputError, match="no stereo pairs"):
+        find_pairs(tmp_path)
+    with pytest.raises(InputError, match="not a kitti2012"):
+        load_kitti2012(tmp_path, 0)
+    with pytest.raises(InputError, match="not found"):
+        load_kitti2015(shared_data / "kitti2015", 7)
+    # A scene with a missing right image, then with a GT of the wrong size, then a corrupt PFM.
+    scene = tmp_path / "Scene"
+    scene.mkdir()
+    src = shared_data / "middlebury" / "Tsukuba"
+    shutil.copy(src / "im0.png", scene / "im0.png")
+    with pytest.raises(InputError, match="im1.png"):
+        load_middlebury(scene)
+    shutil.copy(src / "im1.png", scene / "im1.png")
+    write_pfm(scene / "disp0GT.pfm", np.ones((10, 10), np.float32))
+    with pytest.raises(InputError, match="sizes differ"):
+        load_middlebury(scene)
+    (scene / "disp0GT.pfm").write_bytes(b"Pf\n384 288\n-1.0\n" + bytes(100))
+    with pytest.raises(InputError, match="truncated"):
+        load_middlebury(scene)
+    (scene / "disp0GT.pfm").unlink()
+    p = load_middlebury(scene)  # no GT: a test scene
+    assert p.disp is None and p.valid_all is None and p.ndisp is None
+    (scene / "calib.txt").write_text("width=100\nheight=288\nndisp=32\n")
+    with pytest.raises(InputError, match="says 100x288"):
+        load_middlebury(scene)

@@ -1,0 +1,101 @@
+"""Readers and writers of mccnn_cl.io: round trips, the PFM byte order and row order, errors."""
+
+import numpy as np
+import pytest
+
+from mccnn_cl.errors import InputError
+from mccnn_cl.io import (read_image, read_kitti_disparity, read_pfm, write_image,
+                         write_kitti_disparity, write_pfm)
+
+
+def test_pfm_round_trip_gray_and_colour(tmp_path):
+    rng = np.random.default_rng(0)
+    a = rng.normal(0, 50, (37, 53)).astype(np.float32)
+    a[3, 5] = np.inf
+    write_pfm(tmp_path / "a.pfm", a)
+    np.testing.assert_array_equal(read_pfm(tmp_path / "a.pfm"), a)
+    c = rng.normal(0, 1, (5, 7, 3)).astype(np.float32)
+    write_pfm(tmp_path / "c.pfm", c)
+    back = read_pfm(tmp_path / "c.pfm")
+    assert back.shape == (5, 7, 3) and back.dtype == np.float32
+    np.testing.assert_array_equal(back, c)
+    assert not list(tmp_path.glob(".tmp-*")), "temporary files left behind"
+
+
+def test_pfm_rows_bottom_to_top_and_big_endian(tmp_path):
+    # Hand-made big-endian file (positive scale): first stored row is the image's last row.
+    data = np.array([[1, 2, 3], [4, 5, 6]], np.float32)
+    p = tmp_path / "be.pfm"
+    p.write_bytes(b"Pf\n3 2\n1.0\n" + data[::-1].astype(">f4").tobytes())
+    np.testing.assert_array_equal(read_pfm(p), data)
+    p2 = tmp_path / "le.pfm"
+    p2.write_bytes(b"Pf\n3 2\n-1.0\n" + data[::-1].astype("<f4").tobytes())
+    np.testing.assert_array_equal(read_pfm(p2), data)
+
+
+def test_pfm_real_middlebury_has_inf_unknowns(shared_data):
+    gt = read_pfm(shared_data / "middlebury" / "Cones" / "disp0GT.pfm")
+    assert gt.shape == (375, 450) and gt.dtype == np.float32
+    fin = gt[np.isfinite(gt)]
+    assert np.isinf(gt).any() and fin.min() == 5.5 and fin.max() == 55.0
+
+
+def test_pfm_errors(tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        read_pfm(tmp_path / "missing.pfm")
+    (tmp_path / "bad.pfm").write_bytes(b"P6\n3 2\n255\n" + bytes(18))
+    with pytest.raises(InputError, match="not a PFM"):
+        read_pfm(tmp_path / "bad.pfm")
+    (tmp_path / "short.pfm").write_bytes(b"Pf\n3 2\n-1.0\n" + bytes(10))
+    with pytest.raises(InputError, match="truncated"):
+        read_pfm(tmp_path / "short.pfm")
+    with pytest.raises(InputError):
+        write_pfm(tmp_path / "x.pfm", np.zeros((2, 3, 4), np.float32))
+
+
+def test_kitti_png_round_trip(tmp_path):
+    rng = np.random.default_rng(1)
+    d = np.round(rng.uniform(0.5, 200, (37, 53)) * 256) / 256
+    d[0, :5] = 0
+    d[1, 1] = np.nan
+    d[2, 2] = -3
+    write_kitti_disparity(tmp_path / "d.png", d)
+    back, valid = read_kitti_disparity(tmp_path / "d.png")
+    assert back.dtype == np.float32 and valid.dtype == bool
+    expect_valid = np.isfinite(d) & (d > 0)
+    np.testing.assert_array_equal(valid, expect_valid)
+    np.testing.assert_array_equal(back[valid], d[expect_valid].astype(np.float32))
+    assert (back[~valid] == 0).all()
+
+
+def test_kitti_png_real(shared_data):
+    disp, valid = read_kitti_disparity(shared_data / "kitti2015/training/disp_occ_0/000000_10.png")
+    assert disp.shape == (375, 1242) and 0 < valid.mean() < 0.5
+    assert 4 < disp[valid].min() and disp[valid].max() < 130
+
+
+def test_kitti_png_errors(tmp_path, shared_data):
+    with pytest.raises(InputError, match="not found"):
+        read_kitti_disparity(tmp_path / "none.png")
+    # An 8-bit colour image is not a disparity map.
+    with pytest.raises(InputError, match="16-bit"):
+        read_kitti_disparity(shared_data / "kitti2015/training/image_2/000000_10.png")
+    (tmp_path / "junk.png").write_bytes(b"not a png at all")
+    with pytest.raises(InputError, match="unreadable"):
+        read_kitti_disparity(tmp_path / "junk.png")
+
+
+def test_read_image(tmp_path, shared_data):
+    img = read_image(shared_data / "middlebury/Tsukuba/im0.png")
+    assert img.shape == (288, 384, 3) and img.dtype == np.uint8
+    g = read_image(shared_data / "middlebury/Tsukuba/im0.png", gray=True)
+    assert g.shape == (288, 384) and g.std() > 10
+    write_image(tmp_path / "g.png", g)
+    np.testing.assert_array_equal(read_image(tmp_path / "g.png"), g)
+    with pytest.raises(InputError, match="not found"):
+        read_image(tmp_path / "nope.png")
+    with pytest.raises(InputError, match="not a file"):
+        read_image(tmp_path)
+    (tmp_path / "junk.png").write_bytes(b"garbage")
+    with pytest.raises(InputError, match="unreadable"):
+        read_image(tmp_path / "junk.png")
