@@ -1,0 +1,106 @@
+/* disparity.cl - winner-take-all and the left-right consistency check
+ * (paper, "Computing the disparity image" and "Interpolation").
+ * Driven by mccnn_cl/stages/disparity.py; numpy twins in
+ * mccnn_cl/reference/disparity.py.
+ *
+ * Disparity maps are int32 [H][W] on the cropped domain of the volume.
+ * Labels: 0 = correct, 1 = mismatch, 2 = occlusion (see LABEL_* below).
+ */
+#include "common.h"
+
+#define LABEL_CORRECT 0
+#define LABEL_MISMATCH 1
+#define LABEL_OCCLUSION 2
+
+/* D^L(x, y) = argmin_{0 <= d <= min(D-1, x)} C(d, y, x).
+ * Ties go to the smallest d (strict '<' while d increases).  Invalid cells
+ * (d > x) are never read.  One work-item per pixel, global size (W, H). */
+__kernel void disparity_wta_left(
+    __global const float *cost, /* C_L, D x H x W */
+    __global int *disp,         /* out: D^L, H x W */
+    const int D,                /* disparity levels */
+    const int H,                /* rows */
+    const int W)                /* columns */
+{
+    const int x = get_global_id(0);
+    const int y = get_global_id(1);
+    if (x >= W || y >= H)
+        return;
+    const int dmax = min(D - 1, x);
+    int best_d = 0;
+    float best = cost[VIDX(0, y, x, H, W)];
+    for (int d = 1; d <= dmax; d++) {
+        const float c = cost[VIDX(d, y, x, H, W)];
+        if (c < best) {
+            best = c;
+            best_d = d;
+        }
+    }
+    disp[(size_t)y * W + x] = best_d;
+}
+
+/* D^R(x, y) = argmin_{0 <= d <= min(D-1, W-1-x)} C_R(d, y, x), with the
+ * right-reference volume derived from the left one:
+ * C_R(d, y, x) = C_L(d, y, x + d) (valid while x + d < W).
+ * Ties go to the smallest d.  Global size (W, H). */
+__kernel void disparity_wta_right(
+    __global const float *cost, /* C_L, D x H x W */
+    __global int *disp,         /* out: D^R, H x W */
+    const int D,                /* disparity levels */
+    const int H,                /* rows */
+    const int W)                /* columns */
+{
+    const int x = get_global_id(0);
+    const int y = get_global_id(1);
+    if (x >= W || y >= H)
+        return;
+    const int dmax = min(D - 1, W - 1 - x);
+    int best_d = 0;
+    float best = cost[VIDX(0, y, x, H, W)];
+    for (int d = 1; d <= dmax; d++) {
+        const float c = cost[VIDX(d, y, x + d, H, W)];
+        if (c < best) {
+            best = c;
+            best_d = d;
+        }
+    }
+    disp[(size_t)y * W + x] = best_d;
+}
+
+/* Left-right check (paper): with d = D^L(p) and pd = (x - d, y),
+ *   correct   if |d - D^R(pd)| <= threshold,
+ *   mismatch  if |d' - D^R(pd')| <= threshold for any other d' in [0, D)
+ *             with x - d' >= 0,
+ *   occlusion otherwise.
+ * The paper's threshold is 1; the released code's "< 1.1" selects the same
+ * pixels on integer maps.  A D^L(p) outside [0, x] (never produced by the WTA)
+ * is treated as not correct.  Global size (W, H). */
+__kernel void disparity_lr_check(
+    __global const int *disp_l, /* D^L, H x W */
+    __global const int *disp_r, /* D^R, H x W */
+    __global int *labels,       /* out: LABEL_*, H x W */
+    const int D,                /* disparity levels */
+    const int H,                /* rows */
+    const int W,                /* columns */
+    const float threshold)      /* max |d - D^R(pd)| of a consistent pair */
+{
+    const int x = get_global_id(0);
+    const int y = get_global_id(1);
+    if (x >= W || y >= H)
+        return;
+    const size_t row = (size_t)y * W;
+    const int d = disp_l[row + x];
+    int label = LABEL_OCCLUSION;
+    if (d >= 0 && d <= x && fabs((float)(d - disp_r[row + x - d])) <= threshold) {
+        label = LABEL_CORRECT;
+    } else {
+        const int dmax = min(D - 1, x);
+        for (int e = 0; e <= dmax; e++) {
+            if (e != d && fabs((float)(e - disp_r[row + x - e])) <= threshold) {
+                label = LABEL_MISMATCH;
+                break;
+            }
+        }
+    }
+    labels[row + x] = label;
+}

@@ -1,0 +1,115 @@
+/* refine.cl - refinement (paper, "Refinement"): enlarge to the input size,
+ * median filter, bilateral filter.  Driven by mccnn_cl/stages/refine.py;
+ * numpy twins in mccnn_cl/reference/disparity.py.
+ *
+ * Required define: MEDIAN_SIZE (odd side of the median window; sizes the
+ * private array of the median kernel).
+ */
+#include "common.h"
+
+#ifndef MEDIAN_SIZE
+#error "MEDIAN_SIZE (odd median window side) must be defined"
+#endif
+#define MEDIAN_COUNT (MEDIAN_SIZE * MEDIAN_SIZE)
+#define MEDIAN_RADIUS (MEDIAN_SIZE / 2)
+
+/* out(x, y) = in(clamp(x - margin, 0, W-1), clamp(y - margin, 0, H-1)):
+ * the cropped map placed at (margin, margin) of the image, the border rows
+ * and columns copied outwards.  Global size (Wo, Ho). */
+__kernel void refine_enlarge(
+    __global const float *in, /* D_SE on the cropped domain, H x W */
+    __global float *out,      /* out: Ho x Wo */
+    const int H,              /* cropped rows */
+    const int W,              /* cropped columns */
+    const int Ho,             /* image rows */
+    const int Wo,             /* image columns */
+    const int margin)         /* offset of the cropped domain in the image */
+{
+    const int x = get_global_id(0);
+    const int y = get_global_id(1);
+    if (x >= Wo || y >= Ho)
+        return;
+    const int xs = clamp(x - margin, 0, W - 1);
+    const int ys = clamp(y - margin, 0, H - 1);
+    out[(size_t)y * Wo + x] = in[(size_t)ys * W + xs];
+}
+
+/* MEDIAN_SIZE x MEDIAN_SIZE median; pixels outside the map are replaced by
+ * the nearest border pixel (clamp-to-edge, as cv2.medianBlur), so every
+ * window holds MEDIAN_COUNT (odd) values and the median is the middle one.
+ * Global size (W, H). */
+__kernel void refine_median(
+    __global const float *in, /* H x W */
+    __global float *out,      /* out: H x W */
+    const int H,              /* rows */
+    const int W)              /* columns */
+{
+    const int x = get_global_id(0);
+    const int y = get_global_id(1);
+    if (x >= W || y >= H)
+        return;
+    float v[MEDIAN_COUNT];
+    int n = 0;
+    for (int dy = -MEDIAN_RADIUS; dy <= MEDIAN_RADIUS; dy++) {
+        const int yy = clamp(y + dy, 0, H - 1);
+        for (int dx = -MEDIAN_RADIUS; dx <= MEDIAN_RADIUS; dx++) {
+            const int xx = clamp(x + dx, 0, W - 1);
+            const float a = in[(size_t)yy * W + xx];
+            int i = n;
+            while (i > 0 && v[i - 1] > a) {
+                v[i] = v[i - 1];
+                i--;
+            }
+            v[i] = a;
+            n++;
+        }
+    }
+    out[(size_t)y * W + x] = v[MEDIAN_COUNT / 2];
+}
+
+/* Bilateral filter (paper):
+ *   D_BF(p) = sum_q D(q) g(|p - q|) 1{|G(p) - G(q)| < tau} / W(p)
+ * over the (2 radius + 1)^2 window clipped to the map (pixels outside are
+ * not part of N_p), W(p) the sum of the same weights.  The Gaussian is
+ * separable: g(|p - q|) = g1(dx) g1(dy) with g1 given as a table of
+ * 2 radius + 1 values (its normalising constant cancels).  The guide G is
+ * the left image (paper; tau in the image's units) or the disparity map
+ * itself (released code; tau in pixels): pass the same buffer for both.
+ * W(p) > 0 whenever tau > 0 (q = p always counts); otherwise D(p) is kept.
+ * Global size (W, H). */
+__kernel void refine_bilateral(
+    __global const float *disp,  /* D (median-filtered), H x W */
+    __global const float *guide, /* I^L in [0,1] (paper) or D itself (code), H x W */
+    __global const float *g1,    /* 1-D Gaussian, 2 radius + 1 taps */
+    __global float *out,         /* out: D_BF, H x W */
+    const int H,                 /* rows */
+    const int W,                 /* columns */
+    const int radius,            /* window half-side */
+    const float tau)             /* guide difference threshold (strict <) */
+{
+    const int x = get_global_id(0);
+    const int y = get_global_id(1);
+    if (x >= W || y >= H)
+        return;
+    const float gp = guide[(size_t)y * W + x];
+    const int y0 = max(y - radius, 0), y1 = min(y + radius, H - 1);
+    const int x0 = max(x - radius, 0), x1 = min(x + radius, W - 1);
+    float sum = 0.0f;
+    float wsum = 0.0f;
+    for (int yy = y0; yy <= y1; yy++) {
+        const float gy = g1[yy - y + radius];
+        const size_t row = (size_t)yy * W;
+        float rsum = 0.0f;
+        float rw = 0.0f;
+        for (int xx = x0; xx <= x1; xx++) {
+            if (fabs(gp - guide[row + xx]) < tau) {
+                const float w = g1[xx - x + radius];
+                rsum += w * disp[row + xx];
+                rw += w;
+            }
+        }
+        sum += gy * rsum;
+        wsum += gy * rw;
+    }
+    out[(size_t)y * W + x] = wsum > 0.0f ? sum / wsum : disp[(size_t)y * W + x];
+}

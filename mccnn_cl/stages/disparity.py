@@ -1,0 +1,127 @@
+"""Computing the disparity image (paper, "Computing the disparity image",
+"Interpolation", "Subpixel enhancement").
+
+Stages (device buffers in and out; each ``__call__`` only enqueues work):
+
+* :class:`WinnerTakeAll` - ``kernels/disparity.cl``: D^L and D^R (int32), both
+  from the SAME left-reference volume (C_R(d, y, x) = C_L(d, y, x + d)).
+* :class:`LeftRightCheck` - ``kernels/disparity.cl``: labels correct /
+  mismatch / occlusion (int32 0 / 1 / 2).
+* :class:`Interpolate` - ``kernels/interpolate.cl``: D_INT (int32).
+* :class:`Subpixel` - ``kernels/subpixel.cl``: D_SE (float32).
+
+Every ``__call__`` accepts ``out=`` (a buffer to write into, e.g. poisoned by
+a test); otherwise it allocates one.  The numpy twins are in
+:mod:`mccnn_cl.reference.disparity`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import OpenCLError
+from ..reference.disparity import CORRECT, DIRECTIONS, MISMATCH, OCCLUSION  # noqa: F401
+
+_I32 = np.dtype(np.int32).itemsize
+_F32 = np.dtype(np.float32).itemsize
+
+
+def launch(ctx, stage: str, kernel, global_size, *args) -> None:
+    """Set the arguments and enqueue ``kernel``; OpenCL errors name the stage."""
+    try:
+        kernel.set_args(*args)
+        ctx.cl.enqueue_nd_range_kernel(ctx.queue, kernel, tuple(int(g) for g in global_size), None)
+    except ctx.cl.Error as exc:
+        raise OpenCLError(f"{stage}: OpenCL error {exc}") from exc
+
+
+class WinnerTakeAll:
+    """D(p) = argmin_d C(p, d) over valid cells; ties go to the smallest d.
+
+    ``left(d_cost, D, H, W)`` gives D^L; ``right(d_cost, D, H, W)`` gives D^R
+    from the same left-reference volume (the network is never rerun).
+    """
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self.k_left = ctx.kernel("disparity.cl", "disparity_wta_left")
+        self.k_right = ctx.kernel("disparity.cl", "disparity_wta_right")
+
+    def _run(self, kernel, stage, d_cost, D, H, W, out):
+        if out is None:
+            out = self.ctx.empty(H * W * _I32, stage)
+        launch(self.ctx, stage, kernel, (W, H), d_cost, out, np.int32(D), np.int32(H), np.int32(W))
+        return out
+
+    def left(self, d_cost, D, H, W, out=None):
+        """D^L (int32 H x W buffer)."""
+        return self._run(self.k_left, "WTA (left)", d_cost, D, H, W, out)
+
+    def right(self, d_cost, D, H, W, out=None):
+        """D^R (int32 H x W buffer), from the left-reference volume."""
+        return self._run(self.k_right, "WTA (right)", d_cost, D, H, W, out)
+
+
+class LeftRightCheck:
+    """Labels each pixel correct (0), mismatch (1) or occlusion (2).
+
+    ``threshold``: |d - D^R(pd)| <= threshold counts as consistent; the
+    paper's 1 (default).  The released code's ``< 1.1`` selects the same
+    pixels on integer maps.
+    """
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self.kernel = ctx.kernel("disparity.cl", "disparity_lr_check")
+
+    def __call__(self, d_disp_l, d_disp_r, D, H, W, threshold=1.0, out=None):
+        if out is None:
+            out = self.ctx.empty(H * W * _I32, "left-right check labels")
+        launch(self.ctx, "left-right check", self.kernel, (W, H), d_disp_l, d_disp_r, out,
+               np.int32(D), np.int32(H), np.int32(W), np.float32(threshold))
+        return out
+
+
+class Interpolate:
+    """D_INT: occlusions filled from the left (else right), mismatches with the
+    upper median of the nearest correct pixels along 16 directions.
+
+    ``directions``: ``"paper"`` (the 16 SGM directions, integer steps, walk
+    stops at a correct pixel) or ``"code"`` (the released code: half-pixel
+    steps, the walk stops at any pixel that is not a mismatch).
+    """
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self.kernel = ctx.kernel("interpolate.cl", "interpolate_fill")
+        self._dirs = {name: ctx.to_device(np.ascontiguousarray(v, np.float32))
+                      for name, v in DIRECTIONS.items()}
+
+    def __call__(self, d_disp, d_labels, H, W, directions="paper", out=None):
+        if directions not in self._dirs:
+            raise ValueError(f"directions must be one of {sorted(self._dirs)}, not {directions!r}")
+        if out is None:
+            out = self.ctx.empty(H * W * _I32, "D_INT")
+        launch(self.ctx, "interpolation", self.kernel, (W, H), d_disp, d_labels, self._dirs[directions],
+               out, np.int32(H), np.int32(W), np.int32(directions == "code"))
+        return out
+
+
+class Subpixel:
+    """D_SE = d - (C+ - C-) / (2 (C+ - 2C + C-)) at d = D_INT(p).
+
+    Paper defaults: ``min_denominator=0`` (fit only a true minimum),
+    ``clamp_step=False``; released code: ``1e-5`` and ``True`` (step clamped
+    to [-1, 1]).  d is kept at the range ends and where d+1 > x.
+    """
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self.kernel = ctx.kernel("subpixel.cl", "subpixel_refine")
+
+    def __call__(self, d_cost, d_disp, D, H, W, min_denominator=0.0, clamp_step=False, out=None):
+        if out is None:
+            out = self.ctx.empty(H * W * _F32, "D_SE")
+        launch(self.ctx, "subpixel enhancement", self.kernel, (W, H), d_cost, d_disp, out,
+               np.int32(D), np.int32(H), np.int32(W), np.float32(min_denominator), np.int32(bool(clamp_step)))
+        return out

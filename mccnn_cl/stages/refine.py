@@ -1,0 +1,92 @@
+"""Refinement (paper, "Refinement"): ``kernels/refine.cl``.
+
+* :class:`Enlarge` - D_SE (cropped domain) to the input image's size, border
+  disparities copied outwards.
+* :class:`MedianFilter` - size x size median (default 5), clamp-to-edge.
+* :class:`BilateralFilter` - the paper's bilateral filter guided by the LEFT
+  IMAGE (``guide="image"``, tau on the image's [0, 1] scale: pass
+  tau_BF / 255) or the released code's variant guided by the disparity map
+  itself (``guide="disparity"``, tau in pixels).
+
+Numpy twins: :mod:`mccnn_cl.reference.disparity` (``enlarge``,
+``median_filter``, ``bilateral``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .disparity import launch
+
+_F32 = np.dtype(np.float32).itemsize
+
+
+def bilateral_radius(sigma: float) -> int:
+    """Default window half-side: ceil(3 sigma) (17 px for sigma = 5.656), as the
+    released code's Gaussian kernel; the window is clipped to the image."""
+    return max(1, int(math.ceil(3.0 * float(sigma))))
+
+
+def gaussian_taps(sigma: float, radius: int) -> np.ndarray:
+    """g1(k) = exp(-k^2 / (2 sigma^2)), k = -radius..radius (unnormalised, float32)."""
+    k = np.arange(-radius, radius + 1, dtype=np.float64)
+    return np.exp(-k * k / (2.0 * float(sigma) ** 2)).astype(np.float32)
+
+
+class Enlarge:
+    """Copies an H x W map into an Ho x Wo one at offset ``margin``, replicating
+    the border rows and columns."""
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self.kernel = ctx.kernel("refine.cl", "refine_enlarge", MEDIAN_SIZE=5)
+
+    def __call__(self, d_disp, H, W, Ho, Wo, margin, out=None):
+        if out is None:
+            out = self.ctx.empty(Ho * Wo * _F32, "enlarged disparity")
+        launch(self.ctx, "enlarge", self.kernel, (Wo, Ho), d_disp, out, np.int32(H), np.int32(W),
+               np.int32(Ho), np.int32(Wo), np.int32(margin))
+        return out
+
+
+class MedianFilter:
+    """size x size median filter (``size`` odd; compiled per size)."""
+
+    def __init__(self, ctx, size: int = 5):
+        if size < 1 or size % 2 == 0:
+            raise ValueError(f"median size must be a positive odd number, not {size}")
+        self.ctx = ctx
+        self.size = int(size)
+        self.kernel = ctx.kernel("refine.cl", "refine_median", MEDIAN_SIZE=self.size)
+
+    def __call__(self, d_disp, H, W, out=None):
+        if out is None:
+            out = self.ctx.empty(H * W * _F32, "median-filtered disparity")
+        launch(self.ctx, "median filter", self.kernel, (W, H), d_disp, out, np.int32(H), np.int32(W))
+        return out
+
+
+class BilateralFilter:
+    """D_BF(p) = sum_q D(q) g(|p-q|) 1{|G(p) - G(q)| < tau} / W(p).
+
+    ``d_guide`` is the left image (paper) or ``d_disp`` itself (released
+    code's variant); ``radius`` defaults to :func:`bilateral_radius`.
+    """
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self.kernel = ctx.kernel("refine.cl", "refine_bilateral", MEDIAN_SIZE=5)
+        self._taps = {}
+
+    def __call__(self, d_disp, d_guide, H, W, sigma, tau, radius=None, out=None):
+        radius = bilateral_radius(sigma) if radius is None else int(radius)
+        key = (float(sigma), radius)
+        if key not in self._taps:
+            self._taps[key] = self.ctx.to_device(gaussian_taps(sigma, radius))
+        if out is None:
+            out = self.ctx.empty(H * W * _F32, "D_BF")
+        launch(self.ctx, "bilateral filter", self.kernel, (W, H), d_disp, d_guide, self._taps[key], out,
+               np.int32(H), np.int32(W), np.int32(radius), np.float32(tau))
+        return out
