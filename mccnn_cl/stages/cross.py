@@ -1,0 +1,82 @@
+"""Cross arms (paper, "Cross-based cost aggregation") - drives ``kernels/cross.cl``.
+
+:class:`CrossArms` computes, for every pixel of one gray image (float32 in
+[0, 1], cropped to the cost volume's H x W), the lengths of its four arms.
+
+* Paper (default): the left arm reaches p_l = p - (k, 0) for k = 1, 2, ... as
+  long as |I(p) - I(p_l)| < tau AND k < eta AND p_l is inside the image, and
+  stops at the first k that fails; its length is the largest such k (0 if
+  none).  Right, up and down arms likewise.  KITTI: tau = 0.0442, eta = 4, so
+  arms are at most 3 px.
+* Released code (``include_neighbor=True``): the +-1 neighbour is always
+  included when inside the image (regardless of tau and eta); the comparison
+  is still against the centre pixel and eta is still exclusive.
+
+Storage: one ``uchar4`` per pixel, row-major [H][W], components
+(left, right, up, down), "up" towards smaller y; 4 bytes per pixel
+(:func:`arms_from_device` returns it as uint8 [H][W][4], the layout of
+:func:`mccnn_cl.reference.aggregation.cross_arms`).  Because of the byte
+storage eta is limited to 256 (arms <= 255).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError, OpenCLError
+
+#: Largest arm length the uchar4 storage can hold.
+ARM_LIMIT = 255
+
+
+def launch(ctx, stage: str, kernel, global_size, local_size, *args) -> None:
+    """Set the arguments and enqueue ``kernel``; OpenCL errors name the stage."""
+    try:
+        kernel.set_args(*args)
+        ctx.cl.enqueue_nd_range_kernel(ctx.queue, kernel, tuple(int(g) for g in global_size),
+                                       None if local_size is None else tuple(int(n) for n in local_size))
+    except ctx.cl.Error as exc:
+        raise OpenCLError(f"{stage}: OpenCL error {exc}") from exc
+
+
+def check_size(H, W, what="image") -> tuple:
+    """(H, W) as ints; InputError unless both are >= 1."""
+    H, W = int(H), int(W)
+    if H < 1 or W < 1:
+        raise InputError(f"{what} size must be at least 1 x 1, got {H} x {W}")
+    return H, W
+
+
+def max_arm(eta: int, include_neighbor: bool = False) -> int:
+    """Upper bound of every arm length CrossArms produces for ``eta``
+    (pass it to :class:`mccnn_cl.stages.cbca.CBCA` as ``max_arm``)."""
+    bound = max(int(eta) - 1, 0)
+    if include_neighbor:
+        bound = max(bound, 1)
+    return min(bound, ARM_LIMIT)
+
+
+class CrossArms:
+    """Arm lengths of every pixel of one image; see the module docstring."""
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self.kernel = ctx.kernel("cross.cl", "cross_build")
+
+    def __call__(self, d_img, H, W, tau=0.0442, eta=4, include_neighbor=False, out=None):
+        """Enqueue the arms of the H x W float32 image ``d_img``; returns the
+        uchar4 [H][W] buffer (``out`` if given, 4*H*W bytes)."""
+        H, W = check_size(H, W)
+        eta = int(eta)
+        if not 0 <= eta <= ARM_LIMIT + 1:
+            raise InputError(f"eta must be in [0, {ARM_LIMIT + 1}] (arms are stored as bytes), got {eta}")
+        if out is None:
+            out = self.ctx.empty(4 * H * W, "cross arms")
+        launch(self.ctx, "cross arms", self.kernel, (W, H), None, d_img, out, np.int32(H), np.int32(W),
+               np.float32(tau), np.int32(eta), np.int32(bool(include_neighbor)))
+        return out
+
+
+def arms_from_device(ctx, d_arms, H, W) -> np.ndarray:
+    """Blocking copy of an arms buffer to a uint8 [H][W][4] array."""
+    return ctx.from_device(d_arms, (int(H), int(W), 4), np.uint8)
