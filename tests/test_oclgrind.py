@@ -1,0 +1,361 @@
+"""Every stage kernel once under Oclgrind (out-of-bounds accesses, data races,
+uninitialised reads, API misuse), on tiny inputs.
+
+Each case runs in a SUBPROCESS (this file run as a script, see ``main``) whose
+ICD loader sees only Oclgrind (``OCL_ICD_VENDORS`` = the oclgrind ``.icd``
+written by ``scripts/opencl_impls.sh``) with ``OCLGRIND_DATA_RACES=1``,
+``OCLGRIND_CHECK_API=1``, ``OCLGRIND_LOG=<file>`` and ``PYOPENCL_NO_CACHE=1``.
+Oclgrind never aborts a kernel: it logs.  So a case FAILS when the log is not
+empty, when the subprocess's comparison with the numpy reference fails, or
+when Oclgrind reports an API error on stderr (minus one benign pyopencl probe,
+see ``conftest.OCLGRIND_BENIGN``).  Oclgrind missing is a failure with an
+install hint (``scripts/test.sh`` installs it).
+
+The same worker runs the cases on any implementation
+(``python tests/test_oclgrind.py --impl rusticl --all``); test_portability.py
+uses that for Rusticl.
+
+Inputs are tiny (Oclgrind interprets every work-item, ~1000x slower than
+PoCL): images of 12 x 20 (cropped domain 4 x 12) and 13 x 21, D = 5, plus one
+D >= W volume.  Each case also poisons its outputs first, so an element the
+kernel leaves unwritten fails the comparison.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+POISON = np.float32(-1.2345e30)  # same value as conftest.POISON (not imported: worker runs standalone)
+IPOISON = np.int32(-123456789)
+
+
+# ---------------------------------------------------------------------------
+# helpers used by the cases (run inside the worker process)
+# ---------------------------------------------------------------------------
+def _images(rng, h, w):
+    """A random left image and a right image that is it shifted by ~2 px plus noise."""
+    left = rng.random((h, w)).astype(np.float32)
+    right = np.roll(left, -2, axis=1) * 0.9 + 0.1 * rng.random((h, w)).astype(np.float32)
+    assert np.ptp(left) > 0 and np.ptp(right) > 0
+    return left, right.astype(np.float32)
+
+
+def _volume(rng, D, H, W):
+    """Random cost volume in [0, 1) with NaN in the invalid cells (x < d)."""
+    C = rng.random((D, H, W)).astype(np.float32)
+    for d in range(D):
+        C[d, :, :min(d, W)] = np.nan
+    return C
+
+
+def _poisoned(ctx, nbytes, dtype=np.float32):
+    buf = ctx.empty(nbytes, "test output")
+    ctx.fill(buf, POISON if dtype == np.float32 else IPOISON, nbytes, dtype=dtype)
+    return buf
+
+
+class Checks:
+    """Collects comparisons; ``failures`` lists the ones that failed."""
+
+    def __init__(self):
+        self.results = []
+
+    def close(self, name, got, want, atol=0.0, rtol=0.0):
+        got, want = np.asarray(got), np.asarray(want)
+        ok = got.shape == want.shape
+        err = None
+        if ok:
+            nan_ok = np.array_equal(np.isnan(got), np.isnan(want)) if got.dtype.kind == "f" else True
+            if got.dtype.kind in "iu" or (atol == 0 and rtol == 0):
+                same = np.array_equal(got, want, equal_nan=got.dtype.kind == "f")
+                err = int(np.sum(got != want)) if got.dtype.kind in "iu" else None
+                ok = bool(same)
+            else:
+                m = ~np.isnan(want)
+                diff = np.abs(got[m].astype(np.float64) - want[m].astype(np.float64))
+                lim = atol + rtol * np.abs(want[m].astype(np.float64))
+                err = float(diff.max()) if diff.size else 0.0
+                ok = bool(nan_ok and np.all(diff <= lim))
+        self.results.append({"name": name, "ok": ok, "shape": list(got.shape), "err": err})
+
+    @property
+    def failures(self):
+        return [r for r in self.results if not r["ok"]]
+
+
+# ---------------------------------------------------------------------------
+# cases: one per stage (or per kernel file); each takes (ctx, rng, checks)
+# ---------------------------------------------------------------------------
+def case_network(ctx, rng, chk):
+    """network_conv.cl + network_head.cl: a tiny random net (9x9 patch)."""
+    from mccnn_cl.reference import network as ref
+    from mccnn_cl.stages.network import NetworkCost
+    from mccnn_cl.weights import Weights
+
+    w = Weights.random(conv_layers=[[4, 3], [4, 3], [4, 3], [4, 3]], fc_layers=[8, 8, 8, 2], seed=3)
+    # the device's default tiles, then small explicit ones: several tiles per
+    # disparity with a partly empty last one, both work-item orders
+    nets = [NetworkCost(ctx, w),
+            NetworkCost(ctx, w, tiles={"TM": 8, "RM": 2, "RN": 4, "ROWS_FASTEST": 1, "CONV_RM": 2}),
+            NetworkCost(ctx, w, tiles={"TM": 4, "RM": 1, "RN": 2, "ROWS_FASTEST": 0, "CONV_RM": 3})]
+    for net, (h, wd, D) in zip(nets, ((12, 20, 5), (11, 13, 7), (12, 17, 5))):  # 2nd: D >= W (cropped W = 5)
+        left, right = _images(rng, h, wd)
+        H, W = h - 2 * w.margin, wd - 2 * w.margin
+        out = _poisoned(ctx, D * H * W * 4)
+        net(left, right, D, out=out)
+        got = ctx.from_device(out, (D, H, W))
+        # float32 kernel vs float64 reference through 7 layers of 4-8 units:
+        # rounding differences are ~1e-6 on costs in [0, 1]
+        chk.close(f"C_CNN {h}x{wd} D={D} tiles {net.tm}/{net.rm}/{net.rn}", got, ref.cost_volume(w, left, right, D), atol=2e-5, rtol=1e-4)
+
+
+def case_census(ctx, rng, chk):
+    from mccnn_cl.reference import disparity as ref
+    from mccnn_cl.stages.census import CensusCost
+
+    st = CensusCost(ctx)
+    for (h, wd, D) in ((12, 20, 5), (11, 13, 7)):
+        left, right = _images(rng, h, wd)
+        H, W = h - 8, wd - 8
+        out = _poisoned(ctx, D * H * W * 4)
+        st(left, right, D, out=out)
+        # Hamming distance / 80: exact in float32
+        chk.close(f"census {h}x{wd} D={D}", ctx.from_device(out, (D, H, W)), ref.census_cost(left, right, D))
+
+
+def case_disparity(ctx, rng, chk):
+    """disparity.cl (WTA left/right, LR check), interpolate.cl, subpixel.cl."""
+    from mccnn_cl.reference import disparity as ref
+    from mccnn_cl.stages.disparity import Interpolate, LeftRightCheck, Subpixel, WinnerTakeAll
+
+    wta, lrc, itp, sub = WinnerTakeAll(ctx), LeftRightCheck(ctx), Interpolate(ctx), Subpixel(ctx)
+    for (D, H, W) in ((5, 4, 13), (7, 3, 5)):
+        C = _volume(rng, D, H, W)
+        d_C = ctx.to_device(C)
+        n = H * W * 4
+        d_l, d_r, d_lab = _poisoned(ctx, n, np.int32), _poisoned(ctx, n, np.int32), _poisoned(ctx, n, np.int32)
+        wta.left(d_C, D, H, W, out=d_l)
+        wta.right(d_C, D, H, W, out=d_r)
+        lrc(d_l, d_r, D, H, W, out=d_lab)
+        DL, DR = ref.wta_left(C), ref.wta_right(C)
+        chk.close(f"WTA left D={D} {H}x{W}", ctx.from_device(d_l, (H, W), np.int32), DL)
+        chk.close(f"WTA right D={D} {H}x{W}", ctx.from_device(d_r, (H, W), np.int32), DR)
+        lab = ref.lr_check(DL, DR, D)
+        chk.close(f"LR check D={D} {H}x{W}", ctx.from_device(d_lab, (H, W), np.int32), lab)
+        for directions in ("paper", "code"):
+            d_int = _poisoned(ctx, n, np.int32)
+            itp(d_l, d_lab, H, W, directions=directions, out=d_int)
+            want = ref.interpolate(DL, lab, directions=directions, stop_at_any=directions == "code")
+            chk.close(f"interpolate {directions} {H}x{W}", ctx.from_device(d_int, (H, W), np.int32), want)
+        for mind, clamp in ((0.0, False), (1e-5, True)):
+            d_se = _poisoned(ctx, n)
+            sub(d_C, d_l, D, H, W, min_denominator=mind, clamp_step=clamp, out=d_se)
+            # one division of float32 differences: a few ulps of d
+            chk.close(f"subpixel {mind} {clamp} {H}x{W}", ctx.from_device(d_se, (H, W)),
+                      ref.subpixel(C, DL, min_denominator=mind, clamp_step=clamp), atol=1e-5, rtol=1e-5)
+
+
+def case_refine(ctx, rng, chk):
+    """refine.cl: enlarge, median, bilateral."""
+    from mccnn_cl.reference import disparity as ref
+    from mccnn_cl.stages.refine import BilateralFilter, Enlarge, MedianFilter
+
+    H, W, m = 4, 13, 4
+    Ho, Wo = H + 2 * m, W + 2 * m
+    Dm = (rng.random((H, W)) * 5).astype(np.float32)
+    d_D = ctx.to_device(Dm)
+    d_big = _poisoned(ctx, Ho * Wo * 4)
+    Enlarge(ctx)(d_D, H, W, Ho, Wo, m, out=d_big)
+    big = ref.enlarge(Dm, m, (Ho, Wo))
+    chk.close("enlarge", ctx.from_device(d_big, (Ho, Wo)), big)
+    d_med = _poisoned(ctx, Ho * Wo * 4)
+    MedianFilter(ctx, 5)(d_big, Ho, Wo, out=d_med)
+    med = ref.median_filter(big, 5)
+    chk.close("median 5", ctx.from_device(d_med, (Ho, Wo)), med)
+    guide = rng.random((Ho, Wo)).astype(np.float32)
+    d_bf = _poisoned(ctx, Ho * Wo * 4)
+    BilateralFilter(ctx)(d_med, ctx.to_device(guide), Ho, Wo, sigma=2.0, tau=0.3, radius=3, out=d_bf)
+    # weighted mean of <= 49 float32 terms: relative rounding ~1e-6
+    chk.close("bilateral", ctx.from_device(d_bf, (Ho, Wo)),
+              ref.bilateral(med, guide, 2.0, 3, 0.3), atol=1e-5, rtol=1e-5)
+
+
+def selftest_bad_kernel(ctx, rng, chk):
+    """NOT a stage: a kernel with an out-of-bounds read and a local-memory race,
+    to prove the harness fails when Oclgrind finds something."""
+    src = """
+    __kernel void bad(__global const float *a, __global float *b, int n) {
+        __local float t[1];
+        const int i = get_global_id(0);
+        t[0] = a[i + 1];                     /* reads a[n]: out of bounds */
+        barrier(CLK_LOCAL_MEM_FENCE);
+        if (i < n) b[i] = t[0];
+    }"""
+    prg = ctx.cl.Program(ctx.context, src).build()
+    n = 8
+    d_a, d_b = ctx.to_device(np.arange(n, dtype=np.float32)), ctx.empty(n * 4)
+    prg.bad(ctx.queue, (n,), (n,), d_a, d_b, np.int32(n))
+    chk.close("bad kernel ran", ctx.from_device(d_b, (n,)).shape, (n,))
+
+
+# Stages covered: add a case here once its stage is committed.
+CASES = {
+    "census": case_census,
+    "disparity": case_disparity,
+    "refine": case_refine,
+}
+SELFTESTS = {"selftest_bad_kernel": selftest_bad_kernel}
+# everything the worker can run by name (cases of stages not committed yet included)
+RUNNABLE = {**{n[5:]: f for n, f in globals().items() if n.startswith("case_")}, **SELFTESTS}
+
+
+# ---------------------------------------------------------------------------
+# worker (subprocess) entry point
+# ---------------------------------------------------------------------------
+def run_case(name: str, expect_platform: str | None) -> dict:
+    from mccnn_cl.cl import ClContext
+
+    ctx = ClContext()
+    plat = ctx.device.platform.name.strip()
+    if expect_platform and expect_platform.lower() not in plat.lower():
+        return {"case": name, "ok": False, "error": f"runs on {plat!r}, expected {expect_platform!r}"}
+    chk = Checks()
+    t0 = time.perf_counter()
+    RUNNABLE[name](ctx, np.random.default_rng(1234), chk)
+    ctx.finish()
+    return {"case": name, "ok": not chk.failures, "device": ctx.describe(),
+            "seconds": round(time.perf_counter() - t0, 2), "checks": chk.results}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("cases", nargs="*", help=f"cases to run ({', '.join(CASES)})")
+    ap.add_argument("--all", action="store_true", help="run every case")
+    ap.add_argument("--expect-platform", help="fail unless the context's platform name contains this")
+    ap.add_argument("--impl", help="re-run self in a subprocess on this implementation "
+                    "(pocl, intel, oclgrind, rusticl; see tests/conftest.py)")
+    args = ap.parse_args(argv)
+    names = list(CASES) if args.all else args.cases
+    if not names:
+        ap.error("name cases or --all")
+    if args.impl:
+        rc = 0
+        for name in names:
+            res = run_isolated(args.impl, name)
+            print(json.dumps(res["result"], indent=1) if res["result"] else res["stderr"][-4000:])
+            if res["oclgrind_errors"]:
+                print(res["oclgrind_errors"][:8000])
+            rc |= 0 if res["ok"] else 1
+        return rc
+    rc = 0
+    for name in names:
+        res = run_case(name, args.expect_platform)
+        print("RESULT " + json.dumps(res), flush=True)
+        rc |= 0 if res["ok"] else 1
+    return rc
+
+
+def run_isolated(impl: str, case: str, timeout: float = 600) -> dict:
+    """Run one case in a subprocess that sees only ``impl``.
+
+    Returns ``{"ok", "result" (the worker's dict or None), "oclgrind_errors",
+    "stdout", "stderr", "seconds"}``.  Raises ``conftest.ImplUnavailable``
+    when the implementation is not installed.
+    """
+    sys.path.insert(0, str(HERE))
+    from conftest import CL_IMPLS, impl_environ, oclgrind_errors  # noqa: E402
+
+    with tempfile.TemporaryDirectory(prefix="mccnn-impl-") as tmp:
+        log = Path(tmp) / "oclgrind.log"
+        env = {k: v for k, v in os.environ.items()
+               if not k.startswith(("OCLGRIND_", "PYOPENCL_CTX", "RUSTICL_", "OCL_ICD_"))}
+        env.update(impl_environ(impl, oclgrind_log=log))
+        t0 = time.perf_counter()
+        proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), case,
+                               "--expect-platform", CL_IMPLS[impl]["platform"]],
+                              env=env, capture_output=True, text=True, timeout=timeout)
+        seconds = time.perf_counter() - t0
+        log_text = log.read_text(errors="replace") if log.exists() else ""
+    result = None
+    for line in proc.stdout.splitlines():
+        if line.startswith("RESULT "):
+            result = json.loads(line[7:])
+    errors = ""
+    if impl == "oclgrind":
+        # the log holds only kernel diagnostics: any content fails; API errors go to stderr
+        errors = "\n\n".join(e for e in (log_text.strip(), oclgrind_errors(
+            "\n\n".join(b for b in proc.stderr.split("\n\n") if "Oclgrind" in b))) if e)
+    ok = proc.returncode == 0 and result is not None and result["ok"] and not errors
+    return {"ok": ok, "result": result, "oclgrind_errors": errors, "stdout": proc.stdout,
+            "stderr": proc.stderr, "seconds": seconds, "returncode": proc.returncode}
+
+
+# ---------------------------------------------------------------------------
+# the pytest side
+# ---------------------------------------------------------------------------
+try:
+    import pytest
+except ImportError:  # the worker needs no pytest
+    pytest = None
+
+if pytest is not None:
+
+    @pytest.fixture(scope="module")
+    def oclgrind_available():
+        from conftest import ImplUnavailable, icd_file
+
+        try:
+            return icd_file("oclgrind")
+        except ImplUnavailable as exc:
+            pytest.fail(f"Oclgrind is needed for these tests: {exc}")
+
+    @pytest.mark.oclgrind
+    @pytest.mark.parametrize("case", sorted(CASES))
+    def test_stage_under_oclgrind(case, oclgrind_available):
+        res = run_isolated("oclgrind", case, timeout=300)
+        print(f"{case}: {res['seconds']:.1f} s under Oclgrind")
+        if res["oclgrind_errors"]:
+            pytest.fail(f"Oclgrind reported errors for {case}:\n{res['oclgrind_errors'][:20000]}")
+        if res["result"] is None or res["returncode"] != 0 and not res["result"]:
+            pytest.fail(f"worker for {case} failed (rc {res['returncode']}):\n{res['stderr'][-6000:]}")
+        bad = [r for r in res["result"].get("checks", []) if not r["ok"]]
+        assert res["result"]["ok"] and not bad, f"{case}: kernel != reference under Oclgrind: {bad or res['result']}"
+        assert res["result"]["checks"], f"{case} compared nothing"
+
+    def test_oclgrind_harness_catches_a_bad_kernel(oclgrind_available):
+        """The subprocess + log check really fails on an out-of-bounds read and a race."""
+        res = run_isolated("oclgrind", "selftest_bad_kernel", timeout=120)
+        assert res["result"] is not None and res["result"]["ok"], res["stderr"][-3000:]
+        assert not res["ok"]
+        assert "Invalid read" in res["oclgrind_errors"], res["oclgrind_errors"][:3000]
+        assert "data race" in res["oclgrind_errors"], res["oclgrind_errors"][:3000]
+
+    def test_worker_detects_a_wrong_result():
+        """The comparison helper really fails on a wrong element (a test that cannot fail is a defect)."""
+        chk = Checks()
+        a = np.zeros((2, 3), np.int32)
+        b = a.copy()
+        b[1, 2] = 1
+        chk.close("int", a, b)
+        f = np.zeros(4, np.float32)
+        g = f.copy()
+        g[0] = np.nan
+        chk.close("nan", f, g)
+        chk.close("tol", f, f + 1e-3, atol=1e-5)
+        chk.close("shape", f, f[:3])
+        chk.close("poison", np.full(4, POISON), f, atol=1.0)
+        assert [r["ok"] for r in chk.results] == [False] * 5
+
+
+if __name__ == "__main__":
+    sys.exit(main())
