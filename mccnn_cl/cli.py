@@ -1,0 +1,627 @@
+"""The ``mccnn-cl`` command line (also ``python -m mccnn_cl``).
+
+Sub-commands: ``match`` (one pair or a batch → disparity files, colour
+pictures, depth, point clouds), ``evaluate`` (a dataset, beside OpenCV
+SGBM), ``devices`` (OpenCL devices and the choice), ``bench`` (per-stage
+timings) and ``demo`` (the bundled Middlebury Cones pair).  See docs/cli.md.
+
+Exit status: 0 success, 2 bad usage or input (:class:`~mccnn_cl.errors.InputError`
+and argparse's errors), 1 runtime failure (OpenCL, anything unexpected).
+Errors are one line on stderr; ``--verbose`` adds the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import logging
+import math
+import os
+import sys
+import time
+import traceback
+from contextlib import ExitStack
+from importlib import resources
+
+import numpy as np
+
+from . import __version__
+from .errors import InputError, MccnnError, WeightsError
+
+log = logging.getLogger("mccnn_cl.cli")
+
+DISPARITY_FORMATS = (".pfm", ".png", ".npy")
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff", ".webp")
+DEMO_OUTPUT = "mccnn_demo.png"
+
+
+# -- helpers ---------------------------------------------------------------
+
+def _say(*args):
+    print(*args, flush=True)
+
+
+def _matcher_options(p, default_disp_help):
+    p.add_argument("--max-disp", type=int, default=None, metavar="N",
+                   help=f"number of disparity levels D (disparities 0..D-1); {default_disp_help}")
+    p.add_argument("--cost", choices=("cnn", "census"), default="cnn",
+                   help="matching cost: the MC-CNN network (default) or census (no network)")
+    p.add_argument("--weights", metavar="FILE", default=None,
+                   help="network weights (.npz, mccnn_cl format); default: the shipped model")
+    p.add_argument("--device", metavar="SPEC", default=None,
+                   help="OpenCL device: gpu, cpu, PLATFORM[:DEVICE] name parts, or P:D indices "
+                        "(default: $PYOPENCL_CTX, else GPU > accelerator > CPU)")
+
+
+def _positive(name, value):
+    if value is not None and value < 1:
+        raise InputError(f"{name} must be >= 1, got {value}")
+    return value
+
+
+def _load_weights(args):
+    """The Weights the matcher will use (checked now, so a bad file fails before any OpenCL work)."""
+    if args.cost != "cnn":
+        return None
+    from .weights import Weights, default_weights_path
+    if args.weights is None and not os.path.exists(default_weights_path()):
+        raise WeightsError(f"the shipped weights are not installed ({default_weights_path()}); "
+                           "pass --weights FILE or use --cost census")
+    return Weights.load(args.weights)
+
+
+def _make_matcher(args, max_disparity, weights, progress=False):
+    from .pipeline import StereoMatcher
+    kwargs = dict(max_disparity=int(max_disparity), device=args.device, cost=args.cost,
+                  progress=progress)
+    if args.cost == "cnn":
+        kwargs["weights"] = weights
+    return StereoMatcher(**kwargs)
+
+
+def _check_pair(left, right, max_disparity, weights, names=("left", "right")):
+    """Clear errors for inputs the pipeline cannot match."""
+    if left.shape[:2] != right.shape[:2]:
+        raise InputError(f"{names[0]} ({left.shape[1]}x{left.shape[0]}) and {names[1]} "
+                         f"({right.shape[1]}x{right.shape[0]}) images differ in size")
+    h, w = left.shape[:2]
+    patch = weights.patch_size if weights is not None else 1
+    if h < patch or w < patch:
+        raise InputError(f"image {w}x{h} is smaller than the network's {patch}x{patch} patch")
+    if max_disparity >= w:
+        raise InputError(f"disparity range {max_disparity} is not smaller than the image width {w}; "
+                         "pass a smaller --max-disp")
+
+
+def _check_outputs(paths, force):
+    for p in paths:
+        if p is None:
+            continue
+        d = os.path.dirname(os.path.abspath(p))
+        if not os.path.isdir(d):
+            raise InputError(f"output folder does not exist: {d}")
+        if os.path.exists(p) and not force:
+            raise InputError(f"{p} exists; pass --force to overwrite it")
+        if os.path.isdir(p):
+            raise InputError(f"{p} is a folder, not a file")
+
+
+def write_disparity(path, disp) -> None:
+    """Write by extension: .pfm (+inf invalid), .png (KITTI 16-bit ×256, 0 invalid), .npy (NaN invalid)."""
+    from .depth import atomic_write
+    from .io import write_kitti_disparity, write_pfm
+    ext = os.path.splitext(path)[1].lower()
+    d = np.asarray(disp, dtype=np.float32)
+    if ext == ".pfm":
+        write_pfm(path, np.where(np.isfinite(d), d, np.float32(np.inf)))
+    elif ext == ".png":
+        write_kitti_disparity(path, d)
+    elif ext == ".npy":
+        def write(tmp):
+            with open(tmp, "wb") as f:
+                np.save(f, np.where(np.isfinite(d), d, np.float32(np.nan)))
+        atomic_write(path, write)
+    else:
+        raise InputError(f"{path}: unknown disparity format {ext!r}; use one of "
+                         f"{', '.join(DISPARITY_FORMATS)}")
+
+
+def _write_depth(path, depth):
+    from .depth import atomic_write
+    from .io import write_pfm
+    if path.endswith(".pfm"):
+        write_pfm(path, np.where(np.isfinite(depth), depth, np.float32(np.inf)))
+    else:
+        def write(tmp):
+            with open(tmp, "wb") as f:
+                np.save(f, depth)
+        atomic_write(path, write)
+
+
+def _expand(spec, what):
+    """Files named by a glob pattern, a folder (its images) or a single file; sorted."""
+    if os.path.isdir(spec):
+        files = [os.path.join(spec, f) for f in os.listdir(spec)
+                 if f.lower().endswith(IMAGE_EXTENSIONS) and os.path.isfile(os.path.join(spec, f))]
+    else:
+        files = [f for f in glob.glob(spec) if os.path.isfile(f)]
+    files.sort()
+    if not files:
+        raise InputError(f"no {what} images match {spec!r}")
+    return files
+
+
+def _side_outputs(out, args):
+    """Paths written next to a disparity file: colour picture, depth, point cloud."""
+    stem = os.path.splitext(out)[0]
+    color = None
+    if args.color is not None:
+        color = args.color if args.color else stem + "_color.png"
+    depth = ply = None
+    if args.calib:
+        depth = stem + ("_depth.pfm" if out.lower().endswith(".pfm") else "_depth.npy")
+        ply = stem + ".ply"
+    return color, depth, ply
+
+
+# -- match -------------------------------------------------------------------
+
+def cmd_match(args):
+    from .io import read_image
+    _positive("--max-disp", args.max_disp)
+    single = args.left is not None or args.right is not None
+    batch = args.left_glob is not None or args.right_glob is not None
+    if single == batch:
+        raise InputError("give either LEFT RIGHT -o OUT, or -l LEFT_GLOB -r RIGHT_GLOB --output-dir DIR")
+    calib = None
+    if args.calib:
+        from .depth import read_calib
+        calib = read_calib(args.calib)
+        calib.require_depth()
+    if single:
+        if args.left is None or args.right is None or args.output is None:
+            raise InputError("match needs LEFT RIGHT and -o OUT")
+        if args.output_dir:
+            raise InputError("--output-dir is for batches (-l/-r); use -o for one pair")
+        jobs = [(args.left, args.right, args.output)]
+    else:
+        if args.left_glob is None or args.right_glob is None or args.output_dir is None:
+            raise InputError("a batch needs -l LEFT_GLOB, -r RIGHT_GLOB and --output-dir DIR")
+        if args.output:
+            raise InputError("-o is for one pair; a batch writes into --output-dir")
+        if args.color:
+            raise InputError("in a batch, --color takes no file name (pictures go next to each output)")
+        lefts, rights = _expand(args.left_glob, "left"), _expand(args.right_glob, "right")
+        if len(lefts) != len(rights):
+            raise InputError(f"{len(lefts)} left but {len(rights)} right images; they are paired "
+                             "by sorted order and must be as many")
+        os.makedirs(args.output_dir, exist_ok=True)
+        ext = "." + args.format
+        jobs, seen = [], set()
+        for lp, rp in zip(lefts, rights):
+            stem = os.path.splitext(os.path.basename(lp))[0]
+            if stem in seen:
+                raise InputError(f"two left images are named {stem}; outputs would collide")
+            seen.add(stem)
+            jobs.append((lp, rp, os.path.join(args.output_dir, stem + ext)))
+    for lp, rp, out in jobs:
+        for f in (lp, rp):
+            if not os.path.isfile(f):
+                raise InputError(f"file not found: {f}")
+        if os.path.splitext(out)[1].lower() not in DISPARITY_FORMATS:
+            raise InputError(f"{out}: output must end in {', '.join(DISPARITY_FORMATS)}")
+        color, depth, ply = _side_outputs(out, args)
+        if color is not None and not color.lower().endswith((".png", ".jpg", ".jpeg", ".bmp")):
+            raise InputError(f"{color}: the colour picture must be a .png/.jpg/.bmp file")
+        _check_outputs([out, color, depth, ply], args.force)
+
+    weights = _load_weights(args)
+    matchers = {}
+    progress = None
+    if batch:
+        from tqdm import tqdm
+        progress = tqdm(total=len(jobs), unit="pair", desc="matching", disable=None)
+    try:
+        for lp, rp, out in jobs:
+            left_img = read_image(lp)
+            right_img = read_image(rp)
+            max_disp = args.max_disp
+            if max_disp is None:
+                max_disp = calib.ndisp if (calib is not None and calib.ndisp) else 228
+            _check_pair(left_img, right_img, max_disp, weights, (lp, rp))
+            if max_disp not in matchers:
+                matchers[max_disp] = _make_matcher(args, max_disp, weights, progress=args.verbose and single)
+            t0 = time.perf_counter()
+            disp = matchers[max_disp].compute(_gray(left_img), _gray(right_img))
+            seconds = time.perf_counter() - t0
+            _save_outputs(out, disp, left_img, args, calib, max_disp)
+            fin = np.isfinite(disp)
+            msg = (f"{out}: {disp.shape[1]}x{disp.shape[0]}, {max_disp} disparities, "
+                   f"{fin.mean():.1%} valid, {seconds:.2f} s")
+            if progress is not None:
+                progress.update(1)
+                if args.verbose:
+                    progress.write(msg)
+            else:
+                _say(msg)
+    finally:
+        if progress is not None:
+            progress.close()
+    if batch:
+        _say(f"wrote {len(jobs)} disparity maps to {args.output_dir}")
+    return 0
+
+
+def _gray(img):
+    from .datasets import to_gray
+    return to_gray(img)
+
+
+def _save_outputs(out, disp, left_img, args, calib, max_disp):
+    from .io import write_image
+    from .visualize import colorize_with_legend
+    write_disparity(out, disp)
+    color, depth_path, ply = _side_outputs(out, args)
+    if color is not None:
+        write_image(color, colorize_with_legend(disp, 0, max(max_disp - 1, 1)))
+    if calib is not None:
+        from .depth import disparity_to_depth, point_cloud, write_ply
+        _write_depth(depth_path, disparity_to_depth(disp, calib))
+        pts, rgb = point_cloud(disp, calib, left_img)
+        write_ply(ply, pts, rgb, binary=not args.ply_ascii)
+
+
+# -- evaluate ----------------------------------------------------------------
+
+def cmd_evaluate(args):
+    from .datasets import discover
+    from .evaluate import default_max_disparity, evaluate_pair, format_table, mean_metrics, training_status
+    _positive("--max-disp", args.max_disp)
+    refs = discover(args.dataset_dir, args.dataset)
+    if args.pairs:
+        wanted = [w.strip() for w in args.pairs.split(",") if w.strip()]
+        refs = [r for r in refs if r.name in wanted or r.key in wanted]
+        found = {r.name for r in refs} | {r.key for r in refs}
+        missing = [w for w in wanted if w not in found]
+        if missing:
+            raise InputError(f"pairs not found under {args.dataset_dir}: {', '.join(missing)}")
+    if not refs:
+        raise InputError(f"no stereo pairs found under {args.dataset_dir}"
+                         + (f" for dataset {args.dataset}" if args.dataset else ""))
+    weights = _load_weights(args)
+    meta = weights.meta if weights is not None else None
+    results, matchers = [], {}
+    from tqdm import tqdm
+    bar = tqdm(refs, unit="pair", desc="evaluating", disable=None if not args.json else True)
+    for ref in bar:
+        pair = ref.load()
+        if pair.disp is None:
+            bar.write(f"{pair.key}: no ground truth, skipped")
+            continue
+        max_disp = args.max_disp or default_max_disparity(pair)
+        _check_pair(pair.left, pair.right, max_disp, weights, (pair.key + " left", "right"))
+        if max_disp not in matchers:
+            matchers[max_disp] = _make_matcher(args, max_disp, weights)
+        status = training_status(meta, pair.key, pair.name) if weights is not None else "n/a"
+        results.append(evaluate_pair(pair, matchers[max_disp], max_disp,
+                                     baseline=args.baseline if args.baseline != "none" else None,
+                                     fill=not args.no_fill, error_maps=args.error_maps, status=status))
+    if not results:
+        raise InputError("none of the pairs has ground truth")
+    mean = mean_metrics(results)
+    if args.json:
+        doc = {"cost": args.cost, "weights": _weights_label(args), "fill": not args.no_fill,
+               "pairs": results, "mean": mean}
+        _say(json.dumps(_jsonable(doc), indent=2))
+    else:
+        _say(f"MC-CNN ({_weights_label(args)}) beside OpenCV SGBM; errors in % of GT pixels, "
+             + ("holes filled as the KITTI devkit does" if not args.no_fill else "holes counted as errors"))
+        _say(format_table(results, mean))
+        _say("training: whether the weights' metadata lists the pair as a training pair "
+             "(held out = not used); n/a for --cost census")
+    return 0
+
+
+def _weights_label(args):
+    if args.cost != "cnn":
+        return "census cost, no network"
+    return os.path.basename(args.weights) if args.weights else "shipped weights"
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, (np.floating, np.integer)):
+        return _jsonable(obj.item())
+    return obj
+
+
+# -- devices -----------------------------------------------------------------
+
+def cmd_devices(args):
+    from .cl import list_devices, select_device
+    devices = list_devices()
+    chosen, reason = select_device(args.device)
+    _say("OpenCL devices (P:D indices for --device / PYOPENCL_CTX), in order of preference:")
+    for d in devices:
+        mark = "*" if d.handle == chosen else " "
+        _say(f" {mark} {d.platform_index}:{d.device_index}  {d}")
+    name = next((str(d) for d in devices if d.handle == chosen), chosen.name.strip())
+    _say(f"would use: {name}")
+    _say(f"because:   {reason}")
+    return 0
+
+
+# -- bench -------------------------------------------------------------------
+
+def synthetic_pair(width, height, max_disparity, seed=0):
+    """A textured left image and a right image shifted by a slanted disparity field (uint8 gray)."""
+    import cv2
+    rng = np.random.default_rng(seed)
+    noise = rng.random((height, width + max_disparity)).astype(np.float32)
+    tex = cv2.GaussianBlur(noise, (0, 0), 1.5)
+    tex = (tex - tex.min()) / max(float(np.ptp(tex)), 1e-6)
+    big = (tex * 255).astype(np.uint8)
+    left = big[:, max_disparity:].copy()
+    xs, ys = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
+    d = (0.15 + 0.6 * ys / max(height - 1, 1)) * (max_disparity - 1)
+    # right(x) = left(x + d): sample the wide texture at x + d (+ the offset of `left`)
+    right = cv2.remap(big, xs + d + max_disparity, ys, cv2.INTER_LINEAR)
+    return left, right
+
+
+# StereoMatcher's stage names (pipeline.py) -> the bench's groups; unknown names go by substring.
+_STAGE_OF = {"C_CNN": "network", "cross": "CBCA", "C_CBCA": "CBCA", "C": "CBCA", "C_SGM": "SGM"}
+_STAGE_GROUPS = (("network", ("network", "cnn", "census", "conv")),
+                 ("CBCA", ("cbca", "cross", "aggregat")),
+                 ("SGM", ("sgm", "semiglobal")))
+
+
+def _group_timings(timings: dict) -> dict:
+    """Seconds per group: network (matching cost), CBCA (cross arms + both aggregations), SGM, rest."""
+    out = {"network": 0.0, "CBCA": 0.0, "SGM": 0.0, "rest": 0.0}
+    for name, sec in timings.items():
+        group = _STAGE_OF.get(name)
+        if group is None:
+            low = name.lower()
+            group = next((g for g, keys in _STAGE_GROUPS if any(k in low for k in keys)), "rest")
+        out[group] += float(sec)
+    return out
+
+
+def cmd_bench(args):
+    from .baseline import sgbm
+    from .io import read_image
+    _positive("--max-disp", args.max_disp)
+    max_disp = args.max_disp or 228
+    if args.left or args.right:
+        if not (args.left and args.right):
+            raise InputError("bench needs both --left and --right (or neither for a synthetic pair)")
+        left, right = _gray(read_image(args.left)), _gray(read_image(args.right))
+        what = f"{args.left} / {args.right}"
+    else:
+        try:
+            w, h = (int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            raise InputError(f"--size must look like 1242x375, got {args.size!r}") from None
+        if w < 1 or h < 1:
+            raise InputError(f"--size must be positive, got {args.size!r}")
+        left, right = synthetic_pair(w, h, max_disp)
+        what = f"synthetic textured pair {w}x{h}"
+    weights = _load_weights(args)
+    _check_pair(left, right, max_disp, weights)
+    matcher = _make_matcher(args, max_disp, weights)
+    h, w = left.shape
+    margin = weights.margin if weights is not None else 0
+    vol = max_disp * (h - 2 * margin) * (w - 2 * margin) * 4
+    _say(f"bench: {what}, {max_disp} disparities, cost {args.cost}"
+         + (f" ({weights.num_parameters():,} weights)" if weights is not None else ""))
+    _say(f"device: {matcher.ctx.describe()}")
+    matcher.compute(left, right)  # warm-up: kernel builds, allocations
+    runs = []
+    for _ in range(args.repeat):
+        t0 = time.perf_counter()
+        res = matcher.compute(left, right, timings=True)
+        total = time.perf_counter() - t0
+        runs.append((total, _group_timings(res.timings), res.timings))
+    total, groups, raw = min(runs, key=lambda r: r[0])
+    base_times = [sgbm(left, right, max_disp, return_time=True)[1] for _ in range(args.repeat)]
+    rest = total - sum(groups.values())
+    _say(f"{'stage':<28} {'seconds':>9} {'share':>7}")
+    titles = {"network": "matching cost (" + ("network" if args.cost == "cnn" else "census") + ")",
+              "CBCA": "CBCA (arms + 2 passes)", "SGM": "SGM", "rest": "the rest (WTA ... bilateral)"}
+    for name, sec in groups.items():
+        _say(f"{titles[name]:<28} {sec:>9.3f} {sec / total:>7.1%}")
+    _say(f"{'(host, copies, untimed)':<28} {max(rest, 0.0):>9.3f} {max(rest, 0.0) / total:>7.1%}")
+    _say(f"{'MC-CNN total':<28} {total:>9.3f}")
+    _say(f"{'OpenCV SGBM (same range)':<28} {min(base_times):>9.3f}")
+    _say(f"cost volume: {max_disp} x {h - 2 * margin} x {w - 2 * margin} float32 = {vol / 2**20:.0f} MiB each")
+    if args.verbose:
+        for name, sec in raw.items():
+            _say(f"  {name:<26} {float(sec):>9.4f}")
+    return 0
+
+
+# -- demo --------------------------------------------------------------------
+
+def demo_dir():
+    """Context manager yielding the folder of the bundled demo pair."""
+    return resources.as_file(resources.files("mccnn_cl") / "demo")
+
+
+def cmd_demo(args):
+    from .baseline import sgbm
+    from .datasets import load_middlebury
+    from .evaluate import training_status
+    from .io import write_image
+    from .metrics import evaluate_disparity, fill_invalid
+    from .visualize import colorize, label, legend_bar
+    out = args.output
+    if not out.lower().endswith((".png", ".jpg", ".jpeg", ".bmp")):
+        raise InputError(f"{out}: the demo writes a picture; use a .png or .jpg name")
+    _check_outputs([out], args.force)
+    with ExitStack() as stack:
+        pair = load_middlebury(stack.enter_context(demo_dir()))
+    max_disp = args.max_disp or pair.ndisp or 32
+    weights = _load_weights(args)
+    left, right = pair.gray()
+    _check_pair(left, right, max_disp, weights)
+    status = training_status(weights.meta, "middlebury/Cones", "Cones") if weights is not None else "n/a"
+    t0 = time.perf_counter()
+    matcher = _make_matcher(args, max_disp, weights)
+    ours = matcher.compute(left, right)
+    t_first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    ours = matcher.compute(left, right)
+    t_ours = time.perf_counter() - t0
+    base, t_base = sgbm(left, right, max_disp, return_time=True)
+    m_ours = evaluate_disparity(fill_invalid(ours), pair.disp, pair.valid_noc, pair.valid_all)
+    m_base = evaluate_disparity(fill_invalid(base), pair.disp, pair.valid_noc, pair.valid_all)
+    n_gt = int(pair.valid_all.sum())
+    h, w = left.shape
+    _say(f"demo pair: Middlebury Cones at 1/8 size ({w}x{h}), {max_disp} disparities; "
+         f"Cones is {status} for the {'shipped weights' if args.weights is None else 'weights'}")
+    _say(f"{'method':<22} {'3-px err':>9} {'bad-2.0':>9} {'EPE':>8} {'time':>8}")
+    label_ours = "MC-CNN (OpenCL)" if args.cost == "cnn" else "census+SGM (OpenCL)"
+    for name, m, t in ((label_ours, m_ours, t_ours), ("OpenCV SGBM", m_base, t_base)):
+        _say(f"{name:<22} {m['bad3_all']:>8.2f}% {m['bad2_all']:>8.2f}% {m['epe_all']:>6.2f}px "
+             f"{t:>7.3f}s")
+    _say(f"(errors over the {n_gt} pixels with ground truth; SGBM's holes filled as the KITTI devkit "
+         f"does; MC-CNN's first run incl. OpenCL set-up and kernel builds: {t_first:.1f} s)")
+    # picture: left | GT on top, MC-CNN | SGBM below, one legend
+    vmax = max_disp - 1
+    import cv2
+    tiles = [label(cv2.cvtColor(left, cv2.COLOR_GRAY2BGR) if pair.left.ndim == 2 else pair.left,
+                   "left image"),
+             label(colorize(pair.disp, 0, vmax), "ground truth"),
+             label(colorize(ours, 0, vmax), f"{label_ours}: bad-2.0 {m_ours['bad2_all']:.1f}%"),
+             label(colorize(base, 0, vmax), f"OpenCV SGBM: bad-2.0 {m_base['bad2_all']:.1f}%")]
+    gap = np.full((tiles[0].shape[0], 4, 3), 255, np.uint8)
+    top = np.hstack([tiles[0], gap, tiles[1]])
+    bottom = np.hstack([tiles[2], gap, tiles[3]])
+    sep = np.full((4, top.shape[1], 3), 255, np.uint8)
+    picture = np.vstack([top, sep, bottom, sep, legend_bar(top.shape[1], 0, vmax)])
+    write_image(out, picture)
+    _say(f"wrote {out}")
+    return 0
+
+
+# -- parser and main ---------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    verbose = argparse.ArgumentParser(add_help=False)
+    verbose.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                         help="log progress and show tracebacks on errors")
+    p = argparse.ArgumentParser(
+        prog="mccnn-cl",
+        description="MC-CNN stereo matching (Zbontar & LeCun 2015) with OpenCL inference.",
+        epilog="Exit status: 0 ok, 2 bad usage or input, 1 runtime failure. See docs/cli.md.")
+    p.add_argument("--version", action="version", version=f"mccnn-cl {__version__}")
+    p.add_argument("-v", "--verbose", action="store_true", default=False,
+                   help="log progress and show tracebacks on errors")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    m = sub.add_parser("match", parents=[verbose], help="disparity map of one pair or a batch",
+                       description="Match LEFT against RIGHT and write the left disparity map. "
+                                   "Output format by extension: .pfm (Middlebury float, +inf invalid), "
+                                   ".png (KITTI 16-bit, disparity*256, 0 invalid), .npy (float32, NaN invalid).")
+    m.add_argument("left", nargs="?", help="left image")
+    m.add_argument("right", nargs="?", help="right image")
+    m.add_argument("-o", "--output", metavar="OUT", help="disparity file (.pfm, .png or .npy)")
+    m.add_argument("-l", "--left-glob", metavar="GLOB", help="batch: left images (glob or folder)")
+    m.add_argument("-r", "--right-glob", metavar="GLOB", help="batch: right images (glob or folder), "
+                                                              "paired with the left ones by sorted order")
+    m.add_argument("--output-dir", metavar="DIR", help="batch: folder for <left name>.<format>")
+    m.add_argument("--format", choices=("pfm", "png", "npy"), default="pfm", help="batch: output format")
+    _matcher_options(m, "default: ndisp from --calib if given, else 228 (KITTI)")
+    m.add_argument("--color", nargs="?", const="", default=None, metavar="FILE.png",
+                   help="also write a colour picture with a disparity legend (default name: <OUT>_color.png)")
+    m.add_argument("--calib", metavar="FILE",
+                   help="KITTI calib_cam_to_cam / calib or Middlebury calib.txt: also write depth "
+                        "(<OUT>_depth.npy, or .pfm for .pfm output) and a coloured point cloud <OUT>.ply")
+    m.add_argument("--ply-ascii", action="store_true", help="write the point cloud as ASCII PLY "
+                                                            "(default binary little-endian)")
+    m.add_argument("--force", action="store_true", help="overwrite existing output files")
+    m.set_defaults(func=cmd_match)
+
+    e = sub.add_parser("evaluate", parents=[verbose], help="errors on a dataset, beside OpenCV SGBM",
+                       description="Match every pair with ground truth under DATASET_DIR (KITTI 2012/2015 "
+                                   "or Middlebury MiddEval3 layouts) and print KITTI/Middlebury errors "
+                                   "for MC-CNN and OpenCV StereoSGBM side by side.")
+    e.add_argument("dataset_dir", metavar="DATASET_DIR")
+    e.add_argument("--dataset", choices=("kitti2012", "kitti2015", "middlebury"), default=None,
+                   help="only pairs of this kind (default: every kind found)")
+    e.add_argument("--pairs", metavar="NAME,...", help="only these pairs (names like Cones or 000000, "
+                                                       "or keys like kitti2015/000000)")
+    e.add_argument("--baseline", choices=("sgbm", "none"), default="sgbm")
+    _matcher_options(e, "default: the pair's ndisp (Middlebury calib.txt), else 228")
+    e.add_argument("--json", action="store_true", help="print the results as JSON")
+    e.add_argument("--error-maps", metavar="DIR", help="write error-map PNGs here (green ok, red bad, "
+                                                       "magenta no prediction, black no GT)")
+    e.add_argument("--no-fill", action="store_true",
+                   help="count pixels without a prediction as errors instead of filling them first")
+    e.set_defaults(func=cmd_evaluate)
+
+    d = sub.add_parser("devices", parents=[verbose], help="list OpenCL devices and the one that would be used")
+    d.add_argument("--device", metavar="SPEC", default=None, help="show which device SPEC selects")
+    d.set_defaults(func=cmd_devices)
+
+    b = sub.add_parser("bench", parents=[verbose], help="per-stage runtime on a KITTI-size pair",
+                       description="Time each stage of the pipeline (best of --repeat runs after a "
+                                   "warm-up) beside OpenCV SGBM on the same pair.")
+    b.add_argument("--left", metavar="FILE", help="left image (default: a synthetic textured pair)")
+    b.add_argument("--right", metavar="FILE", help="right image")
+    b.add_argument("--size", default="1242x375", metavar="WxH", help="synthetic pair size (default KITTI)")
+    b.add_argument("--repeat", type=int, default=1, help="timed runs (the best is shown)")
+    _matcher_options(b, "default: 228")
+    b.set_defaults(func=cmd_bench)
+
+    dm = sub.add_parser("demo", parents=[verbose], help="match the bundled Middlebury Cones pair",
+                        description="Match the bundled demo pair (Middlebury Cones, 225x188, held out of "
+                                    "training) with the shipped weights, compare with OpenCV SGBM and the "
+                                    "ground truth, and write a colour picture.")
+    dm.add_argument("-o", "--output", default=DEMO_OUTPUT, metavar="OUT.png",
+                    help=f"picture to write (default {DEMO_OUTPUT})")
+    dm.add_argument("--force", action="store_true", help="overwrite OUT.png if it exists")
+    _matcher_options(dm, "default: 32 (the demo's ndisp)")
+    dm.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    verbose = bool(getattr(args, "verbose", False))
+    if verbose:
+        logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("mccnn-cl: interrupted", file=sys.stderr)
+        return 130
+    except InputError as exc:
+        return _fail(exc, 2, verbose)
+    except MccnnError as exc:
+        return _fail(exc, 1, verbose)
+    except Exception as exc:  # noqa: BLE001 - the command line reports everything in one line
+        return _fail(exc, 1, verbose, with_type=True)
+
+
+def _fail(exc, code, verbose, with_type=False) -> int:
+    if verbose:
+        traceback.print_exc()
+    text = str(exc).strip() or type(exc).__name__
+    lines = text.splitlines()
+    msg = lines[0] if lines else text
+    if with_type:
+        msg = f"{type(exc).__name__}: {msg}"
+    if len(lines) > 1 and not verbose:
+        msg += " (--verbose for details)"
+    print(f"mccnn-cl: error: {msg}", file=sys.stderr)
+    return code
