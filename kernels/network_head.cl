@@ -1,0 +1,201 @@
+/* network_head.cl - the per-disparity layers of the MC-CNN network (L4-L8 and
+ * the softmax), driven by mccnn_cl/stages/network.py (NetworkCost.__call__).
+ *
+ * With the L4 split precomputed once per pixel by network_conv.cl,
+ *   A(p) = W4a . f_L(p) + b4,    B(q) = W4b . f_R(q),
+ * a cell (d, y, x) of the cost volume C_CNN is
+ *   h_0 = ReLU(A(x, y) + B(x - d, y))                     (L4)
+ *   h_l = ReLU(W_l h_{l-1} + b_l),  l = 1 .. NHID         (L5 .. L7)
+ *   z   = W_8 h_NHID + b_8                                (L8, 2 logits)
+ *   C   = softmax(z)[0] = 1 / (1 + exp(z_1 - z_0))        (bad-match class)
+ *
+ * network_head fuses that whole chain for a tile of TM cells of one
+ * disparity: the activations of the tile live in local memory (ping-pong,
+ * 2 x TM x HP floats) and only the cost is written to global memory.  The
+ * cells of disparity d that are valid (x >= d) are numbered
+ * i = y * (W - d) + (x - d), i in [0, H (W - d)); tile t holds i in
+ * [t TM, t TM + TM), so tiles run across image rows and only the last tile of
+ * a disparity is partly empty.  Invalid cells (x < d) are never computed here;
+ * network_mark_invalid writes NaN into them.
+ *
+ * Each dense layer is a TM x HP x HP matrix product; work-item
+ * (rg, cg) of the group computes the register-blocked micro-tile of rows
+ * [rg RM, rg RM + RM) and outputs [cg RN, cg RN + RN): RM vector accumulators
+ * of RN floats, one weight vector load per k reused RM times.  Weights are
+ * stored k-major ([k][n], HP floats a row) and zero-padded to HP, so padded
+ * units are exactly 0 and never change the result.
+ *
+ * Work-group size: exactly NWI = (TM / RM) * (HP / RN) work-items, checked on
+ * the host against the kernel's maximum; local memory 2 TM HP floats, checked
+ * against the device's local memory.
+ */
+#include "common.h"
+
+#ifndef HP
+#error "HP (padded hidden width, a multiple of RN) must be defined"
+#endif
+#ifndef NHID
+#error "NHID (number of hidden layers after L4, e.g. 3 for L5-L7) must be defined"
+#endif
+#ifndef TM
+#error "TM (cells per tile, a multiple of RM) must be defined"
+#endif
+#ifndef RM
+#error "RM (rows per work-item) must be defined"
+#endif
+#ifndef RN
+#error "RN (outputs per work-item: 1, 2, 4, 8 or 16) must be defined"
+#endif
+#ifndef ROWS_FASTEST
+#error "ROWS_FASTEST (1: consecutive work-items take consecutive row groups) must be defined"
+#endif
+
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
+#if RN == 1
+#define VT float
+#define VLOAD(p) (*(p))
+#define VSTORE(v, p) (*(p) = (v))
+#else
+#define VT CAT(float, RN)
+#define VLOAD(p) CAT(vload, RN)(0, (p))
+#define VSTORE(v, p) CAT(vstore, RN)((v), 0, (p))
+#endif
+
+#define NCG (HP / RN)          /* column groups */
+#define NRG (TM / RM)          /* row groups */
+#define NWI (NCG * NRG)        /* work-items per group */
+
+#if HP % RN != 0 || TM % RM != 0
+#error "HP must be a multiple of RN and TM a multiple of RM"
+#endif
+
+/* Horizontal sum of a VT. */
+inline float vsum(VT v)
+{
+#if RN == 1
+    return v;
+#elif RN == 2
+    return v.s0 + v.s1;
+#elif RN == 4
+    return (v.s0 + v.s1) + (v.s2 + v.s3);
+#elif RN == 8
+    return ((v.s0 + v.s1) + (v.s2 + v.s3)) + ((v.s4 + v.s5) + (v.s6 + v.s7));
+#else
+    const float8 t = v.lo + v.hi;
+    return ((t.s0 + t.s1) + (t.s2 + t.s3)) + ((t.s4 + t.s5) + (t.s6 + t.s7));
+#endif
+}
+
+/* One dense layer with ReLU on a tile: out[r][n] = ReLU(b[n] + sum_k in[r][k] w[k][n]). */
+inline void dense_relu(__local const float *in, __local float *out,
+                       __global const float *w, __global const float *b,
+                       int rg, int cg)
+{
+    const int n0 = cg * RN;
+    const int r0 = rg * RM;
+    VT acc[RM];
+    const VT bv = VLOAD(b + n0);
+#pragma unroll
+    for (int r = 0; r < RM; ++r)
+        acc[r] = bv;
+    __local const float *a = in + r0 * HP;
+    __global const float *wc = w + n0;
+    for (int k = 0; k < HP; ++k) {
+        const VT wv = VLOAD(wc + (size_t)k * HP);
+#pragma unroll
+        for (int r = 0; r < RM; ++r)
+            acc[r] = fma((VT)(a[r * HP + k]), wv, acc[r]);
+    }
+#pragma unroll
+    for (int r = 0; r < RM; ++r)
+        VSTORE(fmax(acc[r], (VT)(0.0f)), out + (r0 + r) * HP + n0);
+}
+
+__kernel void network_head(
+    __global const float *fa,   /* A = W4a f_L + b4, [H * W][HP] (pixel-major) */
+    __global const float *fb,   /* B = W4b f_R, [H * W][HP] */
+    __global const float *wh,   /* hidden layers L5.., [NHID][HP][HP], k-major */
+    __global const float *bh,   /* their biases, [NHID][HP] */
+    __global const float *w8,   /* last layer, [2][HP] (row = logit) */
+    __global const float *b8,   /* its bias, [2] */
+    __global float *cost,       /* cost volume, [D][H][W] */
+    int h,                      /* H: cropped height (volume rows) */
+    int w,                      /* W: cropped width (volume columns) */
+    int d0)                     /* first disparity of this launch (d = d0 + group id 1) */
+{
+    __local float act[2 * TM * HP];
+
+    const int d = d0 + (int)get_group_id(1);
+    const int nx = w - d;                       /* valid cells per row */
+    if (nx <= 0)
+        return;                                 /* uniform over the group */
+    const int n_valid = h * nx;
+    const int first = (int)get_group_id(0) * TM;
+    if (first >= n_valid)
+        return;                                 /* uniform over the group */
+
+    const int lid = get_local_id(0);
+#if ROWS_FASTEST
+    const int rg = lid % NRG;
+    const int cg = lid / NRG;
+#else
+    const int cg = lid % NCG;
+    const int rg = lid / NCG;
+#endif
+
+    /* L4: act[r] = ReLU(A(x, y) + B(x - d, y)) */
+    for (int i = lid; i < TM * NCG; i += NWI) {
+        const int r = i / NCG;
+        const int kv = i - r * NCG;
+        const int m = min(first + r, n_valid - 1);   /* past-the-end rows: repeat, not stored */
+        const int y = m / nx;
+        const int x = d + (m - y * nx);
+        const size_t p = (size_t)y * (size_t)w + (size_t)x;
+        const VT s = VLOAD(fa + p * HP + kv * RN) + VLOAD(fb + (p - (size_t)d) * HP + kv * RN);
+        VSTORE(fmax(s, (VT)(0.0f)), act + r * HP + kv * RN);
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+
+    /* L5 .. L(4 + NHID) */
+    for (int l = 0; l < NHID; ++l) {
+        __local const float *src = act + (l & 1) * (TM * HP);
+        __local float *dst = act + ((l + 1) & 1) * (TM * HP);
+        if (lid < NWI)
+            dense_relu(src, dst, wh + (size_t)l * HP * HP, bh + (size_t)l * HP, rg, cg);
+        barrier(CLK_LOCAL_MEM_FENCE);
+    }
+
+    /* L8 and softmax: C = P(bad match) = 1 / (1 + exp(z1 - z0)) */
+    __local const float *fin = act + (NHID & 1) * (TM * HP);
+    for (int r = lid; r < TM; r += NWI) {
+        const int m = first + r;
+        if (m >= n_valid)
+            continue;
+        VT s0 = (VT)(0.0f), s1 = (VT)(0.0f);
+        for (int kv = 0; kv < NCG; ++kv) {
+            const VT a = VLOAD(fin + r * HP + kv * RN);
+            s0 = fma(a, VLOAD(w8 + kv * RN), s0);
+            s1 = fma(a, VLOAD(w8 + HP + kv * RN), s1);
+        }
+        const float z0 = vsum(s0) + b8[0];
+        const float z1 = vsum(s1) + b8[1];
+        const int y = m / nx;
+        const int x = d + (m - y * nx);
+        cost[VIDX(d, y, x, h, w)] = 1.0f / (1.0f + exp(z1 - z0));
+    }
+}
+
+/* NaN into the invalid cells (x < d) of disparities [d0, d0 + get_global_size(2)). */
+__kernel void network_mark_invalid(
+    __global float *cost,       /* cost volume, [D][H][W] */
+    int h,                      /* H */
+    int w,                      /* W */
+    int d0)                     /* first disparity of this launch */
+{
+    const int x = get_global_id(0);
+    const int y = get_global_id(1);
+    const int d = d0 + (int)get_global_id(2);
+    if (x < w && y < h && x < d)
+        cost[VIDX(d, y, x, h, w)] = INVALID_COST;
+}

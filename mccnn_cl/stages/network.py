@@ -1,0 +1,313 @@
+"""The MC-CNN network as OpenCL kernels: the matching cost C_CNN.
+
+Drives ``kernels/network_conv.cl`` (L1-L3 and the L4 split, per pixel) and
+``kernels/network_head.cl`` (L4-L8 and the softmax, per pixel and disparity).
+
+Following the paper's "Matching cost" section, the siamese layers L1-L3 run
+once per image, fully convolutionally (valid convolutions: an image of
+H_img x W_img gives features on (H_img - 8) x (W_img - 8) pixels for the
+paper's 9x9 patches).  L4 acts on the concatenation [f_L(p); f_R(p - d)], so
+with W4 = [W4a | W4b] it splits into two per-pixel terms computed once,
+
+    A(p) = W4a f_L(p) + b4,      B(q) = W4b f_R(q),
+
+and the only per-disparity work is ReLU(A(p) + B(p - d)) followed by L5-L8
+and the softmax, fused in one kernel (see ``network_head.cl``).
+
+Cost volume: float32 ``[D][H][W]`` with ``H = H_img - 8``, ``W = W_img - 8``;
+cell ``(d, y, x)`` is the softmax probability of the bad-match class (index 0)
+for the left patch centred at image ``(x + 4, y + 4)`` and the right patch
+centred at ``(x + 4 - d, y + 4)``; cells with ``x - d < 0`` hold NaN.
+
+Device buffer layouts (all float32, channel-last, pixel-major):
+``features`` -> ``[(H_img-8) * (W_img-8)][NP]`` (L3 output, NP = maps padded
+to the vector width, padded channels 0); ``split_l4`` -> ``[pixels][HP]``
+(HP = hidden width padded, padded units 0).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from ..cl import round_up
+from ..errors import InputError
+from ..weights import Weights
+
+log = logging.getLogger(__name__)
+
+CONV_CL = "network_conv.cl"
+HEAD_CL = "network_head.cl"
+
+# Cells (pixel-disparity pairs) per head launch, roughly: disparities are
+# processed in chunks of about this many cells so one launch stays short
+# (progress reporting, GPU watchdogs) while launches stay large.
+CHUNK_CELLS = 1 << 20
+
+
+def normalise(img) -> np.ndarray:
+    """Per-image standardisation used by the network: ``(I - mean(I)) / std(I)``.
+
+    Mean and standard deviation are taken over the whole image (all channels),
+    in float64; the result is float32.  A constant image has std 0: it is then
+    divided by 1 instead (it becomes all zeros), so no NaN or inf appears.
+    """
+    a = np.asarray(img, dtype=np.float64)
+    mean = a.mean()
+    std = a.std()
+    if not std > 0:
+        std = 1.0
+    return ((a - mean) / std).astype(np.float32)
+
+
+def _as_image(img, name: str, channels: int, patch: int) -> np.ndarray:
+    """Validate one input image; returns it as float64 H x W x C."""
+    try:
+        a = np.asarray(img)
+    except Exception as exc:  # noqa: BLE001 - anything numpy cannot take
+        raise InputError(f"{name} image: not an array ({exc})") from exc
+    if a.dtype.kind not in "buif":
+        raise InputError(f"{name} image: dtype {a.dtype} is not numeric")
+    if a.ndim == 2:
+        a = a[:, :, None]
+    elif a.ndim != 3:
+        raise InputError(f"{name} image: expected a 2-D gray image (H x W), got shape {a.shape}")
+    if a.shape[2] != channels:
+        raise InputError(f"{name} image has {a.shape[2]} channels, the network expects {channels}"
+                         + (" (a 2-D gray image)" if channels == 1 else ""))
+    if a.shape[0] < patch or a.shape[1] < patch:
+        raise InputError(f"{name} image is {a.shape[0]}x{a.shape[1]}, smaller than the network's "
+                         f"{patch}x{patch} patch")
+    a = a.astype(np.float64)
+    if not np.isfinite(a).all():
+        raise InputError(f"{name} image contains NaN or infinite pixels")
+    return a
+
+
+def _default_tiles(ctx) -> dict:
+    """Starting tile sizes for a device (refined against its limits in NetworkCost)."""
+    cl = ctx.cl
+    dev = ctx.device
+    if dev.type & cl.device_type.CPU:
+        width = max(int(dev.preferred_vector_width_float), int(dev.native_vector_width_float), 1)
+        rn = 16 if width >= 16 else 8 if width >= 8 else 4
+        return dict(TM=64, RM=8, RN=rn, ROWS_FASTEST=1, CONV_RM=8)
+    return dict(TM=32, RM=4, RN=4, ROWS_FASTEST=0, CONV_RM=4)
+
+
+class NetworkCost:
+    """C_CNN on the device: ``NetworkCost(ctx, weights)(left, right, D) -> d_cost``.
+
+    Parameters
+    ----------
+    ctx : ClContext
+    weights : Weights
+        Any network of the paper's family (sizes are read from it): conv
+        layers, then fc layers ending in 2 outputs.
+    tiles : dict, optional
+        Overrides of the tile sizes (``TM`` cells per head work-group, ``RM``
+        x ``RN`` register micro-tile, ``ROWS_FASTEST`` work-item order,
+        ``CONV_RM`` pixels per work-item of the conv kernel); by default they
+        are chosen from the device type and shrunk until the head kernel's
+        local memory and work-group size fit the device.
+    """
+
+    def __init__(self, ctx, weights: Weights, tiles: dict | None = None):
+        weights.validate()
+        self.ctx = ctx
+        self.weights = weights
+        self.patch = weights.patch_size
+        self.margin = weights.margin
+        self.channels = weights.input_channels
+        t = _default_tiles(ctx)
+        t.update(tiles or {})
+        self.tiles = t
+        rn = int(t["RN"])
+        if rn not in (1, 2, 4, 8, 16):
+            raise InputError(f"tile RN must be 1, 2, 4, 8 or 16, got {rn}")
+        self.rn = rn
+
+        # -- conv layers L1..L3: k-major weights, outputs padded to RN ---------
+        self._conv = []  # (kernel, d_w, d_b, ks, cin, cs, np_out)
+        cs = self.channels  # the image is uploaded with C channels, stride C
+        for W, b in weights.conv:
+            cout, cin, ks, _ = W.shape
+            npad = round_up(cout, rn)
+            wt = np.zeros((ks * ks * cin, npad), np.float32)
+            wt[:, :cout] = W.transpose(2, 3, 1, 0).reshape(ks * ks * cin, cout)
+            bp = np.zeros(npad, np.float32)
+            bp[:cout] = b
+            kern = ctx.kernel(CONV_CL, "network_conv", KS=ks, CIN=cin, CS=cs, NP=npad,
+                              RM=int(t["CONV_RM"]), RN=rn, RELU=1)
+            self._conv.append((kern, ctx.to_device(wt), ctx.to_device(bp), ks, npad))
+            cs = npad
+        self.feat_stride = cs
+        maps = weights.feature_maps
+
+        # -- fc layers: L4 split, hidden layers, last layer ------------------
+        fc = weights.fc
+        hidden_out = [W.shape[0] for W, _ in fc[:-1]]
+        self.hp = hp = round_up(max(hidden_out), rn)
+        self.nhid = nhid = len(fc) - 2
+        W4, b4 = fc[0]
+        n4 = W4.shape[0]
+        wa = np.zeros((maps, hp), np.float32)
+        wb = np.zeros((maps, hp), np.float32)
+        wa[:, :n4] = W4[:, :maps].T
+        wb[:, :n4] = W4[:, maps:].T
+        ba = np.zeros(hp, np.float32)
+        ba[:n4] = b4
+        self._split_kernel = ctx.kernel(CONV_CL, "network_conv", KS=1, CIN=maps, CS=cs, NP=hp,
+                                        RM=int(t["CONV_RM"]), RN=rn, RELU=0)
+        self._d_wa, self._d_wb = ctx.to_device(wa), ctx.to_device(wb)
+        self._d_ba, self._d_bzero = ctx.to_device(ba), ctx.to_device(np.zeros(hp, np.float32))
+        wh = np.zeros((max(nhid, 1), hp, hp), np.float32)
+        bh = np.zeros((max(nhid, 1), hp), np.float32)
+        for l, (W, b) in enumerate(fc[1:-1]):
+            wh[l, :W.shape[1], :W.shape[0]] = W.T
+            bh[l, :W.shape[0]] = b
+        W8, b8 = fc[-1]
+        w8 = np.zeros((2, hp), np.float32)
+        w8[:, :W8.shape[1]] = W8
+        self._d_wh, self._d_bh = ctx.to_device(wh), ctx.to_device(bh)
+        self._d_w8, self._d_b8 = ctx.to_device(w8), ctx.to_device(np.asarray(b8, np.float32))
+
+        # -- head kernel: shrink TM until local memory and group size fit ----
+        tm, rm = int(t["TM"]), int(t["RM"])
+        if tm % rm:
+            raise InputError(f"tile TM={tm} must be a multiple of RM={rm}")
+        while True:
+            nwi = (tm // rm) * (hp // rn)
+            lmem = 2 * tm * hp * 4
+            fits_mem = lmem <= ctx.local_mem
+            kern = None
+            if fits_mem and nwi <= ctx.max_work_group:
+                kern = ctx.kernel(HEAD_CL, "network_head", HP=hp, NHID=nhid, TM=tm, RM=rm, RN=rn,
+                                  ROWS_FASTEST=int(t["ROWS_FASTEST"]))
+                if nwi <= ctx.work_group_size(kern):
+                    break
+            if tm > rm:
+                tm = max(rm, round_up(tm // 2, rm))
+            elif rm > 1:
+                rm //= 2
+                tm = rm
+            else:
+                raise InputError(
+                    f"the network's hidden width {hp} does not fit this device's work-group "
+                    f"({ctx.max_work_group}) or local memory ({ctx.local_mem} bytes) even with 1-row tiles; "
+                    "try tiles={'RN': 16}")
+        self.tm, self.rm, self.nwi = tm, rm, nwi
+        self._head = kern
+        self._mark = ctx.kernel(HEAD_CL, "network_mark_invalid", HP=hp, NHID=nhid, TM=tm, RM=rm,
+                                RN=rn, ROWS_FASTEST=int(t["ROWS_FASTEST"]))
+        log.info("network: HP=%d NHID=%d TM=%d RM=%d RN=%d (%d work-items, %d B local)",
+                 hp, nhid, tm, rm, rn, nwi, 2 * tm * hp * 4)
+
+    # ---------------------------------------------------------------------
+    def _conv_launch(self, kern, d_in, w_in, d_w, d_b, d_out, w_out, m_total, npad):
+        rmc = int(self.tiles["CONV_RM"])
+        gsize = (npad // self.rn, math.ceil(m_total / rmc))
+        kern(self.ctx.queue, gsize, None, d_in, np.int32(w_in), d_w, d_b, d_out,
+             np.int32(w_out), np.int32(m_total))
+
+    def features(self, d_img, H: int, W: int):
+        """L1..L3 (with ReLU) over a whole image, fully convolutionally.
+
+        ``d_img``: device buffer of the normalised image, float32 ``[H][W][C]``.
+        Returns a new device buffer ``[(H-P+1) * (W-P+1)][feat_stride]`` of the
+        L3 features (P = patch size; channels beyond the map count are 0).
+        """
+        ctx = self.ctx
+        d_in, h, w = d_img, int(H), int(W)
+        for kern, d_w, d_b, ks, npad in self._conv:
+            ho, wo = h - ks + 1, w - ks + 1
+            d_out = ctx.empty(ho * wo * npad * 4, "network feature map")
+            self._conv_launch(kern, d_in, w, d_w, d_b, d_out, wo, ho * wo, npad)
+            if d_in is not d_img:
+                d_in.release()
+            d_in, h, w = d_out, ho, wo
+        return d_in
+
+    def split_l4(self, d_feat, n_pixels: int, left: bool):
+        """The L4 split of L3 features: ``A = W4a f + b4`` (left) or ``B = W4b f`` (right).
+
+        Returns a new device buffer ``[n_pixels][hp]`` (no ReLU: it is applied
+        to ``A(p) + B(p - d)`` in the head).
+        """
+        d_out = self.ctx.empty(int(n_pixels) * self.hp * 4, "network L4 split")
+        d_w, d_b = (self._d_wa, self._d_ba) if left else (self._d_wb, self._d_bzero)
+        self._conv_launch(self._split_kernel, d_feat, n_pixels, d_w, d_b, d_out, n_pixels,
+                          n_pixels, self.hp)
+        return d_out
+
+    def _side(self, img, name):
+        """Normalise, upload and run one image through L1-L3 and its half of L4."""
+        H, W = img.shape[:2]
+        d_img = self.ctx.to_device(normalise(img))
+        d_feat = self.features(d_img, H, W)
+        d_img.release()
+        n = (H - self.patch + 1) * (W - self.patch + 1)
+        d_half = self.split_l4(d_feat, n, left=(name == "left"))
+        d_feat.release()
+        return d_half
+
+    def __call__(self, left, right, max_disparity, progress=None, out=None):
+        """Cost volume C_CNN on the device (see module docstring).
+
+        ``left``, ``right``: 2-D gray images of the same shape (any scale; each
+        is normalised here).  ``max_disparity``: D, disparities ``0 .. D-1``.
+        ``progress``: optional ``callable(done, total)`` called after each
+        chunk of disparities (then the queue is waited on per chunk).
+        ``out``: optional device buffer of at least ``D*H*W*4`` bytes to write
+        into (else a new one is allocated).  Returns the device buffer.
+        """
+        ctx = self.ctx
+        L = _as_image(left, "left", self.channels, self.patch)
+        R = _as_image(right, "right", self.channels, self.patch)
+        if L.shape != R.shape:
+            raise InputError(f"left and right images differ in size: {L.shape[:2]} vs {R.shape[:2]}")
+        if isinstance(max_disparity, (bool, np.bool_)) or not isinstance(max_disparity, (int, np.integer)):
+            raise InputError(f"max_disparity must be an integer, got {max_disparity!r}")
+        D = int(max_disparity)
+        if D < 1:
+            raise InputError(f"max_disparity must be >= 1, got {D}")
+        h, w = L.shape[0] - self.patch + 1, L.shape[1] - self.patch + 1
+        nbytes = D * h * w * 4
+        ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
+        ctx.check_alloc(h * w * self.hp * 4, f"network L4 split ({h} x {w} x {self.hp})")
+        if out is None:
+            d_cost = ctx.empty(nbytes, "cost volume")
+        else:
+            if out.size < nbytes:
+                raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
+            d_cost = out
+
+        d_a = self._side(L, "left")
+        d_b = self._side(R, "right")
+        per_chunk = max(1, min(D, CHUNK_CELLS // max(1, h * w)))
+        q = ctx.queue
+        for d0 in range(0, D, per_chunk):
+            nd = min(per_chunk, D - d0)
+            n_valid = h * max(w - d0, 0)
+            tiles = max(1, math.ceil(n_valid / self.tm))
+            if n_valid > 0:
+                self._head(q, (tiles * self.nwi, nd), (self.nwi, 1),
+                           d_a, d_b, self._d_wh, self._d_bh, self._d_w8, self._d_b8, d_cost,
+                           np.int32(h), np.int32(w), np.int32(d0))
+            self._mark(q, (w, h, nd), None, d_cost, np.int32(h), np.int32(w), np.int32(d0))
+            if progress is not None:
+                q.finish()
+                progress(d0 + nd, D)
+        q.finish()
+        d_a.release()
+        d_b.release()
+        return d_cost
+
+    def compute(self, left, right, max_disparity) -> np.ndarray:
+        """Host copy of :meth:`__call__`: float32 array ``[D][H_img-8][W_img-8]``."""
+        L = np.asarray(left)
+        d = self(left, right, max_disparity)
+        h, w = L.shape[0] - self.patch + 1, L.shape[1] - self.patch + 1
+        return self.ctx.from_device(d, (int(max_disparity), h, w))
