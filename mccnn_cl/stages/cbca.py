@@ -1,0 +1,112 @@
+"""Cross-based cost aggregation, CBCA (paper, "Cross-based cost aggregation")
+- drives ``kernels/cbca.cl`` (kernels ``cbca_rows`` and ``cbca_columns``).
+
+Definition (paper)::
+
+    U_d(p) = {q | q in U^L(p), qd in U^R(pd)},   qd = q - (d, 0), pd = p - (d, 0)
+    C^0 = C,   C^i(p, d) = mean of C^{i-1}(q, d) over q in U_d(p),   i = 1..4
+
+where U(p) is the union of the horizontal arms of all pixels on p's vertical
+arm.  Arms come from :class:`mccnn_cl.stages.cross.CrossArms` (uchar4 per
+pixel: left l, right r, up u, down w).
+
+Derivation of the two passes.  Write p = (x, y).  p's vertical arm is the
+column segment {(x, y') : y - u(x, y) <= y' <= y + w(x, y)}, one pixel per
+row, so U(p) meets row y' exactly in the horizontal arm of (x, y'):
+
+    U^L(p) ∩ row y' = [x - l_L(x, y'), x + r_L(x, y')]      if y' in p's vertical arm (left image)
+    U^R(pd) ∩ row y' = [x-d - l_R(x-d, y'), x-d + r_R(x-d, y')]  if y' in pd's vertical arm (right image)
+
+q = (x', y') is in U_d(p) iff q is in U^L(p) and (x' - d, y') is in U^R(pd).
+The second condition reads y' in pd's vertical arm and
+x - l_R(x-d, y') <= x' <= x + r_R(x-d, y') (shift by +d).  Hence
+
+    rows:     y' in [y - min(u_L(x,y), u_R(x-d,y)),  y + min(w_L(x,y), w_R(x-d,y))]
+    in row y': x' in [x - min(l_L(x,y'), l_R(x-d,y')),  x + min(r_L(x,y'), r_R(x-d,y'))]
+
+(the released code's "min of both images' arms", derived here from the set).
+The row interval depends on (d, y', x) only, not on p's row, so
+|U_d(p)| * C^i(p, d) = sum over the rows y' of S(d, y', x), where S is the
+row sum over the row interval: "orthogonal integral images".  Pass 1
+(``cbca_rows``) computes S for every cell, pass 2 (``cbca_columns``) sums S
+and the row counts down the column and divides.  Both use running prefix
+sums, so the work per cell does not grow with the arm length.
+
+Validity: for a valid p (d <= x) every q of U_d(p) is valid, because the
+right arm at x - d never leaves the right image: x' - d >= x - d - l_R >= 0.
+The kernels also clamp every interval to the valid cells [d, W - 1] by index,
+so an invalid (NaN) cell can never enter a sum or a count; invalid output
+cells are NaN.  p itself is always in U_d(p), so the count is >= 1.
+
+Precision: the prefix sums are compensated (TwoSum pairs), so a window sum
+is exact to a few ulp of the window's own magnitude, independent of the line
+length (plain float32 prefixes of a 1240-px row would lose ~1e-4 of the
+cost range).  Tests compare with the float64 reference at 1e-5 of the cost
+range.
+
+Memory: no scratch volume.  Pass 1 writes the row sums into the output (it
+may alias its input: each cell is written after it was read) and pass 2 works
+in place; iteration 1 reads ``d_cost``, later iterations the output.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from .cross import ARM_LIMIT, check_size, launch
+
+
+class CBCA:
+    """C^iterations_CBCA of a float32 [D][H][W] cost volume; see the module docstring.
+
+    ``max_arm`` (default 255, right for any arms): an upper bound of every
+    arm length in the arm buffers; it sizes the kernels' private ring buffers
+    (a program is built per value).  ``mccnn_cl.stages.cross.max_arm(eta)``
+    gives the tight bound (3 for the paper's eta = 4); a tighter bound is
+    faster on GPUs.  Arms longer than ``max_arm`` are truncated to it.
+    """
+
+    def __init__(self, ctx, max_arm: int = ARM_LIMIT):
+        self.ctx = ctx
+        self._kernels = {}
+        self._get(max_arm)
+
+    def _get(self, max_arm):
+        max_arm = int(max_arm)
+        if not 0 <= max_arm <= ARM_LIMIT:
+            raise InputError(f"max_arm must be in [0, {ARM_LIMIT}], got {max_arm}")
+        k = self._kernels.get(max_arm)
+        if k is None:
+            k = (self.ctx.kernel("cbca.cl", "cbca_rows", MAX_ARM=max_arm),
+                 self.ctx.kernel("cbca.cl", "cbca_columns", MAX_ARM=max_arm))
+            self._kernels[max_arm] = k
+        return k
+
+    def __call__(self, d_cost, d_arms_left, d_arms_right, D, H, W, iterations=4, max_arm=ARM_LIMIT,
+                 out=None):
+        """Enqueue ``iterations`` CBCA passes over ``d_cost`` (D x H x W float32,
+        NaN where invalid).  Returns ``out`` (allocated when None; may be
+        ``d_cost`` itself to aggregate in place).  ``d_cost`` is left untouched
+        unless it is ``out``."""
+        H, W = check_size(H, W, "cost volume")
+        D, iterations = int(D), int(iterations)
+        if D < 1:
+            raise InputError(f"the cost volume needs at least one disparity level, got D = {D}")
+        if iterations < 0:
+            raise InputError(f"iterations must be >= 0, got {iterations}")
+        nbytes = 4 * D * H * W
+        if out is None:
+            out = self.ctx.empty(nbytes, "CBCA output volume")
+        k_rows, k_cols = self._get(max_arm)
+        if iterations == 0:
+            if out is not d_cost:
+                self.ctx.cl.enqueue_copy(self.ctx.queue, out, d_cost, byte_count=nbytes)
+            return out
+        dims = (np.int32(D), np.int32(H), np.int32(W))
+        src = d_cost
+        for _ in range(iterations):
+            launch(self.ctx, "CBCA rows", k_rows, (H, D), None, src, out, d_arms_left, d_arms_right, *dims)
+            launch(self.ctx, "CBCA columns", k_cols, (W, D), None, out, d_arms_left, d_arms_right, *dims)
+            src = out
+        return out

@@ -1,0 +1,161 @@
+"""CBCA: kernels/cbca.cl against mccnn_cl.reference.aggregation.cbca.
+
+Tolerance: the reference averages in float64; the kernels use compensated
+float32 prefix sums, so each window sum is exact to a few ulp of its own
+magnitude and one iteration's mean to ~1e-7 relative; after 4 iterations the
+error stays below 1e-6 of the cost range.  We allow 1e-5 of the cost range
+(atol), far below any cost difference that matters and far above the
+observed error; an off-by-one window or a NaN cell entering a sum would
+exceed it by orders of magnitude.  NaN positions must match exactly.
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import POISON
+from mccnn_cl.reference.aggregation import cbca, cross_arms
+from mccnn_cl.stages.cbca import CBCA
+from mccnn_cl.stages.cross import CrossArms, max_arm
+
+
+def invalid_mask(D, H, W):
+    d = np.arange(D)[:, None, None]
+    x = np.arange(W)[None, None, :]
+    return np.broadcast_to(x < d, (D, H, W))
+
+
+def random_volume(rng, D, H, W, scale=1.0):
+    c = (scale * rng.random((D, H, W))).astype(np.float32)
+    c[invalid_mask(D, H, W)] = np.nan
+    return c
+
+
+def blocky_image(rng, H, W, block=3, noise=0.02):
+    """Piecewise-constant image with a little noise: arms of all lengths."""
+    img = np.repeat(np.repeat(rng.random((H // block + 1, W // block + 1)), block, 0), block, 1)[:H, :W]
+    return (img + noise * rng.random((H, W))).astype(np.float32)
+
+
+def ad_volume(img_l, img_r, D):
+    H, W = img_l.shape
+    c = np.full((D, H, W), np.nan, np.float32)
+    for d in range(D):
+        c[d, :, d:] = np.abs(img_l[:, d:] - img_r[:, :W - d])
+    return c
+
+
+def run_cbca(ctx, cost, arms_l, arms_r, iterations=4, **kw):
+    D, H, W = cost.shape
+    d_out = ctx.empty(cost.nbytes)
+    ctx.fill(d_out, POISON, cost.nbytes)
+    d_cost = ctx.to_device(cost)
+    CBCA(ctx)(d_cost, ctx.to_device(arms_l), ctx.to_device(arms_r), D, H, W,
+              iterations=iterations, out=d_out, **kw)
+    got = ctx.from_device(d_out, cost.shape)
+    np.testing.assert_array_equal(ctx.from_device(d_cost, cost.shape), cost)  # input untouched
+    return got
+
+
+def compare(got, want, cost):
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_array_equal(np.isnan(got), invalid_mask(*cost.shape))
+    rng_ = np.nanmax(cost) - np.nanmin(cost)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * max(rng_, 1e-30))
+
+
+def check(ctx, cost, img_l, img_r, iterations=4, eta=4, include_neighbor=False, **kw):
+    arms_l = cross_arms(img_l, eta=eta, include_neighbor=include_neighbor)
+    arms_r = cross_arms(img_r, eta=eta, include_neighbor=include_neighbor)
+    got = run_cbca(ctx, cost, arms_l, arms_r, iterations, **kw)
+    want = cbca(cost, arms_l, arms_r, iterations)
+    compare(got, want, cost)
+    return got, want
+
+
+def test_random_odd_size(ctx):
+    rng = np.random.default_rng(1)
+    D, H, W = 16, 37, 53
+    cost = random_volume(rng, D, H, W)
+    img_l, img_r = blocky_image(rng, H, W), blocky_image(rng, H, W)
+    got, _ = check(ctx, cost, img_l, img_r)
+    # non-trivial: aggregation changed the costs, and not into one constant
+    valid = ~np.isnan(got)
+    assert np.abs(got[valid] - cost[valid]).max() > 0.05
+    assert got[valid].std() > 0.01
+
+
+def test_random_long_arms_neighbor_variant_and_tight_bound(ctx):
+    rng = np.random.default_rng(2)
+    D, H, W = 9, 23, 31
+    cost = random_volume(rng, D, H, W, scale=50.0) - 20.0  # negative costs too
+    img_l, img_r = blocky_image(rng, H, W, 6, 0.01), blocky_image(rng, H, W, 5, 0.01)
+    check(ctx, cost, img_l, img_r, iterations=2, eta=9, include_neighbor=True)
+    check(ctx, cost, img_l, img_r, iterations=2, eta=9, include_neighbor=True,
+          max_arm=max_arm(9, True))
+
+
+@pytest.mark.parametrize("rel_l,rel_r,y0,x0", [
+    ("middlebury/Cones/im0.png", "middlebury/Cones/im1.png", 150, 200),
+    ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png", 200, 500),
+])
+def test_real_images_ad_volume(ctx, shared_data, rel_l, rel_r, y0, x0):
+    H, W, D = 24, 41, 16
+    imgs = []
+    for rel in (rel_l, rel_r):
+        img = cv2.imread(str(shared_data / rel), cv2.IMREAD_GRAYSCALE)
+        assert img is not None, rel
+        imgs.append(img[y0:y0 + H, x0:x0 + W].astype(np.float32) / 255.0)
+    assert imgs[0].std() > 0.02
+    cost = ad_volume(imgs[0], imgs[1], D)
+    check(ctx, cost, imgs[0], imgs[1])
+
+
+def test_d_at_least_w_single_row_single_column(ctx):
+    rng = np.random.default_rng(3)
+    for D, H, W in [(20, 7, 12), (5, 1, 40), (4, 30, 1), (1, 1, 1), (3, 2, 2)]:
+        cost = random_volume(rng, D, H, W)
+        check(ctx, cost, blocky_image(rng, H, W), blocky_image(rng, H, W), iterations=3)
+
+
+def test_constant_images_arms_hit_eta_and_borders(ctx):
+    rng = np.random.default_rng(4)
+    D, H, W = 6, 15, 19
+    cost = random_volume(rng, D, H, W)
+    img = np.full((H, W), 0.3, np.float32)
+    got, _ = check(ctx, cost, img, img, iterations=1)
+    # with full arms (3 px) one iteration is a 7x7 box mean clipped to the valid cells
+    d, y, x = 2, 7, 9
+    np.testing.assert_allclose(got[d, y, x], cost[d, 4:11, 6:13].mean(), rtol=1e-6)
+    d, y, x = 4, 0, 5  # top border, first valid column
+    np.testing.assert_allclose(got[d, y, x], cost[d, 0:4, 4:9].mean(), rtol=1e-6)
+
+
+def test_constant_volume_stays_constant_and_zero_iterations(ctx):
+    rng = np.random.default_rng(5)
+    D, H, W = 8, 21, 26
+    cost = np.full((D, H, W), 0.7, np.float32)
+    cost[invalid_mask(D, H, W)] = np.nan
+    img_l, img_r = blocky_image(rng, H, W), blocky_image(rng, H, W)
+    arms_l, arms_r = cross_arms(img_l), cross_arms(img_r)
+    got = run_cbca(ctx, cost, arms_l, arms_r)
+    valid = ~invalid_mask(D, H, W)
+    np.testing.assert_allclose(got[valid], 0.7, rtol=1e-6)
+    assert np.isnan(got[~valid]).all()
+    np.testing.assert_array_equal(run_cbca(ctx, cost, arms_l, arms_r, iterations=0), cost)
+
+
+def test_in_place(ctx):
+    rng = np.random.default_rng(6)
+    D, H, W = 7, 13, 17
+    cost = random_volume(rng, D, H, W)
+    img_l, img_r = blocky_image(rng, H, W), blocky_image(rng, H, W)
+    arms_l, arms_r = cross_arms(img_l), cross_arms(img_r)
+    d_cost = ctx.empty(cost.nbytes)
+    ctx.cl.enqueue_copy(ctx.queue, d_cost, cost)
+    # arms straight from the CrossArms stage this time
+    d_al = CrossArms(ctx)(ctx.to_device(img_l), H, W)
+    d_ar = CrossArms(ctx)(ctx.to_device(img_r), H, W)
+    out = CBCA(ctx)(d_cost, d_al, d_ar, D, H, W, out=d_cost)
+    assert out is d_cost
+    compare(ctx.from_device(d_cost, cost.shape), cbca(cost, arms_l, arms_r, 4), cost)
