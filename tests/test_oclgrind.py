@@ -190,6 +190,45 @@ def case_refine(ctx, rng, chk):
               ref.bilateral(med, guide, 2.0, 3, 0.3), atol=1e-5, rtol=1e-5)
 
 
+def _blocky(rng, H, W, block=3):
+    """Piecewise-constant image plus a little noise: arms of varied lengths."""
+    base = rng.random((H // block + 1, W // block + 1))
+    img = np.kron(base, np.ones((block, block)))[:H, :W] + 0.02 * rng.random((H, W))
+    return np.clip(img, 0, 1).astype(np.float32)
+
+
+def case_cross(ctx, rng, chk):
+    """cross.cl: arms of both variants (paper, released code's include_neighbor)."""
+    from mccnn_cl.reference.aggregation import cross_arms
+    from mccnn_cl.stages.cross import CrossArms, arms_from_device
+
+    st = CrossArms(ctx)
+    for (H, W), kw in (((4, 13), {}), ((5, 7), {"eta": 9, "include_neighbor": True}), ((1, 6), {})):
+        img = _blocky(rng, H, W)
+        out = _poisoned(ctx, 4 * H * W, np.int32)  # uchar4 per pixel: poison as int32 words
+        st(ctx.to_device(img), H, W, out=out, **kw)
+        chk.close(f"arms {H}x{W} {kw}", arms_from_device(ctx, out, H, W), cross_arms(img, **kw))
+
+
+def case_cbca(ctx, rng, chk):
+    """cbca.cl: rows + columns passes, 2 iterations, arms from the CrossArms stage."""
+    from mccnn_cl.reference.aggregation import cbca, cross_arms
+    from mccnn_cl.stages.cbca import CBCA
+    from mccnn_cl.stages.cross import CrossArms, max_arm
+
+    for (D, H, W), eta, bound in (((5, 4, 13), 4, max_arm(4)), ((7, 5, 5), 9, 255)):
+        img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
+        C = _volume(rng, D, H, W)
+        d_al = CrossArms(ctx)(ctx.to_device(img_l), H, W, eta=eta)
+        d_ar = CrossArms(ctx)(ctx.to_device(img_r), H, W, eta=eta)
+        out = _poisoned(ctx, 4 * D * H * W)
+        CBCA(ctx, max_arm=bound)(ctx.to_device(C), d_al, d_ar, D, H, W, iterations=2, max_arm=bound, out=out)
+        want = cbca(C, cross_arms(img_l, eta=eta), cross_arms(img_r, eta=eta), 2)
+        # means of <= 81 float32 costs in [0, 1] with compensated sums: the
+        # stage's own tests use 1e-5 of the cost range
+        chk.close(f"CBCA D={D} {H}x{W} eta={eta}", ctx.from_device(out, (D, H, W)), want, atol=1e-5)
+
+
 def selftest_bad_kernel(ctx, rng, chk):
     """NOT a stage: a kernel with an out-of-bounds read and a local-memory race,
     to prove the harness fails when Oclgrind finds something."""
@@ -210,7 +249,10 @@ def selftest_bad_kernel(ctx, rng, chk):
 
 # Stages covered: add a case here once its stage is committed.
 CASES = {
+    "network": case_network,
     "census": case_census,
+    "cross": case_cross,
+    "cbca": case_cbca,
     "disparity": case_disparity,
     "refine": case_refine,
 }
