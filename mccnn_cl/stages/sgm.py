@@ -1,0 +1,104 @@
+"""Semi-global matching, SGM (paper, "Semiglobal matching") - drives
+``kernels/sgm.cl`` (kernel ``sgm_scan``, one launch per direction).
+
+Recurrence along each of the four directions r (left->right, right->left,
+top->bottom, bottom->top; p - r is the previous pixel on the path)::
+
+    C_r(p, d) = C(p, d) - min_k C_r(p-r, k)
+                + min{ C_r(p-r, d), C_r(p-r, d-1) + P1, C_r(p-r, d+1) + P1,
+                       min_k C_r(p-r, k) + P2 }
+    C_SGM = (1/4) sum_r C_r
+
+Validity (by index, never by value): at p only d <= x exist (d < D); terms
+naming an invalid cell of p - r (d, d +- 1 or k beyond its valid range) are
+left out of the minima; the first pixel of each path has C_r = C; invalid
+output cells are NaN.
+
+Penalties, D1 = |I^L(p) - I^L(p-r)|, D2 = |I^R(pd) - I^R(pd-r)|, a gradient
+being "large" when >= tau_so:
+
+* ``variant="paper"`` (default): P1 = Pi1, P2 = Pi2 when both are small;
+  both / q1 when exactly one is large; both / q2 when both are.
+* ``variant="code"`` (released code, NOTES.md): / q1 when one is large,
+  / (q1 * q2) when both are.
+* ``p2_times_pi1=True``: P2 = Pi1 * Pi2 instead of Pi2 (identical at the
+  default Pi1 = 1).
+* P1 is additionally divided by v on the vertical paths (paper: "halved";
+  the released code's asymmetric application is not reproduced).
+* pd - r outside the right image (the paper is silent; only on the
+  left->right path, at d = x): D2 counts as large (``outside_large=True``,
+  default, as in the released code: the right pixel has no predecessor, so
+  nothing argues for smoothness there, and this keeps the weaker penalties
+  at the left border, where disparity jumps of occluded regions occur);
+  ``outside_large=False`` treats it as small.
+
+Defaults: Pi1 = 1, Pi2 = 32, tau_so = 0.0625 (images in [0, 1]), q1 = 4,
+q2 = 10, v = 2.
+
+Implementation: one work-item per scanline keeps C_r(p - r, .) in a private
+array (``-D MAX_DISP``, D rounded up to a multiple of 32) and walks the line;
+the four launches accumulate straight into the output (write, add, add,
+add-and-divide), so no per-direction volume is stored.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from .cross import check_size, launch
+
+#: The paper's four directions r = (dx, dy), in the order accumulated.
+DIRECTIONS = ((1, 0), (-1, 0), (0, 1), (0, -1))
+_DISP_ROUND = 32
+
+
+def penalty_table(pi1=1.0, pi2=32.0, q1=4.0, q2=10.0, v=2.0, vertical=False, variant="paper",
+                  p2_times_pi1=False):
+    """((P1 for 0, 1, 2 large gradients), (P2 likewise)) as float32."""
+    if variant not in ("paper", "code"):
+        raise InputError(f"SGM variant must be 'paper' or 'code', got {variant!r}")
+    div = (1.0, float(q1), float(q2) if variant == "paper" else float(q1) * float(q2))
+    p2 = float(pi1) * float(pi2) if p2_times_pi1 else float(pi2)
+    p1s = tuple(np.float32(float(pi1) / f / (float(v) if vertical else 1.0)) for f in div)
+    p2s = tuple(np.float32(p2 / f) for f in div)
+    return p1s, p2s
+
+
+class SGM:
+    """C_SGM of a float32 [D][H][W] cost volume; see the module docstring."""
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self._kernels = {}
+
+    def _kernel(self, D):
+        max_disp = -(-int(D) // _DISP_ROUND) * _DISP_ROUND
+        k = self._kernels.get(max_disp)
+        if k is None:
+            k = self.ctx.kernel("sgm.cl", "sgm_scan", MAX_DISP=max_disp)
+            self._kernels[max_disp] = k
+        return k
+
+    def __call__(self, d_cost, d_img_left, d_img_right, D, H, W, pi1=1.0, pi2=32.0, tau_so=0.0625,
+                 q1=4.0, q2=10.0, v=2.0, variant="paper", p2_times_pi1=False, outside_large=True,
+                 out=None):
+        """Enqueue the four directions; returns ``out`` (allocated when None,
+        must not be ``d_cost``) holding C_SGM, NaN where invalid."""
+        H, W = check_size(H, W, "cost volume")
+        D = int(D)
+        if D < 1:
+            raise InputError(f"the cost volume needs at least one disparity level, got D = {D}")
+        if out is not None and out is d_cost:
+            raise InputError("SGM cannot work in place: out must differ from d_cost")
+        if out is None:
+            out = self.ctx.empty(4 * D * H * W, "SGM output volume")
+        kernel = self._kernel(D)
+        for i, (dx, dy) in enumerate(DIRECTIONS):
+            p1s, p2s = penalty_table(pi1, pi2, q1, q2, v, dy != 0, variant, p2_times_pi1)
+            mode = 0 if i == 0 else (2 if i == len(DIRECTIONS) - 1 else 1)
+            launch(self.ctx, "SGM", kernel, (W if dy != 0 else H,), None,
+                   d_cost, d_img_left, d_img_right, out, np.int32(D), np.int32(H), np.int32(W),
+                   np.int32(dx), np.int32(dy), *p1s, *p2s, np.float32(tau_so),
+                   np.int32(bool(outside_large)), np.int32(mode))
+        return out

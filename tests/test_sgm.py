@@ -1,0 +1,118 @@
+"""SGM: kernels/sgm.cl against mccnn_cl.reference.aggregation.sgm.
+
+Tolerance: the reference works in float64 (gradient decisions in float32,
+exactly as the kernel); the kernel's float32 path values are re-based at
+every step (C - min + ...), so rounding errors stay a few ulp of the value
+range, |C| + P2, and do not compound along the path.  We allow 2e-5 of
+(cost range + Pi2): an off-by-one in a minimum, a wrong penalty or an invalid
+cell entering a minimum moves values by at least P1 / 40 = 0.025 (at the
+defaults), far beyond it.  NaN positions must match exactly.
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import POISON
+from mccnn_cl.reference.aggregation import SGM_DIRECTIONS, sgm, sgm_direction
+from mccnn_cl.stages.sgm import SGM
+from test_cbca import ad_volume, blocky_image, invalid_mask, random_volume
+
+
+def run_sgm(ctx, cost, img_l, img_r, **kw):
+    D, H, W = cost.shape
+    d_out = ctx.empty(cost.nbytes)
+    ctx.fill(d_out, POISON, cost.nbytes)
+    d_cost = ctx.to_device(cost)
+    SGM(ctx)(d_cost, ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=d_out, **kw)
+    np.testing.assert_array_equal(ctx.from_device(d_cost, cost.shape), cost)  # input untouched
+    return ctx.from_device(d_out, cost.shape)
+
+
+def check(ctx, cost, img_l, img_r, **kw):
+    got = run_sgm(ctx, cost, img_l, img_r, **kw)
+    want = sgm(cost, img_l, img_r, **kw)
+    np.testing.assert_array_equal(np.isnan(got), invalid_mask(*cost.shape))
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    scale = np.nanmax(cost) - np.nanmin(cost) + kw.get("pi2", 32.0)
+    np.testing.assert_allclose(got, want, rtol=0, atol=2e-5 * scale)
+    return got, want
+
+
+def test_random_odd_size(ctx):
+    rng = np.random.default_rng(11)
+    D, H, W = 16, 37, 53
+    cost = random_volume(rng, D, H, W, scale=2.0)
+    img_l, img_r = blocky_image(rng, H, W, 4, 0.05), blocky_image(rng, H, W, 4, 0.05)
+    got, _ = check(ctx, cost, img_l, img_r)
+    valid = ~np.isnan(got)
+    assert np.abs(got[valid] - cost[valid]).max() > 0.5  # smoothing did something
+
+
+def test_variants_and_parameters(ctx):
+    rng = np.random.default_rng(12)
+    D, H, W = 11, 17, 23
+    cost = random_volume(rng, D, H, W, scale=5.0)
+    img_l, img_r = blocky_image(rng, H, W, 3, 0.1), blocky_image(rng, H, W, 3, 0.1)
+    a, _ = check(ctx, cost, img_l, img_r, variant="code", pi1=2.0, pi2=7.0, p2_times_pi1=True)
+    b, _ = check(ctx, cost, img_l, img_r, outside_large=False, pi1=2.0, pi2=14.0, q1=3.0, q2=5.0,
+                 v=4.0, tau_so=0.1)
+    assert np.nanmax(np.abs(a - b)) > 0.01
+
+
+@pytest.mark.parametrize("rel_l,rel_r,y0,x0", [
+    ("middlebury/Cones/im0.png", "middlebury/Cones/im1.png", 150, 200),
+    ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png", 200, 500),
+])
+def test_real_images_ad_volume(ctx, shared_data, rel_l, rel_r, y0, x0):
+    H, W, D = 24, 41, 16
+    imgs = []
+    for rel in (rel_l, rel_r):
+        img = cv2.imread(str(shared_data / rel), cv2.IMREAD_GRAYSCALE)
+        assert img is not None, rel
+        imgs.append(img[y0:y0 + H, x0:x0 + W].astype(np.float32) / 255.0)
+    assert imgs[0].std() > 0.02
+    check(ctx, ad_volume(imgs[0], imgs[1], D), imgs[0], imgs[1])
+
+
+def test_d_at_least_w_single_row_single_column(ctx):
+    rng = np.random.default_rng(13)
+    for D, H, W in [(20, 7, 12), (5, 1, 40), (4, 30, 1), (1, 1, 1), (3, 2, 2), (40, 3, 5)]:
+        cost = random_volume(rng, D, H, W)
+        check(ctx, cost, blocky_image(rng, H, W), blocky_image(rng, H, W))
+
+
+def test_constant_images(ctx):
+    rng = np.random.default_rng(14)
+    D, H, W = 9, 12, 19
+    img = np.full((H, W), 0.4, np.float32)
+    check(ctx, random_volume(rng, D, H, W), img, img)
+
+
+def test_single_direction_matches_path_reference(ctx):
+    """A single row: the vertical paths have length 1 (C_r = C), so C_SGM =
+    (C_lr + C_rl + 2 C) / 4 - checks the horizontal recurrences in isolation."""
+    rng = np.random.default_rng(15)
+    D, H, W = 6, 1, 30
+    cost = random_volume(rng, D, H, W)
+    img_l, img_r = blocky_image(rng, H, W), blocky_image(rng, H, W)
+    got = run_sgm(ctx, cost, img_l, img_r)
+    lr = sgm_direction(cost, img_l, img_r, SGM_DIRECTIONS[0])
+    rl = sgm_direction(cost, img_l, img_r, SGM_DIRECTIONS[1])
+    np.testing.assert_allclose(got, (lr + rl + 2 * cost) / 4, rtol=0, atol=1e-5 * 33)
+
+
+def test_clear_minimum_is_kept(ctx):
+    """A volume with one clear minimum per pixel on a smooth disparity map:
+    the winner-take-all disparity after SGM is that minimum."""
+    rng = np.random.default_rng(16)
+    D, H, W = 12, 19, 29
+    true_d = np.clip((np.arange(W)[None, :] // 7 + np.arange(H)[:, None] // 6), 0, D - 1)
+    true_d = np.minimum(true_d, np.arange(W)[None, :])  # must be a valid disparity
+    cost = (0.5 + 0.5 * rng.random((D, H, W))).astype(np.float32)
+    np.put_along_axis(cost, true_d[None], 0.0, axis=0)
+    cost[invalid_mask(D, H, W)] = np.nan
+    img = blocky_image(rng, H, W)
+    got = run_sgm(ctx, cost, img, img)
+    wta = np.nanargmin(got, axis=0)
+    np.testing.assert_array_equal(wta, true_d)
