@@ -86,7 +86,7 @@ def _check_pair(left, right, max_disparity, weights, names=("left", "right")):
         raise InputError(f"{names[0]} ({left.shape[1]}x{left.shape[0]}) and {names[1]} "
                          f"({right.shape[1]}x{right.shape[0]}) images differ in size")
     h, w = left.shape[:2]
-    patch = weights.patch_size if weights is not None else 1
+    patch = max(weights.patch_size if weights is not None else 1, 9)  # 9: census window, paper patch
     if h < patch or w < patch:
         raise InputError(f"image {w}x{h} is smaller than the network's {patch}x{patch} patch")
     if max_disparity >= w:
@@ -264,7 +264,10 @@ def _save_outputs(out, disp, left_img, args, calib, max_disp):
     write_disparity(out, disp)
     color, depth_path, ply = _side_outputs(out, args)
     if color is not None:
-        write_image(color, colorize_with_legend(disp, 0, max(max_disp - 1, 1)))
+        # scale: 0 .. the map's largest disparity (the range D - 1 would waste most colours on KITTI)
+        fin = disp[np.isfinite(disp)]
+        vmax = min(float(fin.max()), max_disp - 1) if fin.size else max_disp - 1
+        write_image(color, colorize_with_legend(disp, 0, max(vmax, 1.0)))
     if calib is not None:
         from .depth import disparity_to_depth, point_cloud, write_ply
         _write_depth(depth_path, disparity_to_depth(disp, calib))
@@ -417,7 +420,7 @@ def cmd_bench(args):
     _check_pair(left, right, max_disp, weights)
     matcher = _make_matcher(args, max_disp, weights)
     h, w = left.shape
-    margin = weights.margin if weights is not None else 0
+    margin = int(matcher.margin)
     vol = max_disp * (h - 2 * margin) * (w - 2 * margin) * 4
     _say(f"bench: {what}, {max_disp} disparities, cost {args.cost}"
          + (f" ({weights.num_parameters():,} weights)" if weights is not None else ""))
@@ -474,8 +477,7 @@ def cmd_demo(args):
     status = training_status(weights.meta, "middlebury/Cones", "Cones") if weights is not None else "n/a"
     t0 = time.perf_counter()
     matcher = _make_matcher(args, max_disp, weights)
-    ours = matcher.compute(left, right)
-    t_first = time.perf_counter() - t0
+    t_setup = time.perf_counter() - t0
     t0 = time.perf_counter()
     ours = matcher.compute(left, right)
     t_ours = time.perf_counter() - t0
@@ -491,8 +493,8 @@ def cmd_demo(args):
     for name, m, t in ((label_ours, m_ours, t_ours), ("OpenCV SGBM", m_base, t_base)):
         _say(f"{name:<22} {m['bad3_all']:>8.2f}% {m['bad2_all']:>8.2f}% {m['epe_all']:>6.2f}px "
              f"{t:>7.3f}s")
-    _say(f"(errors over the {n_gt} pixels with ground truth; SGBM's holes filled as the KITTI devkit "
-         f"does; MC-CNN's first run incl. OpenCL set-up and kernel builds: {t_first:.1f} s)")
+    _say(f"(errors in % of the {n_gt} pixels with ground truth; SGBM's holes filled as the KITTI devkit "
+         f"does; OpenCL set-up before matching: {t_setup:.1f} s on {matcher.ctx.device.name.strip()})")
     # picture: left | GT on top, MC-CNN | SGBM below, one legend
     vmax = max_disp - 1
     import cv2
