@@ -71,10 +71,11 @@ def _load_weights(args):
     return Weights.load(args.weights)
 
 
-def _make_matcher(args, max_disparity, weights, progress=False):
+def _make_matcher(args, max_disparity, weights, progress=False, ctx=None):
+    """A StereoMatcher; pass ``ctx`` (a ClContext) to share one context and its program cache."""
     from .pipeline import StereoMatcher
-    kwargs = dict(max_disparity=int(max_disparity), device=args.device, cost=args.cost,
-                  progress=progress)
+    kwargs = dict(max_disparity=int(max_disparity), device=ctx if ctx is not None else args.device,
+                  cost=args.cost, progress=progress)
     if args.cost == "cnn":
         kwargs["weights"] = weights
     return StereoMatcher(**kwargs)
@@ -217,7 +218,8 @@ def cmd_match(args):
         _check_outputs([out, color, depth, ply], args.force)
 
     weights = _load_weights(args)
-    matchers = {}
+    from .cl import ClContext
+    matchers, ctx = {}, None
     progress = None
     if batch:
         from tqdm import tqdm
@@ -231,7 +233,10 @@ def cmd_match(args):
                 max_disp = calib.ndisp if (calib is not None and calib.ndisp) else 228
             _check_pair(left_img, right_img, max_disp, weights, (lp, rp))
             if max_disp not in matchers:
-                matchers[max_disp] = _make_matcher(args, max_disp, weights, progress=args.verbose and single)
+                if ctx is None:
+                    ctx = ClContext(args.device)
+                matchers[max_disp] = _make_matcher(args, max_disp, weights, progress=args.verbose and single,
+                                                   ctx=ctx)
             t0 = time.perf_counter()
             disp = matchers[max_disp].compute(_gray(left_img), _gray(right_img))
             seconds = time.perf_counter() - t0
@@ -294,7 +299,8 @@ def cmd_evaluate(args):
                          + (f" for dataset {args.dataset}" if args.dataset else ""))
     weights = _load_weights(args)
     meta = weights.meta if weights is not None else None
-    results, matchers = [], {}
+    from .cl import ClContext
+    results, matchers, ctx = [], {}, None
     from tqdm import tqdm
     bar = tqdm(refs, unit="pair", desc="evaluating", disable=None if not args.json else True)
     for ref in bar:
@@ -305,7 +311,9 @@ def cmd_evaluate(args):
         max_disp = args.max_disp or default_max_disparity(pair)
         _check_pair(pair.left, pair.right, max_disp, weights, (pair.key + " left", "right"))
         if max_disp not in matchers:
-            matchers[max_disp] = _make_matcher(args, max_disp, weights)
+            if ctx is None:
+                ctx = ClContext(args.device)
+            matchers[max_disp] = _make_matcher(args, max_disp, weights, ctx=ctx)
         status = training_status(meta, pair.key, pair.name) if weights is not None else "n/a"
         results.append(evaluate_pair(pair, matchers[max_disp], max_disp,
                                      baseline=args.baseline if args.baseline != "none" else None,

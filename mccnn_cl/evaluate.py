@@ -37,7 +37,9 @@ _HELD_KEYS = ("held_out", "heldout", "validation_pairs", "val_pairs", "test_pair
 def _names(value):
     if value is None:
         return None
-    if isinstance(value, dict):  # e.g. {"kitti2015": ["000001"], "middlebury": [...]}
+    if isinstance(value, dict) and not all(isinstance(v, (list, tuple, str)) for v in value.values()):
+        return {str(k) for k in value}  # train.py: {"kitti2015/000001": examples, ...}
+    if isinstance(value, dict):  # {"kitti2015": ["000001"], "middlebury": [...]}
         out = set()
         for kind, names in value.items():
             for n in (names if isinstance(names, (list, tuple)) else [names]):
@@ -146,25 +148,27 @@ def mean_metrics(results) -> dict:
     return out
 
 
-_COLUMNS = [("bad3_noc", "3px-noc %"), ("bad3_all", "3px-all %"), ("d1_all", "D1-all %"),
-            ("bad2_noc", "bad2-noc %"), ("bad2_all", "bad2-all %"), ("epe_all", "EPE px"),
-            ("density", "density %"), ("seconds", "time s")]
-_SHORT = {"mccnn": "mccnn", "sgbm": "sgbm"}
+_COLUMNS = [("bad3_noc", "3px-noc"), ("bad3_all", "3px-all"), ("d1_all", "D1-all"),
+            ("bad2_noc", "bad2-noc"), ("bad2_all", "bad2-all"), ("epe_all", "EPE px"),
+            ("density", "dens. %"), ("seconds", "time s")]
+_SHORT = {"mccnn": "ours", "sgbm": "sgbm"}
 
 
-def _fmt(v, key):
+def _fmt(v, key, width=5):
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return "-"
-    if key == "seconds":
-        return f"{v:.2f}"
-    return f"{v:.1f}" if key == "density" else f"{v:.2f}"
+    for digits in ((1, 0) if key == "density" else (2, 1, 0)):  # as many decimals as fit
+        text = f"{v:.{digits}f}"
+        if len(text) <= width:
+            return text
+    return text
 
 
 def format_table(results, mean=None) -> str:
     """A plain-text table: one row per pair (and the mean), each metric with MC-CNN and SGBM side by side."""
     methods = [m for m in ("mccnn", "sgbm") if any(m in r["methods"] for r in results)]
     name_w = max([len("pair")] + [len(r["pair"]) for r in results] + [len("mean")])
-    cell = 6
+    cell = 5
     group = len(methods) * (cell + 1) - 1
     head1 = f"{'':<{name_w}}  {'D':>4}  {'training':<8}"
     head2 = f"{'pair':<{name_w}}  {'':>4}  {'':<8}"
@@ -176,7 +180,7 @@ def format_table(results, mean=None) -> str:
     def row(label, d, status, per_method):
         s = f"{label:<{name_w}}  {d:>4}  {status:<8}"
         for key, _ in _COLUMNS:
-            s += "  " + " ".join(f"{_fmt(per_method.get(m, {}).get(key), key):>{cell}}" for m in methods)
+            s += "  " + " ".join(f"{_fmt(per_method.get(m, {}).get(key), key, cell):>{cell}}" for m in methods)
         return s
 
     for r in results:

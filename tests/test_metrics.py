@@ -127,8 +127,17 @@ def test_mean_and_table():
     assert mean["mccnn"]["seconds"] == pytest.approx(2.0)
     assert math.isnan(mean["sgbm"]["bad3_noc"])  # no noc masks: NaN, not 0
     text = format_table([r1, r2], mean)
-    assert "mccnn" in text and "sgbm" in text and "mean" in text and "held out" in text
-    assert "50.00" in text
+    assert "ours" in text and "sgbm" in text and "mean" in text and "held out" in text
+    assert "50.00" in text and "90.0" in text
+
+
+def test_table_cells_fit():
+    from mccnn_cl.evaluate import _fmt
+    assert _fmt(100.0, "bad3_all") == "100.0"  # 100 % fits the 5-wide column with one decimal
+    assert _fmt(3.14159, "bad3_all") == "3.14"
+    assert _fmt(1234.5, "seconds") == "1234"
+    assert _fmt(89.004, "density") == "89.0"
+    assert _fmt(float("nan"), "epe_all") == "-"
 
 
 def test_training_status_from_metadata():
@@ -137,5 +146,11 @@ def test_training_status_from_metadata():
     assert training_status(meta, "middlebury/Tsukuba", "Tsukuba") == "trained"
     assert training_status(meta, "middlebury/Cones", "Cones") == "held out"
     assert training_status(meta, "kitti2012/000000", "000000") == "held out"  # not listed
+    # train.py's provenance: trained_on = {key: examples}, held_out = [keys]
+    meta = {"training": {"trained_on": {"kitti2015/000001": 900, "middlebury/Tsukuba": 40},
+                         "held_out": ["kitti2015/000000", "middlebury/Cones"]}}
+    assert training_status(meta, "middlebury/Tsukuba", "Tsukuba") == "trained"
+    assert training_status(meta, "kitti2015/000000", "000000") == "held out"
+    assert training_status(meta, "middlebury/Aloe", "Aloe") == "held out"
     assert training_status({"training": {"note": "random"}}, "middlebury/Cones", "Cones") == "unknown"
     assert training_status({}, "middlebury/Cones", "Cones") == "unknown"
