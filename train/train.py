@@ -205,15 +205,19 @@ def _machine(device) -> str:
     return f"{cpu}, {torch.get_num_threads()} torch thread(s)"
 
 
-def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None, log=print) -> dict:
+def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None, log=print,
+          stop_after: int | None = None) -> dict:
     """Train on ``train_pairs`` (StereoPairs with GT), validate on ``val_pairs`` each epoch.
 
     Writes ``checkpoint.pt``, ``history.json`` and ``training.png`` in
-    ``out_dir``.  ``resume``: a checkpoint path to continue from.  Returns
+    ``out_dir``.  ``resume``: a checkpoint path to continue from.
+    ``stop_after``: run at most this many epochs in this call (the schedule
+    still spans ``cfg.epochs``; continue later with ``resume``).  Returns
     ``{"model": MCCNN (on device), "history": [...], "provenance": {...}}``.
     """
     if cfg.batch_size < 2 or cfg.batch_size % 2:
         raise InputError(f"batch size must be even (half positive, half negative), got {cfg.batch_size}")
+    device = torch.device(device)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
@@ -244,7 +248,8 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
     log(f"{cfg.epochs} epochs x {iters_per_epoch} iterations x {cfg.batch_size} examples "
         f"= {total_iters * cfg.batch_size} examples; device {device}")
     t_start = time.time()
-    for epoch in range(start_epoch, cfg.epochs):
+    end_epoch = cfg.epochs if stop_after is None else min(cfg.epochs, start_epoch + stop_after)
+    for epoch in range(start_epoch, end_epoch):
         rng = np.random.default_rng([cfg.seed, epoch])
         gen = torch.Generator().manual_seed(int(rng.integers(2**62)))
         plan = sampler.epoch(rng, n_locations=iters_per_epoch * half)
@@ -301,6 +306,7 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         "trained_on": {k: int(v) for k, v in sampler.counts().items()},
         "held_out": vset.keys,
         "epochs": cfg.epochs,
+        "epochs_done": len(history),
         "examples": int(sum(h["examples"] for h in history)),
         "iterations": total_iters,
         "wall_time_s": round(elapsed, 1),
@@ -358,6 +364,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--out", required=True, help="run folder (checkpoint, history, plot)")
     g.add_argument("--export", default=None, help="weights .npz to write at the end (default OUT/weights.npz)")
     g.add_argument("--resume", default=None, help="checkpoint.pt to continue from")
+    g.add_argument("--stop-after", type=int, default=None,
+                   help="run at most this many epochs now (continue later with --resume)")
     g.add_argument("--seed", type=int, default=d.seed)
     g.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     g.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
@@ -397,7 +405,8 @@ def main(argv=None) -> int:
         train_refs, held_refs = select_pairs(args.data, args.holdout, args.include, args.dataset)
         train_pairs = [r.load() for r in train_refs]
         val_pairs = [r.load() for r in held_refs]
-        result = train(cfg, train_pairs, val_pairs, device, args.out, resume=args.resume)
+        result = train(cfg, train_pairs, val_pairs, device, args.out, resume=args.resume,
+                       stop_after=args.stop_after)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
