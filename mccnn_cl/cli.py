@@ -494,8 +494,11 @@ def cmd_demo(args):
     m_base = evaluate_disparity(fill_invalid(base), pair.disp, pair.valid_noc, pair.valid_all)
     n_gt = int(pair.valid_all.sum())
     h, w = left.shape
-    _say(f"demo pair: Middlebury Cones at 1/8 size ({w}x{h}), {max_disp} disparities; "
-         f"Cones is {status} for the {'shipped weights' if args.weights is None else 'weights'}")
+    phrase = {"held out": "held out of the weights' training",
+              "trained": "one of the weights' TRAINING pairs",
+              "unknown": "of unknown training status (the weights do not record their pairs)",
+              "n/a": "matched without a network"}[status]
+    _say(f"demo pair: Middlebury Cones at 1/8 size ({w}x{h}), {max_disp} disparities; Cones is {phrase}")
     _say(f"{'method':<22} {'3-px err':>9} {'bad-2.0':>9} {'EPE':>8} {'time':>8}")
     label_ours = "MC-CNN (OpenCL)" if args.cost == "cnn" else "census+SGM (OpenCL)"
     for name, m, t in ((label_ours, m_ours, t_ours), ("OpenCV SGBM", m_base, t_base)):
@@ -506,16 +509,19 @@ def cmd_demo(args):
     # picture: left | GT on top, MC-CNN | SGBM below, one legend
     vmax = max_disp - 1
     import cv2
-    tiles = [label(cv2.cvtColor(left, cv2.COLOR_GRAY2BGR) if pair.left.ndim == 2 else pair.left,
-                   "left image"),
-             label(colorize(pair.disp, 0, vmax), "ground truth"),
-             label(colorize(ours, 0, vmax), f"{label_ours}: bad-2.0 {m_ours['bad2_all']:.1f}%"),
-             label(colorize(base, 0, vmax), f"OpenCV SGBM: bad-2.0 {m_base['bad2_all']:.1f}%")]
-    gap = np.full((tiles[0].shape[0], 4, 3), 255, np.uint8)
+    def tile(img, caption):  # 2x, nearest: crisp pixels, room for the caption
+        big = cv2.resize(img, None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST)
+        return label(big, caption, height=24, scale=0.55)
+
+    tiles = [tile(cv2.cvtColor(left, cv2.COLOR_GRAY2BGR) if pair.left.ndim == 2 else pair.left, "left image"),
+             tile(colorize(pair.disp, 0, vmax), "ground truth (black: unknown)"),
+             tile(colorize(ours, 0, vmax), f"{label_ours}: bad-2.0 {m_ours['bad2_all']:.1f} %"),
+             tile(colorize(base, 0, vmax), f"OpenCV SGBM: bad-2.0 {m_base['bad2_all']:.1f} % (black: holes)")]
+    gap = np.full((tiles[0].shape[0], 6, 3), 255, np.uint8)
     top = np.hstack([tiles[0], gap, tiles[1]])
     bottom = np.hstack([tiles[2], gap, tiles[3]])
-    sep = np.full((4, top.shape[1], 3), 255, np.uint8)
-    picture = np.vstack([top, sep, bottom, sep, legend_bar(top.shape[1], 0, vmax)])
+    sep = np.full((6, top.shape[1], 3), 255, np.uint8)
+    picture = np.vstack([top, sep, bottom, sep, legend_bar(top.shape[1], 0, vmax, height=40, scale=0.5)])
     write_image(out, picture)
     _say(f"wrote {out}")
     return 0

@@ -72,7 +72,8 @@ def _nice_step(span, max_ticks):
     return 10 * mag
 
 
-def legend_bar(width, vmin, vmax, colormap="turbo", height=34, title="disparity [px]") -> np.ndarray:
+def legend_bar(width, vmin, vmax, colormap="turbo", height=34, title="disparity [px]",
+               scale=0.35) -> np.ndarray:
     """A ``width``-wide strip: the colour ramp from vmin (left) to vmax (right) with tick labels."""
     width = int(width)
     if width < 16:
@@ -80,13 +81,14 @@ def legend_bar(width, vmin, vmax, colormap="turbo", height=34, title="disparity 
     vmin, vmax = float(vmin), float(vmax)
     if vmax <= vmin:
         vmax = vmin + 1.0
-    font, scale, thick = cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1
+    font, thick, pad = cv2.FONT_HERSHEY_SIMPLEX, 1, 4
+    (tw, th), _ = cv2.getTextSize("000", font, scale, thick)
     bar_h = max(8, height // 3)
+    # rows: colour bar, tick labels, then the title (centred) on a line of its own
+    height = max(int(height), bar_h + 2 * th + 3 * pad + 4 if title else bar_h + th + 2 * pad)
     strip = np.full((height, width, 3), 255, np.uint8)
     ramp = np.linspace(vmin, vmax, width)[None, :].repeat(bar_h, 0)
-    pad = 4
     strip[0:bar_h, :] = colorize(ramp, vmin, vmax, colormap)
-    (tw, th), _ = cv2.getTextSize("000", font, scale, thick)
     step = _nice_step(vmax - vmin, max(2, width // (tw + 24)))
     first = np.ceil(vmin / step) * step
     for v in np.arange(first, vmax + 1e-9, step):
@@ -98,9 +100,9 @@ def legend_bar(width, vmin, vmax, colormap="turbo", height=34, title="disparity 
         cv2.putText(strip, text, (tx, bar_h + pad + th), font, scale, (0, 0, 0), thick, cv2.LINE_AA)
     if title:
         (w, _), _ = cv2.getTextSize(title, font, scale, thick)
-        if w + 8 < width:
-            y = height - 3
-            cv2.putText(strip, title, (width - w - 2, y), font, scale, (80, 80, 80), thick, cv2.LINE_AA)
+        y = bar_h + 2 * pad + 2 * th + 2
+        cv2.putText(strip, title, (max((width - w) // 2, 0), y), font, scale, (80, 80, 80), thick,
+                    cv2.LINE_AA)
     return strip
 
 
@@ -143,8 +145,8 @@ def error_image(pred, gt, threshold=3.0, mask=None) -> np.ndarray:
     return img
 
 
-def label(img, text, height=18) -> np.ndarray:
+def label(img, text, height=18, scale=0.4) -> np.ndarray:
     """``img`` with a white caption strip on top."""
     strip = np.full((height, img.shape[1], 3), 255, np.uint8)
-    cv2.putText(strip, text, (3, height - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(strip, text, (3, height - 6), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 1, cv2.LINE_AA)
     return np.vstack([strip, img])
