@@ -9,6 +9,7 @@ import torch
 
 from mccnn_cl.datasets import StereoPair, load_middlebury
 from mccnn_cl.errors import InputError
+from mccnn_cl.train.evaluate import main as eval_main
 from mccnn_cl.train.evaluate import make_validation, row_features, wta_costs, wta_error
 from mccnn_cl.train.model import MCCNN
 from mccnn_cl.train.patches import PatchSampler, normalise
@@ -181,7 +182,7 @@ def test_training_learns_resumes_and_exports(tsukuba, venus, tmp_path):
     torch.testing.assert_close(m2(x, x.flip(-1)), full["model"](x, x.flip(-1)))
 
 
-def test_cli_selects_pairs_and_exports(shared_data, tmp_path):
+def test_cli_selects_pairs_and_exports(shared_data, tmp_path, capsys):
     train_refs, held = select_pairs([shared_data / "middlebury"], holdout=["Cones"],
                                     include=["middlebury/T*", "middlebury/Cones"])
     assert [r.key for r in train_refs] == ["middlebury/Tsukuba"] and [r.key for r in held] == ["middlebury/Cones"]
@@ -197,3 +198,10 @@ def test_cli_selects_pairs_and_exports(shared_data, tmp_path):
     assert list(t["trained_on"]) == ["middlebury/Tsukuba"] and t["held_out"] == ["middlebury/Venus"]
     assert t["examples"] > 2400 and "--holdout" in t["command"]
     assert main(["--data", str(tmp_path / "nothing"), "--out", str(tmp_path / "x")]) == 2
+    # The evaluation CLI reads the export (no torch checkpoint needed).
+    capsys.readouterr()
+    assert eval_main(["--weights", str(tmp_path / "run" / "weights.npz"), "--data", str(shared_data),
+                      "--pairs", "middlebury/Venus", "--pixels", "100", "--examples", "100"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["pairs"] == ["middlebury/Venus"] and res["val_pixels"] == 100 and 0 <= res["val_err3"] <= 1
+    assert eval_main(["--weights", str(tmp_path / "missing.npz"), "--data", str(shared_data)]) == 2

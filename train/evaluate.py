@@ -202,3 +202,54 @@ def validate(model, vset: ValidationSet, device) -> dict:
         out.update(val_err3=we["err3"], val_err3_per_pair=we["per_pair"], val_pixels=we["n"],
                    val_mean_abs=we["mean_abs"])
     return out
+
+
+# -- CLI: evaluate exported weights on held-out pairs ----------------------------------
+
+def main(argv=None) -> int:
+    """``python -m mccnn_cl.train.evaluate --weights W.npz --data DIR --pairs KEY ...``: JSON to stdout."""
+    import argparse
+    import fnmatch
+    import json
+    import sys
+
+    from mccnn_cl.datasets import discover
+    from mccnn_cl.weights import Weights
+
+    from .model import MCCNN
+
+    ap = argparse.ArgumentParser(prog="python -m mccnn_cl.train.evaluate",
+                                 description="Patch loss and WTA 3-px error of a weights file on pairs with GT.")
+    ap.add_argument("--weights", default=None, help="weights .npz (default: the shipped model)")
+    ap.add_argument("--data", nargs="+", required=True, help="dataset folders (any supported layout)")
+    ap.add_argument("--pairs", nargs="+", default=["*"], help="pair keys or patterns (kind/name)")
+    ap.add_argument("--examples", type=int, default=4000, help="held-out patch pairs for the loss")
+    ap.add_argument("--pixels", type=int, default=3000, help="WTA pixels, split between the pairs")
+    ap.add_argument("--rows", type=int, default=48, help="random rows per pair the pixels come from")
+    ap.add_argument("--ndisp", type=int, default=None, help="WTA disparity range (default: pair's, 228 KITTI)")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=None)
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        model = MCCNN.from_weights(Weights.load(args.weights)).eval()
+        refs = [r for root in args.data for r in discover(root)
+                if any(fnmatch.fnmatchcase(r.key, p) or r.key.split("/", 1)[-1] == p for p in args.pairs)]
+        if not refs:
+            raise InputError("no pair matches --pairs")
+        pairs = [r.load() for r in refs]
+        vset = make_validation(pairs, model.patch_size, n_examples=args.examples, n_pixels=args.pixels,
+                               rows_per_pair=args.rows, seed=args.seed, ndisp=args.ndisp)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    res = validate(model, vset, "cpu")
+    res["pairs"] = [r.key for r in refs]
+    print(json.dumps(res, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    import sys as _sys
+    _sys.exit(main())
