@@ -14,3 +14,4 @@ from .errors import (  # noqa: F401
     OpenCLError,
     NoOpenCLDeviceError,
 )
+from .pipeline import Hyperparameters, StereoMatcher  # noqa: F401,E402

@@ -1,0 +1,322 @@
+"""The stereo method of the paper, end to end: :class:`StereoMatcher`.
+
+``StereoMatcher(...).compute(left, right)`` runs, in the paper's order
+(section "Stereo method"; names from the paper)::
+
+    C_CNN    matching cost: the network (cost="cnn") or census (cost="census")
+    C_CBCA   cross-based cost aggregation, cbca_iterations times
+    C_SGM    semiglobal matching
+    C        cross-based cost aggregation again, cbca_iterations_after times
+    D_L, D_R winner-take-all, left and right reference, from the same volume C
+    labels   left-right check (correct / mismatch / occlusion)
+    D_INT    interpolation
+    D_SE     subpixel enhancement on C (the volume the WTA used)
+    D_E      enlarged to the image size (border disparities copied)
+    D_median median filter
+    D_BF     bilateral filter  -> the result
+
+Every stage runs on the OpenCL device; host<->device copies happen only at the
+edges (images in, disparity map out), and for ``return_intermediates=True``
+after each stage (the same code path, buffers copied back).  Stage definitions,
+intensity scales and the paper-vs-released-code variants: ``docs/method.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .cl import ClContext
+from .errors import InputError, WeightsError
+from .stages.census import CensusCost
+from .stages.cross import CrossArms, max_arm
+from .stages.disparity import Interpolate, LeftRightCheck, Subpixel, WinnerTakeAll
+from .stages.refine import BilateralFilter, Enlarge, MedianFilter
+from .weights import Weights
+
+PATCH = 9  # the paper's network patch and the census window: the smallest image
+
+
+@dataclass
+class Hyperparameters:
+    """Stereo-method hyperparameters; defaults are the paper's KITTI values.
+
+    Images are gray in [0, 1] (``cbca_tau``, ``sgm_tau_so`` on that scale);
+    ``blur_tau`` is on the 0..255 scale (the paper's tau_BF = 5) when
+    ``bilateral_guide="image"``, in pixels when ``"disparity"``.
+
+    Variant switches (paper default first; see docs/method.md):
+    ``cross_include_neighbor`` False (code True); ``sgm_variant`` "paper" |
+    "code", ``sgm_p2_times_pi1`` False, ``sgm_outside_large`` True (see
+    :mod:`mccnn_cl.stages.sgm`);
+    ``lr_threshold`` 1.0 (code: 1.1, identical on integer maps);
+    ``interpolation`` "paper" | "code" (half-pixel direction steps, walk stops
+    at any non-mismatch pixel); ``subpixel_min_denominator`` 0.0 (code 1e-5)
+    and ``subpixel_clamp`` False (code True); ``bilateral_guide`` "image" |
+    "disparity" (code); ``blur_radius`` None = ceil(3 sigma).
+    """
+
+    cbca_eta: int = 4                 # eta: max arm length (exclusive)
+    cross_include_neighbor: bool = False  # code: the +-1 neighbour always joins the arm
+    cbca_tau: float = 0.0442          # tau: arm intensity threshold, [0, 1] scale
+    cbca_iterations: int = 4          # CBCA iterations before SGM
+    cbca_iterations_after: int = 4    # CBCA iterations after SGM
+    sgm_pi1: float = 1.0              # Pi_1
+    sgm_pi2: float = 32.0             # Pi_2
+    sgm_tau_so: float = 0.0625        # tau_SO, [0, 1] scale
+    sgm_q1: float = 4.0               # P divisor when one gradient >= tau_SO
+    sgm_q2: float = 10.0              # P divisor when both are
+    sgm_v: float = 2.0                # extra P1 divisor in the vertical directions
+    sgm_variant: str = "paper"        # "paper" | "code" (P / (q1 q2) when both gradients are large)
+    sgm_p2_times_pi1: bool = False    # P2 = Pi1 * Pi2 instead of Pi2
+    sgm_outside_large: bool = True    # pd - r outside the right image counts as a large D2
+    lr_threshold: float = 1.0         # |d - D^R(pd)| <= this is consistent
+    interpolation: str = "paper"      # "paper" | "code"
+    subpixel_min_denominator: float = 0.0
+    subpixel_clamp: bool = False
+    median_size: int = 5
+    blur_sigma: float = 5.656         # sigma of the bilateral filter
+    blur_tau: float = 5.0             # tau_BF (0..255 scale for the image guide)
+    blur_radius: int | None = None    # None: ceil(3 sigma)
+    bilateral_guide: str = "image"    # "image" (paper) | "disparity" (code)
+
+    def __post_init__(self):
+        if self.interpolation not in ("paper", "code"):
+            raise InputError(f"interpolation must be 'paper' or 'code', not {self.interpolation!r}")
+        if self.sgm_variant not in ("paper", "code"):
+            raise InputError(f"sgm_variant must be 'paper' or 'code', not {self.sgm_variant!r}")
+        if self.bilateral_guide not in ("image", "disparity"):
+            raise InputError(f"bilateral_guide must be 'image' or 'disparity', not {self.bilateral_guide!r}")
+        if int(self.median_size) < 1 or int(self.median_size) % 2 == 0:
+            raise InputError(f"median_size must be a positive odd number, not {self.median_size}")
+        for name in ("cbca_eta", "cbca_iterations", "cbca_iterations_after"):
+            if int(getattr(self, name)) < 0:
+                raise InputError(f"{name} must be >= 0, not {getattr(self, name)}")
+        if not self.blur_sigma > 0:
+            raise InputError(f"blur_sigma must be > 0, not {self.blur_sigma}")
+
+    @classmethod
+    def names(cls) -> list:
+        return [f.name for f in dataclasses.fields(cls)]
+
+
+@dataclass
+class StereoResult:
+    """What :meth:`StereoMatcher.compute` returns with ``return_intermediates``.
+
+    ``disparity``: D_BF (float32, the left image's size, pixels).
+    ``intermediates``: name -> host array (C_CNN, C_CBCA, C_SGM, C: float32
+    [D][H-2m][W-2m]; D_L, D_R, labels, D_INT: int32 on the cropped domain;
+    D_SE: float32 cropped; D_median, D_BF: float32 image size).
+    ``timings``: stage -> seconds (queue finished after every stage).
+    ``margin``: m, the offset of the cropped domain in the image.
+    """
+
+    disparity: np.ndarray
+    intermediates: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+    margin: int = 4
+
+
+def to_gray(img, name: str) -> np.ndarray:
+    """Gray float32 in [0, 1] from a gray or colour (BGR/BGRA, as cv2 reads) array:
+    uint8 / 255, uint16 / 65535, float as is (must be finite and in [0, 1])."""
+    a = np.asarray(img)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (3, 4)):
+        raise InputError(f"{name} image: expected H x W (gray) or H x W x 3/4 (BGR/BGRA), got shape {a.shape}")
+    if a.dtype == np.uint8:
+        scale = 255.0
+    elif a.dtype == np.uint16:
+        scale = 65535.0
+    elif a.dtype.kind == "f":
+        a = a.astype(np.float32)
+        if not np.isfinite(a).all():
+            raise InputError(f"{name} image contains NaN or infinite pixels")
+        if a.size and (a.min() < 0 or a.max() > 1):
+            raise InputError(f"{name} image: float pixels must lie in [0, 1], found [{a.min():g}, {a.max():g}]")
+        scale = 1.0
+    else:
+        raise InputError(f"{name} image: dtype {a.dtype} not supported (uint8, uint16 or float in [0, 1])")
+    if a.ndim == 3:  # luminance weights 0.299 R + 0.587 G + 0.114 B, in the input's own type
+        a = cv2.cvtColor(np.ascontiguousarray(a), cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    return (a.astype(np.float32) / np.float32(scale)).astype(np.float32)
+
+
+class StereoMatcher:
+    """MC-CNN stereo matcher (the paper's stereo method on the OpenCL device).
+
+    Parameters
+    ----------
+    weights : None, path or Weights
+        The network for ``cost="cnn"``; None loads the shipped model.
+    max_disparity : int
+        D, the number of disparity levels (disparities 0 .. D-1); 228 = KITTI.
+    device : None, str or ClContext
+        OpenCL device spec (see :func:`mccnn_cl.cl.select_device`) or a context.
+    cost : "cnn" or "census"
+        The matching cost: the network, or a 9 x 9 census transform (no weights).
+    progress : bool
+        Show a tqdm bar while the cost volume is computed.
+    **hyperparameters
+        Overrides of :class:`Hyperparameters` fields by name.
+    """
+
+    def __init__(self, weights=None, max_disparity: int = 228, device=None, cost: str = "cnn",
+                 progress: bool = False, **hyperparameters):
+        unknown = sorted(set(hyperparameters) - set(Hyperparameters.names()))
+        if unknown:
+            raise TypeError(f"unknown hyperparameter(s) {', '.join(unknown)}; valid names: "
+                            + ", ".join(Hyperparameters.names()))
+        self.params = Hyperparameters(**hyperparameters)
+        if isinstance(max_disparity, (bool, np.bool_)) or not isinstance(max_disparity, (int, np.integer)):
+            raise InputError(f"max_disparity must be an integer, not {max_disparity!r}")
+        if max_disparity < 1:
+            raise InputError(f"max_disparity must be >= 1, not {max_disparity}")
+        self.max_disparity = int(max_disparity)
+        if cost not in ("cnn", "census"):
+            raise InputError(f"cost must be 'cnn' or 'census', not {cost!r}")
+        self.cost_name = cost
+        self.progress = bool(progress)
+        self.ctx = device if isinstance(device, ClContext) else ClContext(device)
+
+        if cost == "cnn":
+            from .stages.network import NetworkCost
+
+            if weights is None:
+                try:
+                    weights = Weights.load()
+                except WeightsError as exc:
+                    raise WeightsError(f"no trained weights available ({exc}); pass weights=<path or "
+                                       "Weights> or use cost='census'") from exc
+            elif not isinstance(weights, Weights):
+                weights = Weights.load(weights)
+            self.weights = weights
+            self.cost = NetworkCost(self.ctx, weights)
+            self.margin = weights.margin
+        else:
+            self.weights = None
+            self.cost = CensusCost(self.ctx)
+            self.margin = CensusCost.margin
+
+        from .stages.cbca import CBCA
+        from .stages.sgm import SGM
+
+        ctx = self.ctx
+        self.cross = CrossArms(ctx)
+        self.cbca = CBCA(ctx)
+        self.sgm = SGM(ctx)
+        self.wta = WinnerTakeAll(ctx)
+        self.lr_check = LeftRightCheck(ctx)
+        self.interpolate = Interpolate(ctx)
+        self.subpixel = Subpixel(ctx)
+        self.enlarge = Enlarge(ctx)
+        self.median = MedianFilter(ctx, self.params.median_size)
+        self.bilateral = BilateralFilter(ctx)
+
+    # -- input checks ------------------------------------------------------
+    def _inputs(self, left, right):
+        I_L, I_R = to_gray(left, "left"), to_gray(right, "right")
+        if I_L.shape != I_R.shape:
+            raise InputError(f"left and right images differ in size: {I_L.shape[1]}x{I_L.shape[0]} vs "
+                             f"{I_R.shape[1]}x{I_R.shape[0]}")
+        Hi, Wi = I_L.shape
+        patch = 2 * self.margin + 1
+        if Hi < max(patch, PATCH) or Wi < max(patch, PATCH):
+            raise InputError(f"image is {Wi}x{Hi}, smaller than the {patch}x{patch} patch")
+        if self.max_disparity >= Wi:
+            raise InputError(f"max_disparity {self.max_disparity} must be smaller than the image width {Wi}")
+        return I_L, I_R
+
+    # -- the method ----------------------------------------------------------
+    def compute(self, left, right, return_intermediates: bool = False, timings: bool = False):
+        """Disparity map (float32, the left image's size, pixels) of a rectified pair.
+
+        ``return_intermediates``: return a :class:`StereoResult` with every
+        intermediate volume and map plus per-stage times.  ``timings``: return a
+        :class:`StereoResult` with per-stage times only (no copies).
+        """
+        I_L, I_R = self._inputs(left, right)
+        rec = _Recorder(self.ctx, keep=return_intermediates, timed=return_intermediates or timings)
+        out = self._run(I_L, I_R, rec)
+        if not (return_intermediates or timings):
+            return out
+        return StereoResult(out, rec.arrays, rec.times, self.margin)
+
+    def _run(self, I_L, I_R, rec):
+        p, ctx, m, D = self.params, self.ctx, self.margin, self.max_disparity
+        Hi, Wi = I_L.shape
+        H, W = Hi - 2 * m, Wi - 2 * m
+        vol, img, crop = (D, H, W), (Hi, Wi), (H, W)
+        d_I_L = ctx.to_device(I_L)                                      # I^L, image size (bilateral)
+        d_J_L = ctx.to_device(np.ascontiguousarray(I_L[m:m + H, m:m + W]))  # I^L, I^R on the
+        d_J_R = ctx.to_device(np.ascontiguousarray(I_R[m:m + H, m:m + W]))  # cost volume's domain
+        rec.start()
+
+        # CBCA aggregates in place (out=its input): a recorded volume is copied
+        # to the host before the next stage overwrites it.
+        arm = max_arm(p.cbca_eta, p.cross_include_neighbor)
+        C_CNN = rec("C_CNN", self._matching_cost(I_L, I_R, D), vol)
+        arms_L = self.cross(d_J_L, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
+        arms_R = rec("cross", self.cross(d_J_R, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor))
+        C_CBCA = rec("C_CBCA", self.cbca(C_CNN, arms_L, arms_R, D, H, W, p.cbca_iterations, arm, out=C_CNN), vol)
+        C_SGM = rec("C_SGM", self.sgm(C_CBCA, d_J_L, d_J_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
+                                      p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
+                                      p.sgm_outside_large), vol)
+        C = rec("C", self.cbca(C_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm, out=C_SGM), vol)
+        D_L = rec("D_L", self.wta.left(C, D, H, W), crop, np.int32)
+        D_R = rec("D_R", self.wta.right(C, D, H, W), crop, np.int32)
+        labels = rec("labels", self.lr_check(D_L, D_R, D, H, W, p.lr_threshold), crop, np.int32)
+        D_INT = rec("D_INT", self.interpolate(D_L, labels, H, W, p.interpolation), crop, np.int32)
+        D_SE = rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp), crop)
+        D_E = rec("D_E", self.enlarge(D_SE, H, W, Hi, Wi, m), img)
+        D_median = rec("D_median", self.median(D_E, Hi, Wi), img)
+        guide, tau = (d_I_L, p.blur_tau / 255.0) if p.bilateral_guide == "image" else (D_median, p.blur_tau)
+        D_BF = rec("D_BF", self.bilateral(D_median, guide, Hi, Wi, p.blur_sigma, tau, p.blur_radius), img)
+
+        return ctx.from_device(D_BF, img)
+
+    def _matching_cost(self, I_L, I_R, D):
+        if not self.progress:
+            return self.cost(I_L, I_R, D)
+        from tqdm.auto import tqdm
+
+        with tqdm(total=D, desc=f"cost volume ({self.cost_name})", unit="disp") as bar:
+            def report(done, total):
+                bar.update(done - bar.n)
+            d_cost = self.cost(I_L, I_R, D, progress=report)
+            self.ctx.finish()
+            bar.update(D - bar.n)
+        return d_cost
+
+
+class _Recorder:
+    """Per-stage bookkeeping of :meth:`StereoMatcher._run`: when timed, waits for
+    the queue after each stage and records the wall time since the previous
+    stage; when keeping, copies the stage's output buffer to the host."""
+
+    def __init__(self, ctx, keep: bool, timed: bool):
+        self.ctx, self.keep, self.timed = ctx, keep, timed
+        self.arrays, self.times = {}, {}
+        self.t = 0.0
+
+    def start(self):
+        if self.timed:
+            self.ctx.finish()
+            self.t = time.perf_counter()
+
+    def __call__(self, name, buf, shape=None, dtype=np.float32):
+        if self.timed:
+            self.ctx.finish()
+            now = time.perf_counter()
+            self.times[name] = now - self.t
+        if self.keep and shape is not None:
+            self.arrays[name] = self.ctx.from_device(buf, shape, dtype)
+        if self.timed:
+            self.t = time.perf_counter()  # copies do not count
+        return buf
