@@ -1,31 +1,149 @@
 /* sgm.cl - semi-global matching along one direction (paper, "Semiglobal
- * matching").  Driven by mccnn_cl/stages/sgm.py, which launches sgm_scan
- * once per direction and accumulates C_SGM = (1/4) sum_r C_r in the output.
+ * matching").  Driven by mccnn_cl/stages/sgm.py, which launches one kernel
+ * per direction and accumulates C_SGM = (1/4) sum_r C_r in the output.
  *
- * Required define: MAX_DISP >= D; it sizes the private array holding
- * C_r(p - r, .) of the scanline being walked.
+ * Required define: MAX_DISP >= D; it sizes the private arrays.
  *
- * One work-item walks one scanline (a row for r = (+-1, 0), a column for
- * r = (0, +-1)) and keeps C_r(p - r, k) for k = 0..MAX_DISP in a private
- * array.  Entries of p - r beyond its valid range (k > x of p - r, k >= D)
- * hold +INFINITY, so they drop out of every minimum: validity is decided by
- * index (the NaN of invalid cost cells is never read).
+ * Validity is decided by index: the cost of cell (d, y, x) is used only when
+ * d <= x; entries of C_r(p - r, .) beyond p - r's valid range hold
+ * +INFINITY, so they drop out of every minimum.  Invalid cost cells may be
+ * loaded as part of a vector but their value is always discarded by a
+ * select on the index.
+ *
+ * The volume is [d][y][x]: only x is contiguous, so both kernels move
+ * 16-wide chunks along x (VW floats, one 64-byte line):
+ *  - sgm_columns (vertical paths): one work-item walks 16 adjacent columns
+ *    at once, all arithmetic on float16 lanes;
+ *  - sgm_rows (horizontal paths): one work-item walks one row; for each
+ *    chunk of 16 x it copies the chunk's D x 16 costs (and partial sums)
+ *    into private memory with vector loads, runs the recurrence over those
+ *    16 pixels, and writes the chunk back with vector stores.
+ * Output modes: 0 writes C_r (NaN in invalid cells), 1 adds C_r, 2 adds C_r
+ * and divides by 4.
  */
 #include "common.h"
 
 #ifndef MAX_DISP
 #error "sgm.cl needs -D MAX_DISP=<upper bound of the disparity levels D>"
 #endif
+#define VW 16
 
-__kernel void sgm_scan(__global const float *cost,  /* D x H x W cost volume (NaN invalid) */
+/* n (<= VW) floats from p[first .. first + n - 1], lanes whose index
+ * first + i is < 0 or i >= n are not read and get `fill`. */
+static inline float16 sgm_load(__global const float *p, const int first, const int n, const float fill)
+{
+    if (n == VW && first >= 0)
+        return vload16(0, p + first);
+    float t[VW];
+    for (int i = 0; i < VW; ++i)
+        t[i] = (i < n && first + i >= 0) ? p[first + i] : fill;
+    return vload16(0, t);
+}
+
+/* Store lanes 0 .. n-1 of v to p[0 .. n-1]. */
+static inline void sgm_store(const float16 v, __global float *p, const int n)
+{
+    if (n == VW) {
+        vstore16(v, 0, p);
+        return;
+    }
+    float t[VW];
+    vstore16(v, 0, t);
+    for (int i = 0; i < n; ++i)
+        p[i] = t[i];
+}
+
+/* Combine C_r into the output according to mode (see the header). */
+#define SGM_COMBINE(old, val, mode) \
+    ((mode) == 1 ? (old) + (val) : ((old) + (val)) * 0.25f)
+
+__kernel void sgm_columns(__global const float *cost,  /* D x H x W cost volume (NaN invalid) */
+                          __global const float *img_l, /* H x W left image, gray in [0, 1] */
+                          __global const float *img_r, /* H x W right image, gray in [0, 1] */
+                          __global float *out,         /* D x H x W accumulated C_SGM */
+                          const int D,                 /* disparity levels, <= MAX_DISP */
+                          const int H,                 /* height */
+                          const int W,                 /* width */
+                          const int dy,                /* r = (0, dy): +1 top->bottom, -1 bottom->top */
+                          const float p1_small,        /* P1 when 0, 1, 2 gradients are large */
+                          const float p1_one,
+                          const float p1_both,
+                          const float p2_small,        /* P2 likewise */
+                          const float p2_one,
+                          const float p2_both,
+                          const float tau_so,          /* gradient threshold (paper 0.0625) */
+                          const int mode)              /* 0 write, 1 add, 2 add and divide by 4 */
+{
+    const int x0 = get_global_id(0) * VW;
+    if (x0 >= W)
+        return;
+    const int n = min(VW, W - x0);
+    const int dmax = min(D - 1, x0 + n - 1); /* largest d valid in some lane */
+    const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const int16 xs = (int16)(x0) + lane;
+    const int16 in_tile = lane < (int16)(n);
+    float16 prev[MAX_DISP + 1]; /* C_r(p - r, d) of the 16 columns */
+    for (int d = 0; d <= MAX_DISP; ++d)
+        prev[d] = (float16)(INFINITY);
+    float16 m = (float16)(INFINITY);
+    for (int j = 0; j < H; ++j) {
+        const int y = dy > 0 ? j : H - 1 - j;
+        const int py = y - dy;
+        int16 big_l = (int16)(0);
+        if (j > 0)
+            big_l = isless(fabs(sgm_load(img_l, y * W + x0, n, 0.0f) - sgm_load(img_l, py * W + x0, n, 0.0f)),
+                           (float16)(tau_so)) == (int16)(0);
+        float16 newm = (float16)(INFINITY);
+        float16 pm1 = (float16)(INFINITY); /* C_r(p - r, d - 1) */
+        for (int d = 0; d <= dmax; ++d) {
+            const int16 valid = (xs >= (int16)(d)) & in_tile;
+            const size_t i0 = VIDX(d, y, x0, H, W);
+            const float16 c = sgm_load(cost, i0, n, 0.0f);
+            float16 val;
+            if (j == 0) {
+                val = c; /* first pixel of the path */
+            } else {
+                /* pd = (x - d, y), pd - r = (x - d, py): inside whenever x - d >= 0 */
+                const float16 a = sgm_load(img_r, y * W + x0 - d, n, 0.0f);
+                const float16 b = sgm_load(img_r, py * W + x0 - d, n, 0.0f);
+                const int16 big_r = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
+                const int16 nbig = -(big_l + big_r); /* relational results are -1 for true */
+                const float16 p1 = select(select((float16)(p1_one), (float16)(p1_both), nbig == (int16)(2)),
+                                          (float16)(p1_small), nbig == (int16)(0));
+                const float16 p2 = select(select((float16)(p2_one), (float16)(p2_both), nbig == (int16)(2)),
+                                          (float16)(p2_small), nbig == (int16)(0));
+                const float16 pd = prev[d];
+                const float16 best = fmin(fmin(pd, m + p2), fmin(pm1, prev[d + 1]) + p1);
+                val = c - m + best;
+                pm1 = pd;
+            }
+            val = select((float16)(INFINITY), val, valid);
+            prev[d] = val;
+            newm = fmin(newm, val);
+            float16 o;
+            if (mode == 0) {
+                o = select((float16)(NAN), val, valid);
+            } else {
+                const float16 old = sgm_load(out, i0, n, 0.0f);
+                o = select(old, SGM_COMBINE(old, val, mode), valid);
+            }
+            sgm_store(o, out + i0, n);
+        }
+        if (mode == 0)
+            for (int d = dmax + 1; d < D; ++d)
+                sgm_store((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
+        m = newm;
+    }
+}
+
+__kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (NaN invalid) */
                        __global const float *img_l, /* H x W left image, gray in [0, 1] */
                        __global const float *img_r, /* H x W right image, gray in [0, 1] */
                        __global float *out,         /* D x H x W accumulated C_SGM */
                        const int D,                 /* disparity levels, <= MAX_DISP */
                        const int H,                 /* height */
                        const int W,                 /* width */
-                       const int dx,                /* direction r = (dx, dy): p - r precedes p */
-                       const int dy,
+                       const int dx,                /* r = (dx, 0): +1 left->right, -1 right->left */
                        const float p1_small,        /* P1 when 0, 1, 2 gradients are large */
                        const float p1_one,
                        const float p1_both,
@@ -34,77 +152,77 @@ __kernel void sgm_scan(__global const float *cost,  /* D x H x W cost volume (Na
                        const float p2_both,
                        const float tau_so,          /* gradient threshold (paper 0.0625) */
                        const int outside_large,     /* 1: pd - r outside the right image = large D2 */
-                       const int mode)              /* 0: out = C_r, 1: out += C_r, 2: out = (out + C_r) / 4 */
+                       const int mode)              /* 0 write, 1 add, 2 add and divide by 4 */
 {
-    const int line = get_global_id(0);
-    const int vertical = dy != 0;
-    if (line >= (vertical ? W : H))
+    const int y = get_global_id(0);
+    if (y >= H)
         return;
-    const int len = vertical ? H : W;
-    float prev[MAX_DISP + 1];
-    for (int k = 0; k <= MAX_DISP; ++k)
-        prev[k] = INFINITY;
-    float m = INFINITY; /* min_k C_r(p - r, k) */
-    int pmax = -1;      /* largest valid disparity at p - r */
-    for (int j = 0; j < len; ++j) {
-        int x, y;
-        if (vertical) {
-            x = line;
-            y = dy > 0 ? j : H - 1 - j;
-        } else {
-            y = line;
-            x = dx > 0 ? j : W - 1 - j;
+    __global const float *il = img_l + y * W;
+    __global const float *ir = img_r + y * W;
+    float blk_c[MAX_DISP * VW]; /* costs of one chunk, [d][k] */
+    float blk_o[MAX_DISP * VW]; /* output of one chunk, [d][k] */
+    float prev[MAX_DISP + 1];   /* C_r(p - r, d) */
+    for (int d = 0; d <= MAX_DISP; ++d)
+        prev[d] = INFINITY;
+    float m = INFINITY;
+    int pmax = -1; /* largest valid d at p - r */
+    const int nchunks = (W + VW - 1) / VW;
+    for (int ci = 0; ci < nchunks; ++ci) {
+        const int x0 = (dx > 0 ? ci : nchunks - 1 - ci) * VW;
+        const int n = min(VW, W - x0);
+        const int dmaxc = min(D - 1, x0 + n - 1);
+        for (int d = 0; d <= dmaxc; ++d) {
+            const size_t i0 = VIDX(d, y, x0, H, W);
+            vstore16(sgm_load(cost, i0, n, 0.0f), 0, blk_c + d * VW);
+            if (mode != 0)
+                vstore16(sgm_load(out, i0, n, 0.0f), 0, blk_o + d * VW);
         }
-        const int dmax = min(D - 1, x);
-        float newm = INFINITY;
-        if (j == 0) { /* first pixel of the path: C_r = C */
-            for (int d = 0; d <= dmax; ++d) {
-                const size_t i = VIDX(d, y, x, H, W);
-                const float val = cost[i];
-                prev[d] = val;
-                newm = fmin(newm, val);
-                if (mode == 0)
-                    out[i] = val;
-                else if (mode == 1)
-                    out[i] += val;
-                else
-                    out[i] = (out[i] + val) * 0.25f;
+        for (int kk = 0; kk < n; ++kk) {
+            const int k = dx > 0 ? kk : n - 1 - kk;
+            const int x = x0 + k;
+            const int dmax = min(D - 1, x);
+            float newm = INFINITY;
+            if (x == (dx > 0 ? 0 : W - 1)) { /* first pixel of the path: C_r = C */
+                for (int d = 0; d <= dmax; ++d) {
+                    const float val = blk_c[d * VW + k];
+                    prev[d] = val;
+                    newm = fmin(newm, val);
+                    float *o = blk_o + d * VW + k;
+                    *o = mode == 0 ? val : SGM_COMBINE(*o, val, mode);
+                }
+            } else {
+                const int px = x - dx;
+                const int big_l = !(fabs(il[x] - il[px]) < tau_so);
+                float pm1 = INFINITY; /* C_r(p - r, d - 1) before it was overwritten */
+                for (int d = 0; d <= dmax; ++d) {
+                    const int xrp = px - d; /* pd - r; pd = x - d is inside */
+                    const int big_r = (xrp >= 0 && xrp < W) ? !(fabs(ir[x - d] - ir[xrp]) < tau_so)
+                                                            : outside_large;
+                    const int nbig = big_l + big_r;
+                    const float p1 = nbig == 0 ? p1_small : (nbig == 1 ? p1_one : p1_both);
+                    const float p2 = nbig == 0 ? p2_small : (nbig == 1 ? p2_one : p2_both);
+                    const float pd = prev[d];
+                    const float best = fmin(fmin(pd, m + p2), fmin(pm1, prev[d + 1]) + p1);
+                    const float val = blk_c[d * VW + k] - m + best;
+                    pm1 = pd;
+                    prev[d] = val;
+                    newm = fmin(newm, val);
+                    float *o = blk_o + d * VW + k;
+                    *o = mode == 0 ? val : SGM_COMBINE(*o, val, mode);
+                }
+                for (int d = dmax + 1; d <= pmax; ++d) /* p - r had more valid disparities */
+                    prev[d] = INFINITY;
             }
-        } else {
-            const int px = x - dx;
-            const int py = y - dy;
-            const int big_l = !(fabs(img_l[y * W + x] - img_l[py * W + px]) < tau_so);
-            float pm1 = INFINITY; /* C_r(p - r, d - 1), before it was overwritten */
-            for (int d = 0; d <= dmax; ++d) {
-                const int xr = x - d;   /* pd */
-                const int xrp = px - d; /* pd - r */
-                const int big_r = xrp >= 0 && xrp < W
-                                      ? !(fabs(img_r[y * W + xr] - img_r[py * W + xrp]) < tau_so)
-                                      : outside_large;
-                const int nbig = big_l + big_r;
-                const float p1 = nbig == 0 ? p1_small : (nbig == 1 ? p1_one : p1_both);
-                const float p2 = nbig == 0 ? p2_small : (nbig == 1 ? p2_one : p2_both);
-                const float pd = prev[d];
-                const float best = fmin(fmin(pd, m + p2), fmin(pm1, prev[d + 1]) + p1);
-                const size_t i = VIDX(d, y, x, H, W);
-                const float val = cost[i] - m + best;
-                pm1 = pd;
-                prev[d] = val;
-                newm = fmin(newm, val);
-                if (mode == 0)
-                    out[i] = val;
-                else if (mode == 1)
-                    out[i] += val;
-                else
-                    out[i] = (out[i] + val) * 0.25f;
-            }
-            for (int d = dmax + 1; d <= pmax; ++d) /* p - r had more valid disparities than p */
-                prev[d] = INFINITY;
+            if (mode == 0)
+                for (int d = dmax + 1; d <= dmaxc; ++d)
+                    blk_o[d * VW + k] = INVALID_COST;
+            m = newm;
+            pmax = dmax;
         }
+        for (int d = 0; d <= dmaxc; ++d)
+            sgm_store(vload16(0, blk_o + d * VW), out + VIDX(d, y, x0, H, W), n);
         if (mode == 0)
-            for (int d = dmax + 1; d < D; ++d)
-                out[VIDX(d, y, x, H, W)] = INVALID_COST;
-        m = newm;
-        pmax = dmax;
+            for (int d = dmaxc + 1; d < D; ++d)
+                sgm_store((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
     }
 }

@@ -39,6 +39,22 @@ def launch(ctx, stage: str, kernel, global_size, local_size, *args) -> None:
         raise OpenCLError(f"{stage}: OpenCL error {exc}") from exc
 
 
+def scan_local_size(ctx, kernel) -> int:
+    """Work-group size for the line-walking kernels of CBCA and SGM: the
+    kernel's preferred work-group size multiple (queried), capped by its
+    maximum work-group size.
+
+    These kernels keep kilobytes of private arrays per work-item; CPU
+    runtimes (PoCL) may lay a whole work-group's private memory on one
+    thread's stack, so the runtime's default choice (up to thousands of
+    work-items) can overflow it.  The preferred multiple is small on CPUs
+    (8 on PoCL) and a warp/wavefront on GPUs."""
+    cl = ctx.cl
+    pref = int(kernel.get_work_group_info(cl.kernel_work_group_info.PREFERRED_WORK_GROUP_SIZE_MULTIPLE,
+                                          ctx.device))
+    return max(1, min(pref, ctx.work_group_size(kernel)))
+
+
 def check_size(H, W, what="image") -> tuple:
     """(H, W) as ints; InputError unless both are >= 1."""
     H, W = int(H), int(W)

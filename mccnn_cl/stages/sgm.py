@@ -1,5 +1,5 @@
 """Semi-global matching, SGM (paper, "Semiglobal matching") - drives
-``kernels/sgm.cl`` (kernel ``sgm_scan``, one launch per direction).
+``kernels/sgm.cl`` (kernels ``sgm_rows`` and ``sgm_columns``, one launch per direction).
 
 Recurrence along each of the four directions r (left->right, right->left,
 top->bottom, bottom->top; p - r is the previous pixel on the path)::
@@ -35,10 +35,15 @@ being "large" when >= tau_so:
 Defaults: Pi1 = 1, Pi2 = 32, tau_so = 0.0625 (images in [0, 1]), q1 = 4,
 q2 = 10, v = 2.
 
-Implementation: one work-item per scanline keeps C_r(p - r, .) in a private
-array (``-D MAX_DISP``, D rounded up to a multiple of 32) and walks the line;
-the four launches accumulate straight into the output (write, add, add,
-add-and-divide), so no per-direction volume is stored.
+Implementation (see ``kernels/sgm.cl``): ``sgm_rows`` walks one row per
+work-item, moving 16-wide chunks of all D planes through private memory with
+vector loads/stores (x is the only contiguous axis of [d][y][x]);
+``sgm_columns`` walks 16 adjacent columns per work-item on float16 lanes.
+Private arrays are sized by ``-D MAX_DISP`` (D rounded up to a multiple of
+32).  The four launches accumulate straight into the output (write, add,
+add, add-and-divide), so no per-direction volume is stored.  Measured on
+PoCL (2 cores) this is several times faster than one scalar work-item per
+scanline, which touched D pages per step.
 """
 
 from __future__ import annotations
@@ -46,11 +51,13 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from .cross import check_size, launch
+from ..cl import round_up
+from .cross import check_size, launch, scan_local_size
 
 #: The paper's four directions r = (dx, dy), in the order accumulated.
 DIRECTIONS = ((1, 0), (-1, 0), (0, 1), (0, -1))
 _DISP_ROUND = 32
+_VW = 16  # lanes per work-item in sgm_columns (VW in sgm.cl)
 
 
 def penalty_table(pi1=1.0, pi2=32.0, q1=4.0, q2=10.0, v=2.0, vertical=False, variant="paper",
@@ -76,7 +83,9 @@ class SGM:
         max_disp = -(-int(D) // _DISP_ROUND) * _DISP_ROUND
         k = self._kernels.get(max_disp)
         if k is None:
-            k = self.ctx.kernel("sgm.cl", "sgm_scan", MAX_DISP=max_disp)
+            k = [self.ctx.kernel("sgm.cl", "sgm_rows", MAX_DISP=max_disp),
+                 self.ctx.kernel("sgm.cl", "sgm_columns", MAX_DISP=max_disp)]
+            k = [(kern, scan_local_size(self.ctx, kern)) for kern in k]
             self._kernels[max_disp] = k
         return k
 
@@ -93,12 +102,16 @@ class SGM:
             raise InputError("SGM cannot work in place: out must differ from d_cost")
         if out is None:
             out = self.ctx.empty(4 * D * H * W, "SGM output volume")
-        kernel = self._kernel(D)
+        (k_rows, l_rows), (k_cols, l_cols) = self._kernel(D)
+        dims = (np.int32(D), np.int32(H), np.int32(W))
         for i, (dx, dy) in enumerate(DIRECTIONS):
             p1s, p2s = penalty_table(pi1, pi2, q1, q2, v, dy != 0, variant, p2_times_pi1)
-            mode = 0 if i == 0 else (2 if i == len(DIRECTIONS) - 1 else 1)
-            launch(self.ctx, "SGM", kernel, (W if dy != 0 else H,), None,
-                   d_cost, d_img_left, d_img_right, out, np.int32(D), np.int32(H), np.int32(W),
-                   np.int32(dx), np.int32(dy), *p1s, *p2s, np.float32(tau_so),
-                   np.int32(bool(outside_large)), np.int32(mode))
+            mode = np.int32(0 if i == 0 else (2 if i == len(DIRECTIONS) - 1 else 1))
+            bufs = (d_cost, d_img_left, d_img_right, out)
+            if dy == 0:
+                launch(self.ctx, "SGM (horizontal)", k_rows, (round_up(H, l_rows),), (l_rows,), *bufs, *dims,
+                       np.int32(dx), *p1s, *p2s, np.float32(tau_so), np.int32(bool(outside_large)), mode)
+            else:
+                launch(self.ctx, "SGM (vertical)", k_cols, (round_up(-(-W // _VW), l_cols),), (l_cols,), *bufs, *dims,
+                       np.int32(dy), *p1s, *p2s, np.float32(tau_so), mode)
         return out

@@ -1,0 +1,93 @@
+"""Timing of cross arms, CBCA and SGM on a KITTI-sized random volume.
+
+    python -m bench.bench_aggregation            # or: python bench/bench_aggregation.py
+    python bench/bench_aggregation.py --H 376 --W 1240 --D 228 --repeat 1
+
+Prints, for each stage, the wall time (queue finished) and the bandwidth it
+achieves counting the volume bytes it must move at least (reads + writes of
+D x H x W float32), beside the device's buffer-copy bandwidth measured in the
+same run (copy of one volume: read + write).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from mccnn_cl.cl import ClContext
+from mccnn_cl.stages.cbca import CBCA
+from mccnn_cl.stages.cross import CrossArms, max_arm
+from mccnn_cl.stages.sgm import SGM
+
+
+def timed(ctx, fn, repeat):
+    fn()  # warm-up (builds the program)
+    ctx.finish()
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        ctx.finish()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--H", type=int, default=376)
+    ap.add_argument("--W", type=int, default=1240)
+    ap.add_argument("--D", type=int, default=228)
+    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--stages", default="arms,cbca,sgm", help="comma-separated subset of arms,cbca,sgm")
+    args = ap.parse_args(argv)
+    D, H, W = args.D, args.H, args.W
+    ctx = ClContext(args.device)
+    print(f"device: {ctx.describe()}")
+    rng = np.random.default_rng(0)
+    cost = rng.random((D, H, W), dtype=np.float32)
+    cost[np.broadcast_to(np.arange(W)[None, None, :] < np.arange(D)[:, None, None], cost.shape)] = np.nan
+    img_l = rng.random((H, W), dtype=np.float32)
+    img_r = rng.random((H, W), dtype=np.float32)
+    V = cost.nbytes
+    print(f"volume: D x H x W = {D} x {H} x {W}, {V / 1e6:.0f} MB")
+    d_cost = ctx.to_device(cost)
+    del cost
+    d_l, d_r = ctx.to_device(img_l), ctx.to_device(img_r)
+    d_tmp = ctx.empty(V)
+    d_out = ctx.empty(V)
+
+    t = timed(ctx, lambda: ctx.cl.enqueue_copy(ctx.queue, d_tmp, d_cost, byte_count=V), args.repeat)
+    copy_bw = 2 * V / t / 1e9
+    print(f"buffer copy      {t * 1e3:8.1f} ms  {copy_bw:6.2f} GB/s (read + write of one volume)")
+
+    arms = CrossArms(ctx)
+    d_al, d_ar = ctx.empty(4 * H * W), ctx.empty(4 * H * W)
+
+    def run_arms():
+        arms(d_l, H, W, out=d_al)
+        arms(d_r, H, W, out=d_ar)
+
+    t = timed(ctx, run_arms, args.repeat)
+    if "arms" in args.stages:
+        print(f"cross arms (x2)  {t * 1e3:8.1f} ms")
+
+    cbca = CBCA(ctx)
+    for bound in (max_arm(4), 255) if "cbca" in args.stages else ():
+        t = timed(ctx, lambda: cbca(d_cost, d_al, d_ar, D, H, W, iterations=4, max_arm=bound, out=d_out),
+                  args.repeat)
+        moved = 4 * 4 * V  # per iteration: rows pass read + write, columns pass read + write
+        print(f"CBCA 4 it (max_arm={bound:3d}) {t * 1e3:8.1f} ms  {moved / t / 1e9:6.2f} GB/s "
+              f"({t / 4 * 1e3:.1f} ms per iteration)")
+
+    sgm = SGM(ctx)
+    t = float("nan") if "sgm" not in args.stages else timed(ctx, lambda: sgm(d_cost, d_l, d_r, D, H, W, out=d_out), args.repeat)
+    moved = 11 * V  # 4 reads of C, out written once, then read + written three times
+    print(f"SGM 4 directions {t * 1e3:8.1f} ms  {moved / t / 1e9:6.2f} GB/s")
+    print(f"(buffer-copy bandwidth {copy_bw:.2f} GB/s)")
+
+
+if __name__ == "__main__":
+    main()
