@@ -1,0 +1,235 @@
+"""The command line through its real entry points, in subprocesses.
+
+``python -m mccnn_cl`` and the ``mccnn-cl`` console script of the venv both
+run.  Census cost and small disparity ranges on small crops of the shared data
+keep each OpenCL run to a few seconds; one run uses a small random network
+saved to a file (the CNN path) and one the shipped weights' absence/presence.
+"""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from mccnn_cl.depth import read_calib, read_ply
+from mccnn_cl.io import read_image, read_kitti_disparity, read_pfm, write_image
+from mccnn_cl.weights import Weights
+
+SCRIPT = Path(sys.executable).with_name("mccnn-cl")
+SMALL_NET = dict(conv_layers=[[8, 3], [12, 3], [12, 1]], fc_layers=[16, 16, 2])
+
+
+def run(*args, script=False, env=None, timeout=180):
+    """Run the CLI; returns (returncode, stdout, stderr)."""
+    cmd = [str(SCRIPT)] if script else [sys.executable, "-m", "mccnn_cl"]
+    e = dict(os.environ)
+    e.update(env or {})
+    p = subprocess.run(cmd + [str(a) for a in args], capture_output=True, text=True, timeout=timeout, env=e)
+    return p.returncode, p.stdout, p.stderr
+
+
+def assert_one_line_error(rc, err, code, *words):
+    assert rc == code, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err  # one line, no traceback
+    assert lines[0].startswith("mccnn-cl: error:") or lines[0].startswith("usage:"), err
+    for w in words:
+        assert w in lines[0], err
+
+
+@pytest.fixture(scope="module")
+def crops(tmp_path_factory, shared_data):
+    """Small pairs written to disk: Tsukuba 120x96 (gray) and KITTI 2015 000000 160x96 (colour)."""
+    d = tmp_path_factory.mktemp("crops")
+    ts = shared_data / "middlebury/Tsukuba"
+    l, r = read_image(ts / "im0.png"), read_image(ts / "im1.png")
+    write_image(d / "ts_l.png", l[100:196, 150:270])
+    write_image(d / "ts_r.png", r[100:196, 150:270])
+    kt = shared_data / "kitti2015/training"
+    l, r = read_image(kt / "image_2/000000_10.png"), read_image(kt / "image_3/000000_10.png")
+    write_image(d / "kt_l.png", l[200:296, 500:660])
+    write_image(d / "kt_r.png", r[200:296, 500:660])
+    write_image(d / "tiny.png", l[:6, :6])
+    write_image(d / "narrow.png", l[200:296, 500:640])
+    (d / "garbage.png").write_bytes(b"this is not an image")
+    return d
+
+
+def test_match_pfm_with_colour(crops, tmp_path):
+    out = tmp_path / "d.pfm"
+    rc, so, se = run("match", crops / "ts_l.png", crops / "ts_r.png", "-o", out, "--cost", "census",
+                     "--max-disp", 16, "--color")
+    assert rc == 0, se
+    ours = read_pfm(out)
+    theirs = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)  # cv2's own PFM reader agrees
+    assert ours.shape == (96, 120) and theirs.shape == (96, 120)
+    np.testing.assert_array_equal(ours, theirs)
+    fin = np.isfinite(ours)
+    assert fin.mean() > 0.9 and np.isposinf(ours[~fin]).all()  # +inf marks invalid
+    assert ours[fin].min() >= 0 and ours[fin].max() <= 15 + 1e-3  # float rounding of the filters
+    assert np.ptp(ours[fin]) > 1  # not constant: Tsukuba's depth varies (5..14 px here)
+    color = cv2.imread(str(tmp_path / "d_color.png"))
+    assert color.shape[1] >= 120 and color.shape[0] > 96  # the legend bar under the picture
+    assert "d.pfm" in so
+    # an existing output is not overwritten without --force ...
+    before = out.read_bytes()
+    rc, _, se = run("match", crops / "ts_l.png", crops / "ts_r.png", "-o", out, "--cost", "census",
+                    "--max-disp", 8)
+    assert_one_line_error(rc, se, 2, "exists", "--force")
+    assert out.read_bytes() == before
+    # ... and is with it (different range -> different file)
+    rc, _, se = run("match", crops / "ts_l.png", crops / "ts_r.png", "-o", out, "--cost", "census",
+                    "--max-disp", 8, "--force")
+    assert rc == 0, se
+    assert read_pfm(out)[np.isfinite(read_pfm(out))].max() <= 7 + 1e-3
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["d.pfm", "d_color.png"]  # no temporaries
+
+
+def test_match_npy_depth_and_point_cloud(crops, tmp_path, shared_data):
+    calib = shared_data / "kitti2015/training/calib_cam_to_cam/000000.txt"
+    out = tmp_path / "k.npy"
+    rc, so, se = run("match", crops / "kt_l.png", crops / "kt_r.png", "-o", out, "--cost", "census",
+                     "--max-disp", 48, "--calib", calib)
+    assert rc == 0, se
+    disp = np.load(out)
+    assert disp.dtype == np.float32 and disp.shape == (96, 160)
+    c = read_calib(calib)
+    z = np.load(tmp_path / "k_depth.npy")
+    with np.errstate(divide="ignore"):
+        expected = np.where(disp > 0, c.focal * c.baseline / disp, np.nan)
+    np.testing.assert_allclose(z, expected, rtol=1e-5)
+    pts, rgb = read_ply(tmp_path / "k.ply")
+    valid = np.isfinite(z)
+    assert len(pts) == valid.sum() > 0
+    np.testing.assert_allclose(pts[:, 2], z[valid], rtol=1e-6)
+    left = cv2.imread(str(crops / "kt_l.png"))
+    np.testing.assert_array_equal(rgb, left[valid][:, ::-1])  # colours from the left image, RGB
+    assert b"binary_little_endian" in (tmp_path / "k.ply").read_bytes()[:100]
+
+
+def test_match_png_with_random_cnn_via_script(crops, tmp_path):
+    wpath = tmp_path / "small.npz"
+    Weights.random(**SMALL_NET, seed=3).save(wpath)
+    out = tmp_path / "k.png"
+    rc, so, se = run("match", crops / "kt_l.png", crops / "kt_r.png", "-o", out, "--weights", wpath,
+                     "--max-disp", 24, script=True)
+    assert rc == 0, se
+    disp, valid = read_kitti_disparity(out)
+    raw = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert raw.dtype == np.uint16 and raw.shape == (96, 160)
+    np.testing.assert_array_equal(disp, raw.astype(np.float32) / 256)
+    assert valid.mean() > 0.5 and disp[valid].max() <= 23 + 1e-2
+
+
+def test_batch_with_globs(crops, tmp_path):
+    for side in "lr":
+        d = tmp_path / side
+        d.mkdir()
+        for name in ("a", "b"):
+            os.link(crops / f"ts_{side}.png", d / f"{name}.png")
+    rc, so, se = run("match", "-l", tmp_path / "l/*.png", "-r", tmp_path / "r", "--output-dir",
+                     tmp_path / "out", "--format", "npy", "--cost", "census", "--max-disp", 16)
+    assert rc == 0, se
+    a, b = np.load(tmp_path / "out/a.npy"), np.load(tmp_path / "out/b.npy")
+    np.testing.assert_array_equal(a, b)
+    assert "wrote 2 disparity maps" in so
+    rc, _, se = run("match", "-l", tmp_path / "l/a.png", "-r", tmp_path / "r", "--output-dir",
+                    tmp_path / "out2", "--cost", "census")
+    assert_one_line_error(rc, se, 2, "1 left but 2 right")
+
+
+def test_input_errors(crops, tmp_path):
+    o = tmp_path / "o.pfm"
+    l, r = crops / "ts_l.png", crops / "ts_r.png"
+    cases = [
+        (("match", tmp_path / "missing.png", r, "-o", o), ("file not found", "missing.png")),
+        (("match", crops / "garbage.png", r, "-o", o, "--cost", "census"), ("unreadable",)),
+        (("match", l, crops / "kt_r.png", "-o", o, "--cost", "census"), ("differ in size",)),
+        (("match", crops / "tiny.png", crops / "tiny.png", "-o", o, "--cost", "census", "--max-disp", 2),
+         ("smaller than",)),
+        (("match", l, r, "-o", o, "--cost", "census", "--max-disp", 120), ("not smaller than the image width",)),
+        (("match", l, r, "-o", tmp_path / "o.tif", "--cost", "census"), (".pfm",)),
+        (("match", l, r, "-o", tmp_path / "nodir/o.pfm", "--cost", "census"), ("does not exist",)),
+        (("match", l, r, "-o", o, "--calib", crops / "garbage.png", "--cost", "census"), ("not a KITTI",)),
+        (("evaluate", tmp_path, "--cost", "census"), ("no stereo pairs",)),
+        (("match", l, r, "-o", o, "--cost", "census", "--max-disp", 16, "--set", "no_such=1"),
+         ("unknown hyperparameter", "no_such")),
+    ]
+    for args, words in cases:
+        rc, so, se = run(*args)
+        assert_one_line_error(rc, se, 2, *words)
+    assert not o.exists()
+    rc, _, se = run("match", l, r, "-o", o, "--max-disp", "x")  # argparse: usage + error line
+    assert rc == 2 and "invalid int value" in se
+
+
+def test_weights_errors(crops, tmp_path):
+    o = tmp_path / "o.pfm"
+    good = tmp_path / "good.npz"
+    Weights.random(**SMALL_NET).save(good)
+    trunc = tmp_path / "trunc.npz"
+    trunc.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    other = tmp_path / "other.npz"
+    with np.load(good) as z:
+        arrays = dict(z)
+    meta = json.loads(str(arrays["__meta__"]))
+    meta["architecture"] = "mccnn-fst"
+    arrays["__meta__"] = np.array(json.dumps(meta))
+    np.savez(other, **arrays)
+    for path, word in ((trunc, "not a readable"), (other, "architecture")):
+        rc, _, se = run("match", crops / "ts_l.png", crops / "ts_r.png", "-o", o, "--weights", path)
+        assert_one_line_error(rc, se, 2, word)
+    assert not o.exists()
+
+
+def test_no_opencl_device(crops, tmp_path):
+    o = tmp_path / "o.pfm"
+    rc, _, se = run("match", crops / "ts_l.png", crops / "ts_r.png", "-o", o, "--cost", "census",
+                    "--max-disp", 16, "--device", "no-such-device")
+    assert_one_line_error(rc, se, 1, "no OpenCL device matches")
+    empty = tmp_path / "vendors"
+    empty.mkdir()
+    rc, _, se = run("devices", env={"OCL_ICD_VENDORS": str(empty), "PYOPENCL_CTX": ""})
+    assert_one_line_error(rc, se, 1, "no OpenCL platform found")
+    assert not o.exists()
+
+
+def test_devices_lists_something():
+    rc, so, se = run("devices", script=True)
+    assert rc == 0, se
+    assert "would use:" in so and "because:" in so
+    assert any(line.startswith(" * ") for line in so.splitlines())
+
+
+def test_evaluate_tsukuba_beside_sgbm(shared_data, tmp_path):
+    rc, so, se = run("evaluate", shared_data / "middlebury", "--pairs", "Tsukuba", "--cost", "census",
+                     "--max-disp", 16, "--json", "--error-maps", tmp_path)
+    assert rc == 0, se
+    doc = json.loads(so)
+    (res,) = doc["pairs"]
+    assert res["pair"] == "middlebury/Tsukuba" and res["max_disparity"] == 16
+    for method in ("mccnn", "sgbm"):
+        m = res["methods"][method]
+        assert 0 <= m["bad3_all"] <= 100 and 0 <= m["bad2_noc"] <= 100 and m["epe_all"] >= 0
+        assert m["seconds"] > 0
+    assert res["methods"]["mccnn"]["bad2_all"] < 50  # census + SGM on Tsukuba is far from random
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == [
+        "middlebury_Tsukuba_mccnn_err.png", "middlebury_Tsukuba_sgbm_err.png"]
+
+
+def test_bench_and_demo_census(tmp_path):
+    rc, so, se = run("bench", "--cost", "census", "--size", "160x96", "--max-disp", 16)
+    assert rc == 0, se
+    for word in ("matching cost (census)", "CBCA", "SGM", "OpenCV SGBM", "cost volume: 16 x 88 x 152"):
+        assert word in so, so
+    out = tmp_path / "demo.png"
+    rc, so, se = run("demo", "--cost", "census", "-o", out, script=True)
+    assert rc == 0, se
+    assert "3-px err" in so and "OpenCV SGBM" in so and "wrote" in so
+    img = cv2.imread(str(out))
+    assert img.shape[1] == 2 * (2 * 225) + 6 and img.shape[0] > 4 * 188  # 2x tiles, 2 x 2
