@@ -220,6 +220,14 @@ def test_evaluate_tsukuba_beside_sgbm(shared_data, tmp_path):
     assert res["methods"]["mccnn"]["bad2_all"] < 50  # census + SGM on Tsukuba is far from random
     assert sorted(p.name for p in tmp_path.glob("*.png")) == [
         "middlebury_Tsukuba_mccnn_err.png", "middlebury_Tsukuba_sgbm_err.png"]
+    # the human-readable table: both methods side by side, the pair, its training status
+    rc, so, se = run("evaluate", shared_data / "middlebury", "--pairs", "Tsukuba", "--cost", "census",
+                     "--max-disp", 16, script=True)
+    assert rc == 0, se
+    header = next(line for line in so.splitlines() if line.startswith("pair"))
+    assert header.split()[1:5] == ["ours", "sgbm", "ours", "sgbm"]
+    row = next(line for line in so.splitlines() if line.startswith("middlebury/Tsukuba"))
+    assert f"{res['methods']['sgbm']['bad3_all']:.2f}" in row and "n/a" in row
 
 
 def test_bench_and_demo_census(tmp_path):
