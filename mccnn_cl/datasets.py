@@ -22,6 +22,7 @@ pairs have ``disp = None``.  Every problem a user's files can cause raises
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -243,7 +244,9 @@ class PairRef:
 
     def load(self) -> StereoPair:
         if self.kind == "middlebury":
-            return load_middlebury(self.root)
+            pair = load_middlebury(self.root)
+            pair.name = self.name
+            return pair
         return _load_kitti(self.kind, self.root, self.name)
 
 
@@ -259,6 +262,14 @@ def _kitti_refs(kind: str, d: Path) -> list:
     ldir = _first_dir(d, _KITTI[kind][0])
     frames = sorted(p.name[:-7] for p in ldir.glob("*_10.png"))
     return [PairRef(kind, str(d), f) for f in frames]
+
+
+def _scene_name(d: Path) -> str:
+    """Scene name; inside MiddEval3's resolution folders it keeps the folder (``trainingQ/Adirondack``)
+    so the same scene at several resolutions gets distinct keys."""
+    if re.fullmatch(r"(training|test)[QHF]", d.parent.name):
+        return f"{d.parent.name}/{d.name}"
+    return d.name
 
 
 def discover(root, dataset: str | None = None, _depth: int = 0) -> list:
@@ -279,7 +290,7 @@ def discover(root, dataset: str | None = None, _depth: int = 0) -> list:
     if kind is not None:
         return _kitti_refs(kind, d) if dataset in (None, kind) else []
     if (d / "im0.png").exists() and (d / "im1.png").exists():
-        return [PairRef("middlebury", str(d), d.name)] if dataset in (None, "middlebury") else []
+        return [PairRef("middlebury", str(d), _scene_name(d))] if dataset in (None, "middlebury") else []
     if _depth >= 3:
         return []
     refs = []

@@ -104,3 +104,19 @@ def test_errors(tmp_path, shared_data):
     (scene / "calib.txt").write_text("width=100\nheight=288\nndisp=32\n")
     with pytest.raises(InputError, match="says 100x288"):
         load_middlebury(scene)
+
+
+def test_middeval3_resolution_folders_keep_distinct_keys(tmp_path, shared_data):
+    # MiddEval3 ships each scene at three resolutions (trainingQ/H/F) and test scenes without GT.
+    src = shared_data / "middlebury" / "Tsukuba"
+    for res in ("trainingQ", "trainingH", "testQ"):
+        scene = tmp_path / "MiddEval3" / res / "Tsukuba"
+        scene.mkdir(parents=True)
+        for f in ("im0.png", "im1.png", "calib.txt") + (("disp0GT.pfm",) if res.startswith("training") else ()):
+            (scene / f).symlink_to(src / f)
+    refs = discover(tmp_path / "MiddEval3")
+    assert [r.key for r in refs] == ["middlebury/testQ/Tsukuba", "middlebury/trainingH/Tsukuba",
+                                     "middlebury/trainingQ/Tsukuba"]
+    pairs = find_pairs(tmp_path / "MiddEval3" / "trainingQ")
+    assert [p.key for p in pairs] == ["middlebury/trainingQ/Tsukuba"] and pairs[0].disp is not None
+    assert refs[0].load().disp is None

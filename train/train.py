@@ -404,6 +404,12 @@ def main(argv=None) -> int:
     try:
         train_refs, held_refs = select_pairs(args.data, args.holdout, args.include, args.dataset)
         train_pairs = [r.load() for r in train_refs]
+        no_gt = [p.key for p in train_pairs if p.disp is None]
+        if no_gt:
+            print(f"skipping {len(no_gt)} pair(s) without ground truth: {', '.join(no_gt)}", file=sys.stderr)
+            train_pairs = [p for p in train_pairs if p.disp is not None]
+        if not train_pairs:
+            raise InputError("none of the training pairs has ground truth")
         val_pairs = [r.load() for r in held_refs]
         result = train(cfg, train_pairs, val_pairs, device, args.out, resume=args.resume,
                        stop_after=args.stop_after)
