@@ -69,6 +69,9 @@ def atomic_write(path, write_fn) -> None:
     os.close(fd)
     try:
         write_fn(tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give new files the usual mode
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

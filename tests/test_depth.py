@@ -1,5 +1,7 @@
 """Calibration parsing on the real files, depth formula, PLY round trips, visualisation, SGBM."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -88,6 +90,9 @@ def test_ply_round_trip(tmp_path, binary):
     np.testing.assert_allclose(p2, pts, rtol=1e-5, atol=1e-6)  # ASCII keeps 6 significant digits
     np.testing.assert_array_equal(c2, rgb)
     assert [f.name for f in tmp_path.iterdir()] == ["cloud.ply"]  # no temporary left behind
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # not mkstemp's 0600
 
 
 def test_truncated_ply_is_rejected(tmp_path):
