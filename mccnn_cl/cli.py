@@ -71,6 +71,11 @@ def _load_weights(args):
     if args.weights is None and not os.path.exists(default_weights_path()):
         raise WeightsError(f"the shipped weights are not installed ({default_weights_path()}); "
                            "pass --weights FILE or use --cost census")
+    if args.weights is not None and os.path.isfile(args.weights):
+        import zipfile
+        if not zipfile.is_zipfile(args.weights):  # numpy's own message would talk about pickles
+            raise WeightsError(f"{args.weights}: not a readable mccnn_cl weights file (not an .npz "
+                               "archive: truncated, or another kind of file)")
     return Weights.load(args.weights)
 
 
@@ -320,8 +325,10 @@ def cmd_evaluate(args):
     refs = discover(args.dataset_dir, args.dataset)
     if args.pairs:
         wanted = [w.strip() for w in args.pairs.split(",") if w.strip()]
-        refs = [r for r in refs if r.name in wanted or r.key in wanted]
-        found = {r.name for r in refs} | {r.key for r in refs}
+        def names(r):  # "Cones", "middlebury/Cones"; MiddEval3 "trainingQ/Motorcycle" also as "Motorcycle"
+            return {r.name, r.key, r.name.rsplit("/", 1)[-1]}
+        refs = [r for r in refs if names(r) & set(wanted)]
+        found = set().union(*(names(r) for r in refs)) if refs else set()
         missing = [w for w in wanted if w not in found]
         if missing:
             raise InputError(f"pairs not found under {args.dataset_dir}: {', '.join(missing)}")

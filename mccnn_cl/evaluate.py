@@ -128,7 +128,8 @@ def evaluate_pair(pair, matcher, max_disparity, baseline="sgbm", fill=True, erro
         os.makedirs(error_maps, exist_ok=True)
         for method, pred in maps.items():
             scored = metrics.fill_invalid(pred) if fill else pred
-            path = os.path.join(error_maps, f"{pair.kind}_{pair.name}_{method}_err.png")
+            stem = f"{pair.kind}_{pair.name}".replace("/", "_").replace(os.sep, "_")
+            path = os.path.join(error_maps, f"{stem}_{method}_err.png")
             write_image(path, error_image(scored, pair.disp, 3.0 if pair.kind != "middlebury" else 2.0))
     return result
 
