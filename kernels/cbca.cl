@@ -3,6 +3,9 @@
  * Driven by mccnn_cl/stages/cbca.py (the derivation of the two passes from
  * the set U_d(p) is in that module's docstring).
  *
+ * Arms: bytes in four planes [4][H][W] (left, right, up, down), as written
+ * by cross.cl; ARM(a, k, i) is arm k of pixel index i = y * W + x.
+ *
  * Required define: MAX_ARM, an upper bound of every arm length; it sizes the
  * private ring buffers (RING = 2 * MAX_ARM + 2 entries).  Arms longer than
  * MAX_ARM are truncated to MAX_ARM.
@@ -22,6 +25,11 @@
 #error "cbca.cl needs -D MAX_ARM=<largest arm length>"
 #endif
 #define RING (2 * MAX_ARM + 2)
+#define ARM_LEFT 0
+#define ARM_RIGHT 1
+#define ARM_UP 2
+#define ARM_DOWN 3
+#define ARM(a, k, i) ((int)(a)[(size_t)(k) * (size_t)H * (size_t)W + (size_t)(i)])
 
 /* Add v to the compensated prefix (s, e) (Knuth's TwoSum: the rounding error
  * of s + v is exact and goes to e). */
@@ -43,13 +51,13 @@ static inline int ring_slot(const int head, const int t, const int q)
 /* Horizontal extent [lo, hi] of row y of U_d(p) for column x: intersection of
  * the left image's arm at (x, y) and the right image's arm at (x - d, y)
  * shifted by +d, clamped to the valid cells [d, W - 1]. */
-static inline int2 row_extent(__global const uchar4 *arms_l, __global const uchar4 *arms_r,
-                              const int d, const int y, const int x, const int W)
+static inline int2 row_extent(__global const uchar *arms_l, __global const uchar *arms_r,
+                              const int d, const int y, const int x, const int H, const int W)
 {
-    const uchar4 al = arms_l[y * W + x];
-    const uchar4 ar = arms_r[y * W + x - d];
-    const int l = min(min((int)al.x, (int)ar.x), MAX_ARM);
-    const int r = min(min((int)al.y, (int)ar.y), MAX_ARM);
+    const int il = y * W + x;
+    const int ir = y * W + x - d;
+    const int l = min(min(ARM(arms_l, ARM_LEFT, il), ARM(arms_r, ARM_LEFT, ir)), MAX_ARM);
+    const int r = min(min(ARM(arms_l, ARM_RIGHT, il), ARM(arms_r, ARM_RIGHT, ir)), MAX_ARM);
     return (int2)(max(x - l, d), min(x + r, W - 1));
 }
 
@@ -57,8 +65,8 @@ static inline int2 row_extent(__global const uchar4 *arms_l, __global const ucha
  * of x (not yet divided), NaN for invalid cells (x < d).  dst may be src. */
 __kernel void cbca_rows(__global const float *src,     /* D x H x W cost C^{i-1} */
                         __global float *dst,           /* out: D x H x W row sums (may alias src) */
-                        __global const uchar4 *arms_l, /* H x W arms of the left image */
-                        __global const uchar4 *arms_r, /* H x W arms of the right image */
+                        __global const uchar *arms_l,  /* 4 x H x W arms of the left image */
+                        __global const uchar *arms_r,  /* 4 x H x W arms of the right image */
                         const int D,                   /* disparity levels */
                         const int H,                   /* height */
                         const int W)                   /* width */
@@ -86,7 +94,7 @@ __kernel void cbca_rows(__global const float *src,     /* D x H x W cost C^{i-1}
         const int i = t - MAX_ARM;
         if (i >= 0) {
             const int x = x0 + i;
-            const int2 ext = row_extent(arms_l, arms_r, d, y, x, W);
+            const int2 ext = row_extent(arms_l, arms_r, d, y, x, H, W);
             const int b = ring_slot(head, t, ext.y - x0);
             float sum = rs[b] + re[b];
             if (ext.x > x0) {
@@ -103,8 +111,8 @@ __kernel void cbca_rows(__global const float *src,     /* D x H x W cost C^{i-1}
  * U_d(p) divided by the number of cells |U_d(p)|.  Invalid cells (already
  * NaN from pass 1) are not touched. */
 __kernel void cbca_columns(__global float *buf,           /* D x H x W row sums in, C^i out */
-                           __global const uchar4 *arms_l, /* H x W arms of the left image */
-                           __global const uchar4 *arms_r, /* H x W arms of the right image */
+                           __global const uchar *arms_l,  /* 4 x H x W arms of the left image */
+                           __global const uchar *arms_r,  /* 4 x H x W arms of the right image */
                            const int D,                   /* disparity levels */
                            const int H,                   /* height */
                            const int W)                   /* width */
@@ -123,7 +131,7 @@ __kernel void cbca_columns(__global float *buf,           /* D x H x W row sums 
         if (t < H) {
             const float v = buf[VIDX(d, t, x, H, W)];
             PREFIX_ADD(s, e, v);
-            const int2 ext = row_extent(arms_l, arms_r, d, t, x, W);
+            const int2 ext = row_extent(arms_l, arms_r, d, t, x, H, W);
             cnt += ext.y - ext.x + 1;
         }
         rs[head] = s;
@@ -131,10 +139,10 @@ __kernel void cbca_columns(__global float *buf,           /* D x H x W row sums 
         rn[head] = cnt;
         const int y = t - MAX_ARM;
         if (y >= 0) {
-            const uchar4 al = arms_l[y * W + x];
-            const uchar4 ar = arms_r[y * W + x - d];
-            const int lo = max(y - min(min((int)al.z, (int)ar.z), MAX_ARM), 0);
-            const int hi = min(y + min(min((int)al.w, (int)ar.w), MAX_ARM), H - 1);
+            const int il = y * W + x;
+            const int ir = y * W + x - d;
+            const int lo = max(y - min(min(ARM(arms_l, ARM_UP, il), ARM(arms_r, ARM_UP, ir)), MAX_ARM), 0);
+            const int hi = min(y + min(min(ARM(arms_l, ARM_DOWN, il), ARM(arms_r, ARM_DOWN, ir)), MAX_ARM), H - 1);
             const int b = ring_slot(head, t, hi);
             float sum = rs[b] + re[b];
             int num = rn[b];
@@ -147,3 +155,170 @@ __kernel void cbca_columns(__global float *buf,           /* D x H x W row sums 
         }
     }
 }
+
+/* ------------------------------------------------------------------------
+ * Short-arm variant (MAX_ARM <= CBCA_SHORT_MAX): the same two passes as
+ * direct sums of the 2 MAX_ARM + 1 candidate cells, masked by index, on
+ * float16 lanes along x (the contiguous axis).  For short arms (the paper's
+ * are <= 3 px) this is several times faster on CPUs than the scalar running
+ * sums above, whose per-cell work is independent of the arm length.  Both
+ * passes still work in place: the original values a cell's window needs are
+ * kept in private memory until the window has been summed.
+ * ------------------------------------------------------------------------ */
+#define CBCA_SHORT_MAX 8
+#define VW 16
+#if MAX_ARM <= CBCA_SHORT_MAX
+
+/* Lanes 0..15 = p[first + i]; lanes with i >= n or first + i < 0 are not read and get 0. */
+static inline float16 cbca_load(__global const float *p, const int first, const int n)
+{
+    if (n == VW && first >= 0)
+        return vload16(0, p + first);
+    float t[VW];
+    for (int i = 0; i < VW; ++i)
+        t[i] = (i < n && first + i >= 0) ? p[first + i] : 0.0f;
+    return vload16(0, t);
+}
+
+static inline void cbca_store(const float16 v, __global float *p, const int n)
+{
+    if (n == VW) {
+        vstore16(v, 0, p);
+        return;
+    }
+    float t[VW];
+    vstore16(v, 0, t);
+    for (int i = 0; i < n; ++i)
+        p[i] = t[i];
+}
+
+/* Arm k of the 16 pixels first .. first + 15 of one image; lanes not read
+ * (i >= n or first + i < 0) get 0. */
+static inline int16 cbca_arm16(__global const uchar *a, const int k, const int first, const int n,
+                               const int H, const int W)
+{
+    __global const uchar *p = a + (size_t)k * (size_t)H * (size_t)W;
+    if (n == VW && first >= 0)
+        return convert_int16(vload16(0, p + first));
+    uchar t[VW];
+    for (int i = 0; i < VW; ++i)
+        t[i] = (i < n && first + i >= 0) ? p[first + i] : (uchar)0;
+    return convert_int16(vload16(0, t));
+}
+
+#define LANES ((int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+
+/* Pass 1, short arms: dst(d, y, x) = row sum over the row extent of x
+ * (NaN where x < d).  One work-item per row; dst may be src. */
+__kernel void cbca_rows_short(__global const float *src,     /* D x H x W cost C^{i-1} */
+                              __global float *dst,           /* out: row sums (may alias src) */
+                              __global const uchar *arms_l,  /* 4 x H x W arms of the left image */
+                              __global const uchar *arms_r,  /* 4 x H x W arms of the right image */
+                              const int D,                   /* disparity levels */
+                              const int H,                   /* height */
+                              const int W)                   /* width */
+{
+    const int y = get_global_id(0);
+    const int d = get_global_id(1);
+    if (y >= H || d >= D)
+        return;
+    const size_t row = VIDX(d, y, 0, H, W);
+    /* original values of chunks c-1, c, c+1 (invalid cells and cells outside
+     * the row as 0; the masks never select them) */
+    float win[3 * VW];
+    for (int i = 0; i < VW; ++i)
+        win[i] = 0.0f;
+    const int nch = (W + VW - 1) / VW;
+    {
+        const int n = min(VW, W);
+        vstore16(select((float16)(0.0f), cbca_load(src, row, n), LANES >= (int16)(d)), 0, win + VW);
+    }
+    for (int c = 0; c < nch; ++c) {
+        const int x0 = c * VW;
+        const int n = min(VW, W - x0);
+        if (c + 1 < nch) {
+            const int x1 = x0 + VW;
+            const float16 nx = cbca_load(src, row + x1, min(VW, W - x1));
+            vstore16(select((float16)(0.0f), nx, (int16)(x1) + LANES >= (int16)(d)), 0, win + 2 * VW);
+        } else {
+            vstore16((float16)(0.0f), 0, win + 2 * VW);
+        }
+        const int16 xs = (int16)(x0) + LANES;
+        const int16 valid = (xs >= (int16)(d)) & (LANES < (int16)(n));
+        float16 s = (float16)(0.0f);
+        if (any(valid)) {
+            const int il = y * W + x0;
+            const int16 l = min(min(cbca_arm16(arms_l, ARM_LEFT, il, n, H, W), cbca_arm16(arms_r, ARM_LEFT, il - d, n, H, W)),
+                                min((int16)(MAX_ARM), xs - (int16)(d)));
+            const int16 r = min(min(cbca_arm16(arms_l, ARM_RIGHT, il, n, H, W), cbca_arm16(arms_r, ARM_RIGHT, il - d, n, H, W)),
+                                min((int16)(MAX_ARM), (int16)(W - 1) - xs));
+#pragma unroll
+            for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {
+                const int16 take = ((int16)(k) >= -l) & ((int16)(k) <= r);
+                s += select((float16)(0.0f), vload16(0, win + VW + k), take);
+            }
+        }
+        cbca_store(select((float16)(INVALID_COST), s, valid), dst + row + x0, n);
+        for (int i = 0; i < 2 * VW; ++i)
+            win[i] = win[i + VW];
+    }
+}
+
+/* Pass 2, short arms, in place: buf(d, y, x) = (sum of the row sums over
+ * the rows of U_d(p)) / |U_d(p)| for valid cells.  One work-item per
+ * 16-column tile of one disparity plane. */
+__kernel void cbca_columns_short(__global float *buf,           /* row sums in, C^i out */
+                                 __global const uchar *arms_l,  /* 4 x H x W arms of the left image */
+                                 __global const uchar *arms_r,  /* 4 x H x W arms of the right image */
+                                 const int D,                   /* disparity levels */
+                                 const int H,                   /* height */
+                                 const int W)                   /* width */
+{
+    const int x0 = get_global_id(0) * VW;
+    const int d = get_global_id(1);
+    if (x0 >= W || d >= D)
+        return;
+    const int n = min(VW, W - x0);
+    if (x0 + n - 1 < d)
+        return; /* the whole tile is invalid (NaN from pass 1) */
+    const int16 xs = (int16)(x0) + LANES;
+    const int16 valid = (xs >= (int16)(d)) & (LANES < (int16)(n));
+#define RS (2 * MAX_ARM + 1)
+    float16 ring[RS]; /* row sums of rows t - 2 MAX_ARM .. t */
+    int16 cring[RS];  /* their cell counts */
+    int head = RS - 1;
+    for (int t = 0; t < H + MAX_ARM; ++t) {
+        head = head + 1 == RS ? 0 : head + 1;
+        if (t < H) {
+            ring[head] = select((float16)(0.0f), cbca_load(buf, VIDX(d, t, x0, H, W), n), valid);
+            const int it = t * W + x0;
+            const int16 l = min(min(cbca_arm16(arms_l, ARM_LEFT, it, n, H, W), cbca_arm16(arms_r, ARM_LEFT, it - d, n, H, W)),
+                                min((int16)(MAX_ARM), xs - (int16)(d)));
+            const int16 r = min(min(cbca_arm16(arms_l, ARM_RIGHT, it, n, H, W), cbca_arm16(arms_r, ARM_RIGHT, it - d, n, H, W)),
+                                min((int16)(MAX_ARM), (int16)(W - 1) - xs));
+            cring[head] = select((int16)(0), l + r + (int16)(1), valid);
+        }
+        const int y = t - MAX_ARM;
+        if (y >= 0) {
+            const int iy = y * W + x0;
+            const int16 u = min(min(cbca_arm16(arms_l, ARM_UP, iy, n, H, W), cbca_arm16(arms_r, ARM_UP, iy - d, n, H, W)),
+                                (int16)(min(MAX_ARM, y)));
+            const int16 w = min(min(cbca_arm16(arms_l, ARM_DOWN, iy, n, H, W), cbca_arm16(arms_r, ARM_DOWN, iy - d, n, H, W)),
+                                (int16)(min(MAX_ARM, H - 1 - y)));
+            float16 s = (float16)(0.0f);
+            int16 cnt = (int16)(0);
+#pragma unroll
+            for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {
+                int slot = head - (MAX_ARM - k); /* row y + k */
+                slot = slot < 0 ? slot + RS : slot;
+                const int16 take = ((int16)(k) >= -u) & ((int16)(k) <= w);
+                s += select((float16)(0.0f), ring[slot], take);
+                cnt += select((int16)(0), cring[slot], take);
+            }
+            const float16 res = s / convert_float16(max(cnt, (int16)(1)));
+            cbca_store(select((float16)(INVALID_COST), res, valid), buf + VIDX(d, y, x0, H, W), n);
+        }
+    }
+#undef RS
+}
+#endif /* MAX_ARM <= CBCA_SHORT_MAX */

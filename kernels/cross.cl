@@ -1,9 +1,10 @@
 /* cross.cl - cross arms for cross-based cost aggregation (paper, "Cross-based
  * cost aggregation").  Driven by mccnn_cl/stages/cross.py.
  *
- * For each pixel p the four arm lengths (left, right, up, down) are stored as
- * one uchar4 (.x = left, .y = right, .z = up, .w = down; "up" is towards
- * smaller y), row-major [H][W].  The arm towards p + k*step extends for
+ * For each pixel p the four arm lengths are stored as bytes in four planes,
+ * [4][H][W]: plane 0 = left, 1 = right, 2 = up, 3 = down ("up" is towards
+ * smaller y); planar so that the aggregation kernels load 16 arms of one
+ * kind with one vector load.  The arm towards p + k*step extends for
  * k = 1, 2, ... while |I(p) - I(p + k*step)| < tau, k < eta and the pixel is
  * inside the image, and stops at the first k that fails.  With
  * include_neighbor != 0 (released code) k = 1 is accepted whenever the
@@ -37,7 +38,7 @@ static int cross_arm_length(__global const float *img, const int H, const int W,
 }
 
 __kernel void cross_build(__global const float *img,  /* H x W gray image in [0, 1] */
-                          __global uchar4 *arms,       /* out: H x W (left, right, up, down) */
+                          __global uchar *arms,        /* out: 4 x H x W planes left, right, up, down */
                           const int H,                 /* image height */
                           const int W,                 /* image width */
                           const float tau,             /* intensity threshold (paper 0.0442) */
@@ -48,10 +49,10 @@ __kernel void cross_build(__global const float *img,  /* H x W gray image in [0,
     const int y = get_global_id(1);
     if (x >= W || y >= H)
         return;
-    uchar4 a;
-    a.x = (uchar)cross_arm_length(img, H, W, x, y, -1, 0, tau, eta, include_neighbor);
-    a.y = (uchar)cross_arm_length(img, H, W, x, y, 1, 0, tau, eta, include_neighbor);
-    a.z = (uchar)cross_arm_length(img, H, W, x, y, 0, -1, tau, eta, include_neighbor);
-    a.w = (uchar)cross_arm_length(img, H, W, x, y, 0, 1, tau, eta, include_neighbor);
-    arms[y * W + x] = a;
+    const size_t plane = (size_t)H * (size_t)W;
+    const size_t i = (size_t)y * W + x;
+    arms[i] = (uchar)cross_arm_length(img, H, W, x, y, -1, 0, tau, eta, include_neighbor);
+    arms[plane + i] = (uchar)cross_arm_length(img, H, W, x, y, 1, 0, tau, eta, include_neighbor);
+    arms[2 * plane + i] = (uchar)cross_arm_length(img, H, W, x, y, 0, -1, tau, eta, include_neighbor);
+    arms[3 * plane + i] = (uchar)cross_arm_length(img, H, W, x, y, 0, 1, tau, eta, include_neighbor);
 }

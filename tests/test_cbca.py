@@ -16,7 +16,7 @@ import pytest
 from conftest import POISON
 from mccnn_cl.reference.aggregation import cbca, cross_arms
 from mccnn_cl.stages.cbca import CBCA
-from mccnn_cl.stages.cross import CrossArms, max_arm
+from mccnn_cl.stages.cross import CrossArms, arms_to_device, max_arm
 
 
 def invalid_mask(D, H, W):
@@ -45,13 +45,21 @@ def ad_volume(img_l, img_r, D):
     return c
 
 
-def run_cbca(ctx, cost, arms_l, arms_r, iterations=4, **kw):
+#: The implementations: (short-arm vector kernels allowed, max_arm); None = the
+#: tight bound of the arms at hand.  Short + tight is the fast path; generic
+#: with 255 and with the tight bound (ring wrap-around) is the running-sum path.
+IMPLS = [(True, None), (False, None), (False, 255)]
+
+
+def run_cbca(ctx, cost, arms_l, arms_r, iterations=4, short=True, max_arm=None):
     D, H, W = cost.shape
+    if max_arm is None:
+        max_arm = int(max(arms_l.max(), arms_r.max()))
     d_out = ctx.empty(cost.nbytes)
     ctx.fill(d_out, POISON, cost.nbytes)
     d_cost = ctx.to_device(cost)
-    CBCA(ctx)(d_cost, ctx.to_device(arms_l), ctx.to_device(arms_r), D, H, W,
-              iterations=iterations, out=d_out, **kw)
+    CBCA(ctx, short=short)(d_cost, arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r), D, H, W,
+                           iterations=iterations, max_arm=max_arm, out=d_out)
     got = ctx.from_device(d_out, cost.shape)
     np.testing.assert_array_equal(ctx.from_device(d_cost, cost.shape), cost)  # input untouched
     return got
@@ -64,13 +72,17 @@ def compare(got, want, cost):
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * max(rng_, 1e-30))
 
 
-def check(ctx, cost, img_l, img_r, iterations=4, eta=4, include_neighbor=False, **kw):
+def check(ctx, cost, img_l, img_r, iterations=4, eta=4, include_neighbor=False):
+    """Every implementation against the reference; returns (fast path, reference)."""
     arms_l = cross_arms(img_l, eta=eta, include_neighbor=include_neighbor)
     arms_r = cross_arms(img_r, eta=eta, include_neighbor=include_neighbor)
-    got = run_cbca(ctx, cost, arms_l, arms_r, iterations, **kw)
     want = cbca(cost, arms_l, arms_r, iterations)
-    compare(got, want, cost)
-    return got, want
+    results = []
+    for short, bound in IMPLS:
+        got = run_cbca(ctx, cost, arms_l, arms_r, iterations, short, bound)
+        compare(got, want, cost)
+        results.append(got)
+    return results[0], want
 
 
 def test_random_odd_size(ctx):
@@ -90,9 +102,14 @@ def test_random_long_arms_neighbor_variant_and_tight_bound(ctx):
     D, H, W = 9, 23, 31
     cost = random_volume(rng, D, H, W, scale=50.0) - 20.0  # negative costs too
     img_l, img_r = blocky_image(rng, H, W, 6, 0.01), blocky_image(rng, H, W, 5, 0.01)
+    arms_l = cross_arms(img_l, eta=9, include_neighbor=True)
+    assert arms_l.max() == max_arm(9, True) == 8  # the longest arms the short kernels take
     check(ctx, cost, img_l, img_r, iterations=2, eta=9, include_neighbor=True)
-    check(ctx, cost, img_l, img_r, iterations=2, eta=9, include_neighbor=True,
-          max_arm=max_arm(9, True))
+    # arms beyond the short kernels' reach: the running-sum kernels (tight ring and 255)
+    img = np.full((H, W), 0.5, np.float32)
+    img[:, 17] = 0.9
+    got, _ = check(ctx, cost, img, img, iterations=1, eta=15)
+    assert cross_arms(img, eta=15).max() == 14
 
 
 @pytest.mark.parametrize("rel_l,rel_r,y0,x0", [
@@ -138,11 +155,12 @@ def test_constant_volume_stays_constant_and_zero_iterations(ctx):
     cost[invalid_mask(D, H, W)] = np.nan
     img_l, img_r = blocky_image(rng, H, W), blocky_image(rng, H, W)
     arms_l, arms_r = cross_arms(img_l), cross_arms(img_r)
-    got = run_cbca(ctx, cost, arms_l, arms_r)
     valid = ~invalid_mask(D, H, W)
-    np.testing.assert_allclose(got[valid], 0.7, rtol=1e-6)
-    assert np.isnan(got[~valid]).all()
-    np.testing.assert_array_equal(run_cbca(ctx, cost, arms_l, arms_r, iterations=0), cost)
+    for short, bound in IMPLS:
+        got = run_cbca(ctx, cost, arms_l, arms_r, 4, short, bound)
+        np.testing.assert_allclose(got[valid], 0.7, rtol=1e-6)
+        assert np.isnan(got[~valid]).all()
+        np.testing.assert_array_equal(run_cbca(ctx, cost, arms_l, arms_r, 0, short, bound), cost)
 
 
 def test_in_place(ctx):
@@ -156,6 +174,6 @@ def test_in_place(ctx):
     # arms straight from the CrossArms stage this time
     d_al = CrossArms(ctx)(ctx.to_device(img_l), H, W)
     d_ar = CrossArms(ctx)(ctx.to_device(img_r), H, W)
-    out = CBCA(ctx)(d_cost, d_al, d_ar, D, H, W, out=d_cost)
+    out = CBCA(ctx)(d_cost, d_al, d_ar, D, H, W, max_arm=max_arm(4), out=d_cost)
     assert out is d_cost
     compare(ctx.from_device(d_cost, cost.shape), cbca(cost, arms_l, arms_r, 4), cost)

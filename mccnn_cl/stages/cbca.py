@@ -54,7 +54,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from .cross import ARM_LIMIT, check_size, launch
+from ..cl import round_up
+from .cross import ARM_LIMIT, check_size, launch, scan_local_size
+
+#: Largest max_arm served by the short-arm kernels (CBCA_SHORT_MAX in cbca.cl).
+SHORT_MAX = 8
+_VW = 16  # lanes per work-item of cbca_columns_short
 
 
 class CBCA:
@@ -67,8 +72,9 @@ class CBCA:
     faster on GPUs.  Arms longer than ``max_arm`` are truncated to it.
     """
 
-    def __init__(self, ctx, max_arm: int = ARM_LIMIT):
+    def __init__(self, ctx, max_arm: int = ARM_LIMIT, short: bool = True):
         self.ctx = ctx
+        self.short = bool(short)
         self._kernels = {}
         self._get(max_arm)
 
@@ -76,11 +82,14 @@ class CBCA:
         max_arm = int(max_arm)
         if not 0 <= max_arm <= ARM_LIMIT:
             raise InputError(f"max_arm must be in [0, {ARM_LIMIT}], got {max_arm}")
-        k = self._kernels.get(max_arm)
+        short = max_arm <= SHORT_MAX and self.short
+        k = self._kernels.get((max_arm, short))
         if k is None:
-            k = (self.ctx.kernel("cbca.cl", "cbca_rows", MAX_ARM=max_arm),
-                 self.ctx.kernel("cbca.cl", "cbca_columns", MAX_ARM=max_arm))
-            self._kernels[max_arm] = k
+            suffix = "_short" if short else ""
+            k = [self.ctx.kernel("cbca.cl", "cbca_rows" + suffix, MAX_ARM=max_arm),
+                 self.ctx.kernel("cbca.cl", "cbca_columns" + suffix, MAX_ARM=max_arm)]
+            k = [(kern, scan_local_size(self.ctx, kern)) for kern in k] + [short]
+            self._kernels[(max_arm, short)] = k
         return k
 
     def __call__(self, d_cost, d_arms_left, d_arms_right, D, H, W, iterations=4, max_arm=ARM_LIMIT,
@@ -98,7 +107,7 @@ class CBCA:
         nbytes = 4 * D * H * W
         if out is None:
             out = self.ctx.empty(nbytes, "CBCA output volume")
-        k_rows, k_cols = self._get(max_arm)
+        (k_rows, l_rows), (k_cols, l_cols), short = self._get(max_arm)
         if iterations == 0:
             if out is not d_cost:
                 self.ctx.cl.enqueue_copy(self.ctx.queue, out, d_cost, byte_count=nbytes)
@@ -106,7 +115,10 @@ class CBCA:
         dims = (np.int32(D), np.int32(H), np.int32(W))
         src = d_cost
         for _ in range(iterations):
-            launch(self.ctx, "CBCA rows", k_rows, (H, D), None, src, out, d_arms_left, d_arms_right, *dims)
-            launch(self.ctx, "CBCA columns", k_cols, (W, D), None, out, d_arms_left, d_arms_right, *dims)
+            launch(self.ctx, "CBCA rows", k_rows, (round_up(H, l_rows), D), (l_rows, 1),
+                   src, out, d_arms_left, d_arms_right, *dims)
+            ncol = -(-W // _VW) if short else W
+            launch(self.ctx, "CBCA columns", k_cols, (round_up(ncol, l_cols), D), (l_cols, 1),
+                   out, d_arms_left, d_arms_right, *dims)
             src = out
         return out

@@ -12,10 +12,11 @@
   included when inside the image (regardless of tau and eta); the comparison
   is still against the centre pixel and eta is still exclusive.
 
-Storage: one ``uchar4`` per pixel, row-major [H][W], components
-(left, right, up, down), "up" towards smaller y; 4 bytes per pixel
-(:func:`arms_from_device` returns it as uint8 [H][W][4], the layout of
-:func:`mccnn_cl.reference.aggregation.cross_arms`).  Because of the byte
+Storage: bytes in four planes [4][H][W] - plane 0 left, 1 right, 2 up,
+3 down, "up" towards smaller y; 4 bytes per pixel.  Planar, so that the
+aggregation kernels load 16 arms of one kind with one vector load.
+:func:`arms_from_device` / :func:`arms_to_device` convert from / to uint8
+[H][W][4], the layout of :func:`mccnn_cl.reference.aggregation.cross_arms`.  Because of the byte
 storage eta is limited to 256 (arms <= 255).
 """
 
@@ -81,7 +82,7 @@ class CrossArms:
 
     def __call__(self, d_img, H, W, tau=0.0442, eta=4, include_neighbor=False, out=None):
         """Enqueue the arms of the H x W float32 image ``d_img``; returns the
-        uchar4 [H][W] buffer (``out`` if given, 4*H*W bytes)."""
+        uint8 [4][H][W] buffer (``out`` if given, 4*H*W bytes)."""
         H, W = check_size(H, W)
         eta = int(eta)
         if not 0 <= eta <= ARM_LIMIT + 1:
@@ -95,4 +96,14 @@ class CrossArms:
 
 def arms_from_device(ctx, d_arms, H, W) -> np.ndarray:
     """Blocking copy of an arms buffer to a uint8 [H][W][4] array."""
-    return ctx.from_device(d_arms, (int(H), int(W), 4), np.uint8)
+    planes = ctx.from_device(d_arms, (4, int(H), int(W)), np.uint8)
+    return np.ascontiguousarray(np.moveaxis(planes, 0, 2))
+
+
+def arms_to_device(ctx, arms) -> object:
+    """A device arms buffer ([4][H][W] planes) from a uint8 [H][W][4] array
+    (e.g. :func:`mccnn_cl.reference.aggregation.cross_arms`)."""
+    arms = np.asarray(arms)
+    if arms.ndim != 3 or arms.shape[2] != 4 or arms.dtype != np.uint8:
+        raise InputError(f"arms must be uint8 [H][W][4], got {arms.dtype} {arms.shape}")
+    return ctx.to_device(np.ascontiguousarray(np.moveaxis(arms, 2, 0)))
