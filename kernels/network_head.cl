@@ -19,15 +19,17 @@
  * network_mark_invalid writes NaN into them.
  *
  * Each dense layer is a TM x HP x HP matrix product; work-item
- * (rg, cg) of the group computes the register-blocked micro-tile of rows
- * [rg RM, rg RM + RM) and outputs [cg RN, cg RN + RN): RM vector accumulators
- * of RN floats, one weight vector load per k reused RM times.  Weights are
+ * (rg, cg) of the group computes the register-blocked micro-tiles of rows
+ * [rg RM, rg RM + RM) and outputs [c RN, c RN + RN) for c = cg, cg + ncgw, ...:
+ * RM vector accumulators of RN floats, one weight vector load per k reused RM
+ * times.  Weights are
  * stored k-major ([k][n], HP floats a row) and zero-padded to HP, so padded
  * units are exactly 0 and never change the result.
  *
- * Work-group size: exactly NWI = (TM / RM) * (HP / RN) work-items, checked on
- * the host against the kernel's maximum; local memory 2 TM HP floats, checked
- * against the device's local memory.
+ * Work-group size: NRG * ncgw work-items (NRG = TM / RM row groups, ncgw <=
+ * HP / RN column groups), chosen on the host from the kernel's maximum
+ * work-group size; local memory 2 TM HP floats, checked on the host against
+ * the device's local memory.
  */
 #include "common.h"
 
@@ -64,7 +66,6 @@
 
 #define NCG (HP / RN)          /* column groups */
 #define NRG (TM / RM)          /* row groups */
-#define NWI (NCG * NRG)        /* work-items per group */
 
 #if HP % RN != 0 || TM % RM != 0
 #error "HP must be a multiple of RN and TM a multiple of RM"
@@ -87,29 +88,32 @@ inline float vsum(VT v)
 #endif
 }
 
-/* One dense layer with ReLU on a tile: out[r][n] = ReLU(b[n] + sum_k in[r][k] w[k][n]). */
+/* One dense layer with ReLU on a tile: out[r][n] = ReLU(b[n] + sum_k in[r][k] w[k][n]),
+ * for rows [rg RM, rg RM + RM) and output groups cg, cg + ncgw, ... < NCG. */
 inline void dense_relu(__local const float *in, __local float *out,
                        __global const float *w, __global const float *b,
-                       int rg, int cg)
+                       int rg, int cg, int ncgw)
 {
-    const int n0 = cg * RN;
     const int r0 = rg * RM;
-    VT acc[RM];
-    const VT bv = VLOAD(b + n0);
-#pragma unroll
-    for (int r = 0; r < RM; ++r)
-        acc[r] = bv;
     __local const float *a = in + r0 * HP;
-    __global const float *wc = w + n0;
-    for (int k = 0; k < HP; ++k) {
-        const VT wv = VLOAD(wc + (size_t)k * HP);
+    for (int c = cg; c < NCG; c += ncgw) {
+        const int n0 = c * RN;
+        VT acc[RM];
+        const VT bv = VLOAD(b + n0);
 #pragma unroll
         for (int r = 0; r < RM; ++r)
-            acc[r] = fma((VT)(a[r * HP + k]), wv, acc[r]);
-    }
+            acc[r] = bv;
+        __global const float *wc = w + n0;
+        for (int k = 0; k < HP; ++k) {
+            const VT wv = VLOAD(wc + (size_t)k * HP);
 #pragma unroll
-    for (int r = 0; r < RM; ++r)
-        VSTORE(fmax(acc[r], (VT)(0.0f)), out + (r0 + r) * HP + n0);
+            for (int r = 0; r < RM; ++r)
+                acc[r] = fma((VT)(a[r * HP + k]), wv, acc[r]);
+        }
+#pragma unroll
+        for (int r = 0; r < RM; ++r)
+            VSTORE(fmax(acc[r], (VT)(0.0f)), out + (r0 + r) * HP + n0);
+    }
 }
 
 __kernel void network_head(
@@ -136,16 +140,18 @@ __kernel void network_head(
         return;                                 /* uniform over the group */
 
     const int lid = get_local_id(0);
+    const int nwi = get_local_size(0);          /* a multiple of NRG, at most NRG * NCG */
+    const int ncgw = nwi / NRG;                 /* work-items along the outputs */
 #if ROWS_FASTEST
     const int rg = lid % NRG;
     const int cg = lid / NRG;
 #else
-    const int cg = lid % NCG;
-    const int rg = lid / NCG;
+    const int cg = lid % ncgw;
+    const int rg = lid / ncgw;
 #endif
 
     /* L4: act[r] = ReLU(A(x, y) + B(x - d, y)) */
-    for (int i = lid; i < TM * NCG; i += NWI) {
+    for (int i = lid; i < TM * NCG; i += nwi) {
         const int r = i / NCG;
         const int kv = i - r * NCG;
         const int m = min(first + r, n_valid - 1);   /* past-the-end rows: repeat, not stored */
@@ -161,14 +167,13 @@ __kernel void network_head(
     for (int l = 0; l < NHID; ++l) {
         __local const float *src = act + (l & 1) * (TM * HP);
         __local float *dst = act + ((l + 1) & 1) * (TM * HP);
-        if (lid < NWI)
-            dense_relu(src, dst, wh + (size_t)l * HP * HP, bh + (size_t)l * HP, rg, cg);
+        dense_relu(src, dst, wh + (size_t)l * HP * HP, bh + (size_t)l * HP, rg, cg, ncgw);
         barrier(CLK_LOCAL_MEM_FENCE);
     }
 
     /* L8 and softmax: C = P(bad match) = 1 / (1 + exp(z1 - z0)) */
     __local const float *fin = act + (NHID & 1) * (TM * HP);
-    for (int r = lid; r < TM; r += NWI) {
+    for (int r = lid; r < TM; r += nwi) {
         const int m = first + r;
         if (m >= n_valid)
             continue;

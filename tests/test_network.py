@@ -91,7 +91,7 @@ def test_paper_net_random_image(ctx, paper_weights):
     rng = np.random.default_rng(1)
     left, right = random_pair(rng, 21, 34)
     net = net_for(ctx, paper_weights, key="paper")
-    assert net.hp == 304 and net.nhid == 3
+    assert net.hp >= 300 and net.hp % net.rn == 0 and net.nhid == 3
     got = run_poisoned(ctx, net, left, right, 12)
     check(got, ref.cost_volume(paper_weights, left, right, 12), 12, 13, 26)
 

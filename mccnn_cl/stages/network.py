@@ -174,36 +174,37 @@ class NetworkCost:
         self._d_wh, self._d_bh = ctx.to_device(wh), ctx.to_device(bh)
         self._d_w8, self._d_b8 = ctx.to_device(w8), ctx.to_device(np.asarray(b8, np.float32))
 
-        # -- head kernel: shrink TM until local memory and group size fit ----
+        # -- head kernel: shrink the tile until local memory and group size fit
         tm, rm = int(t["TM"]), int(t["RM"])
-        if tm % rm:
-            raise InputError(f"tile TM={tm} must be a multiple of RM={rm}")
+        if tm < 1 or rm < 1 or tm % rm:
+            raise InputError(f"tile TM={tm} must be a positive multiple of RM={rm}")
+        ncg = hp // rn
         while True:
-            nwi = (tm // rm) * (hp // rn)
-            lmem = 2 * tm * hp * 4
-            fits_mem = lmem <= ctx.local_mem
-            kern = None
-            if fits_mem and nwi <= ctx.max_work_group:
+            if 2 * tm * hp * 4 <= ctx.local_mem:
                 kern = ctx.kernel(HEAD_CL, "network_head", HP=hp, NHID=nhid, TM=tm, RM=rm, RN=rn,
                                   ROWS_FASTEST=int(t["ROWS_FASTEST"]))
-                if nwi <= ctx.work_group_size(kern):
+                max_wg = ctx.work_group_size(kern)
+                kl = int(kern.get_work_group_info(ctx.cl.kernel_work_group_info.LOCAL_MEM_SIZE,
+                                                  ctx.device))
+                if kl <= ctx.local_mem and tm // rm <= max_wg:
                     break
             if tm > rm:
-                tm = max(rm, round_up(tm // 2, rm))
+                tm = max(rm, (tm // 2) // rm * rm)
             elif rm > 1:
                 rm //= 2
                 tm = rm
             else:
                 raise InputError(
-                    f"the network's hidden width {hp} does not fit this device's work-group "
-                    f"({ctx.max_work_group}) or local memory ({ctx.local_mem} bytes) even with 1-row tiles; "
-                    "try tiles={'RN': 16}")
-        self.tm, self.rm, self.nwi = tm, rm, nwi
+                    f"the network's hidden width {hp} does not fit this device's local memory "
+                    f"({ctx.local_mem} bytes) even with 1-row tiles")
+        nrg = tm // rm
+        self.tm, self.rm = tm, rm
+        self.nwi = nrg * min(ncg, max_wg // nrg)  # work-items: all row groups x column groups
         self._head = kern
         self._mark = ctx.kernel(HEAD_CL, "network_mark_invalid", HP=hp, NHID=nhid, TM=tm, RM=rm,
                                 RN=rn, ROWS_FASTEST=int(t["ROWS_FASTEST"]))
         log.info("network: HP=%d NHID=%d TM=%d RM=%d RN=%d (%d work-items, %d B local)",
-                 hp, nhid, tm, rm, rn, nwi, 2 * tm * hp * 4)
+                 hp, nhid, tm, rm, rn, self.nwi, 2 * tm * hp * 4)
 
     # ---------------------------------------------------------------------
     def _conv_launch(self, kern, d_in, w_in, d_w, d_b, d_out, w_out, m_total, npad):
