@@ -16,8 +16,8 @@
  *    at once, all arithmetic on float16 lanes;
  *  - sgm_rows (horizontal paths): one work-item walks one row; for each
  *    chunk of 16 x it copies the chunk's D x 16 costs (and partial sums)
- *    into private memory with vector loads, runs the recurrence over those
- *    16 pixels, and writes the chunk back with vector stores.
+ *    into private memory transposed to [x][d], runs the recurrence over
+ *    those 16 pixels on float16 lanes over d, and writes the chunk back.
  * Output modes: 0 writes C_r (NaN in invalid cells), 1 adds C_r, 2 adds C_r
  * and divides by 4.
  */
@@ -136,6 +136,12 @@ __kernel void sgm_columns(__global const float *cost,  /* D x H x W cost volume 
     }
 }
 
+/* Horizontal paths.  One work-item walks one row.  For each chunk of 16
+ * x it copies the chunk's costs (and, in modes 1 and 2, the partial sums)
+ * into private blocks transposed to [x][d], so that the recurrence at one
+ * pixel runs on float16 lanes over d: C_r(p - r, d - 1), (d) and (d + 1)
+ * are three shifted loads of the array prev, which holds C_r(p - r, d) at
+ * index d + 1 with +INFINITY at index 0 and beyond the valid range. */
 __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (NaN invalid) */
                        __global const float *img_l, /* H x W left image, gray in [0, 1] */
                        __global const float *img_r, /* H x W right image, gray in [0, 1] */
@@ -159,68 +165,110 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
         return;
     __global const float *il = img_l + y * W;
     __global const float *ir = img_r + y * W;
-    float blk_c[MAX_DISP * VW]; /* costs of one chunk, [d][k] */
-    float blk_o[MAX_DISP * VW]; /* output of one chunk, [d][k] */
-    float prev[MAX_DISP + 1];   /* C_r(p - r, d) */
-    for (int d = 0; d <= MAX_DISP; ++d)
-        prev[d] = INFINITY;
-    float m = INFINITY;
-    int pmax = -1; /* largest valid d at p - r */
+    float blk_c[VW * MAX_DISP]; /* costs of one chunk, [k][d] */
+    float blk_o[VW * MAX_DISP]; /* output of one chunk, [k][d] */
+    float buf_a[MAX_DISP + 2 + VW], buf_b[MAX_DISP + 2 + VW];
+    float *prev = buf_a; /* C_r(p - r, d) at prev[d + 1] */
+    float *cur = buf_b;  /* C_r(p, d) at cur[d + 1] */
+    for (int i = 0; i < VW * MAX_DISP; ++i)
+        blk_c[i] = 0.0f; /* lanes beyond the valid range are read, never used */
+    for (int i = 0; i < MAX_DISP + 2 + VW; ++i) {
+        buf_a[i] = INFINITY;
+        buf_b[i] = INFINITY;
+    }
+    const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const uint16 reverse = (uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+    float m = INFINITY; /* min_k C_r(p - r, k) */
+    float t[VW];
     const int nchunks = (W + VW - 1) / VW;
     for (int ci = 0; ci < nchunks; ++ci) {
         const int x0 = (dx > 0 ? ci : nchunks - 1 - ci) * VW;
         const int n = min(VW, W - x0);
         const int dmaxc = min(D - 1, x0 + n - 1);
-        for (int d = 0; d <= dmaxc; ++d) {
+        for (int d = 0; d <= dmaxc; ++d) { /* load the chunk, transposed */
             const size_t i0 = VIDX(d, y, x0, H, W);
-            vstore16(sgm_load(cost, i0, n, 0.0f), 0, blk_c + d * VW);
-            if (mode != 0)
-                vstore16(sgm_load(out, i0, n, 0.0f), 0, blk_o + d * VW);
+            vstore16(sgm_load(cost, i0, n, 0.0f), 0, t);
+            for (int k = 0; k < VW; ++k)
+                blk_c[k * MAX_DISP + d] = t[k];
+            if (mode != 0) {
+                vstore16(sgm_load(out, i0, n, 0.0f), 0, t);
+                for (int k = 0; k < VW; ++k)
+                    blk_o[k * MAX_DISP + d] = t[k];
+            }
         }
         for (int kk = 0; kk < n; ++kk) {
             const int k = dx > 0 ? kk : n - 1 - kk;
             const int x = x0 + k;
             const int dmax = min(D - 1, x);
-            float newm = INFINITY;
-            if (x == (dx > 0 ? 0 : W - 1)) { /* first pixel of the path: C_r = C */
-                for (int d = 0; d <= dmax; ++d) {
-                    const float val = blk_c[d * VW + k];
-                    prev[d] = val;
-                    newm = fmin(newm, val);
-                    float *o = blk_o + d * VW + k;
-                    *o = mode == 0 ? val : SGM_COMBINE(*o, val, mode);
+            const int nvec = dmax / VW + 1;
+            const int first = x == (dx > 0 ? 0 : W - 1); /* first pixel of the path: C_r = C */
+            const int px = x - dx;
+            const int big_l = first ? 0 : !(fabs(il[x] - il[px]) < tau_so);
+            const float p1_a = big_l ? p1_one : p1_small, p1_b = big_l ? p1_both : p1_one;
+            const float p2_a = big_l ? p2_one : p2_small, p2_b = big_l ? p2_both : p2_one;
+            float16 newm = (float16)(INFINITY);
+            for (int v = 0; v < nvec; ++v) {
+                const int d0 = v * VW;
+                const int16 ds = (int16)(d0) + lane;
+                const int16 valid = ds <= (int16)(dmax);
+                const float16 c = vload16(0, blk_c + k * MAX_DISP + d0);
+                float16 val;
+                if (first) {
+                    val = c;
+                } else {
+                    /* right gradients at pd = x - d and pd - r = x - d - dx, lanes d0 .. d0 + 15 */
+                    float16 a, b;
+                    const int xa = x - d0 - (VW - 1), xb = xa - dx;
+                    if (xa >= 0 && xb >= 0 && xb + VW - 1 < W) {
+                        a = shuffle(vload16(0, ir + xa), reverse);
+                        b = shuffle(vload16(0, ir + xb), reverse);
+                    } else {
+                        float ta[VW], tb[VW];
+                        for (int i = 0; i < VW; ++i) {
+                            const int xr = x - d0 - i, xrp = xr - dx;
+                            ta[i] = xr >= 0 ? ir[xr] : 0.0f;
+                            tb[i] = (xrp >= 0 && xrp < W) ? ir[xrp] : 0.0f;
+                        }
+                        a = vload16(0, ta);
+                        b = vload16(0, tb);
+                    }
+                    const int16 xrp = (int16)(x - dx - d0) - lane;
+                    const int16 outside = (xrp < (int16)(0)) | (xrp >= (int16)(W));
+                    int16 big_r = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
+                    big_r = select(big_r, (int16)(outside_large ? -1 : 0), outside);
+                    const float16 p1 = select((float16)(p1_a), (float16)(p1_b), big_r);
+                    const float16 p2 = select((float16)(p2_a), (float16)(p2_b), big_r);
+                    const float16 pm = vload16(0, prev + d0);     /* d - 1 */
+                    const float16 pd = vload16(0, prev + d0 + 1); /* d */
+                    const float16 pn = vload16(0, prev + d0 + 2); /* d + 1 */
+                    const float16 best = fmin(fmin(pd, (float16)(m) + p2), fmin(pm, pn) + p1);
+                    val = c - (float16)(m) + best;
                 }
-            } else {
-                const int px = x - dx;
-                const int big_l = !(fabs(il[x] - il[px]) < tau_so);
-                float pm1 = INFINITY; /* C_r(p - r, d - 1) before it was overwritten */
-                for (int d = 0; d <= dmax; ++d) {
-                    const int xrp = px - d; /* pd - r; pd = x - d is inside */
-                    const int big_r = (xrp >= 0 && xrp < W) ? !(fabs(ir[x - d] - ir[xrp]) < tau_so)
-                                                            : outside_large;
-                    const int nbig = big_l + big_r;
-                    const float p1 = nbig == 0 ? p1_small : (nbig == 1 ? p1_one : p1_both);
-                    const float p2 = nbig == 0 ? p2_small : (nbig == 1 ? p2_one : p2_both);
-                    const float pd = prev[d];
-                    const float best = fmin(fmin(pd, m + p2), fmin(pm1, prev[d + 1]) + p1);
-                    const float val = blk_c[d * VW + k] - m + best;
-                    pm1 = pd;
-                    prev[d] = val;
-                    newm = fmin(newm, val);
-                    float *o = blk_o + d * VW + k;
-                    *o = mode == 0 ? val : SGM_COMBINE(*o, val, mode);
+                val = select((float16)(INFINITY), val, valid);
+                vstore16(val, 0, cur + d0 + 1);
+                newm = fmin(newm, val);
+                float *o = blk_o + k * MAX_DISP + d0;
+                if (mode == 0) {
+                    vstore16(select((float16)(INVALID_COST), val, valid), 0, o);
+                } else {
+                    const float16 old = vload16(0, o);
+                    vstore16(select(old, SGM_COMBINE(old, val, mode), valid), 0, o);
                 }
-                for (int d = dmax + 1; d <= pmax; ++d) /* p - r had more valid disparities */
-                    prev[d] = INFINITY;
             }
-            if (mode == 0)
-                for (int d = dmax + 1; d <= dmaxc; ++d)
-                    blk_o[d * VW + k] = INVALID_COST;
-            m = newm;
-            pmax = dmax;
+            vstore16((float16)(INFINITY), 0, cur + nvec * VW + 1); /* d beyond the valid range */
+            const float8 m8 = fmin(newm.lo, newm.hi);
+            const float4 m4 = fmin(m8.lo, m8.hi);
+            const float2 m2 = fmin(m4.lo, m4.hi);
+            m = fmin(m2.x, m2.y);
+            float *sw = prev;
+            prev = cur;
+            cur = sw;
         }
-        for (int d = 0; d <= dmaxc; ++d)
-            sgm_store(vload16(0, blk_o + d * VW), out + VIDX(d, y, x0, H, W), n);
+        for (int d = 0; d <= dmaxc; ++d) { /* write the chunk back */
+            for (int k = 0; k < VW; ++k)
+                t[k] = blk_o[k * MAX_DISP + d];
+            sgm_store(vload16(0, t), out + VIDX(d, y, x0, H, W), n);
+        }
         if (mode == 0)
             for (int d = dmaxc + 1; d < D; ++d)
                 sgm_store((float16)(NAN), out + VIDX(d, y, x0, H, W), n);

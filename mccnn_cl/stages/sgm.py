@@ -35,10 +35,12 @@ being "large" when >= tau_so:
 Defaults: Pi1 = 1, Pi2 = 32, tau_so = 0.0625 (images in [0, 1]), q1 = 4,
 q2 = 10, v = 2.
 
-Implementation (see ``kernels/sgm.cl``): ``sgm_rows`` walks one row per
-work-item, moving 16-wide chunks of all D planes through private memory with
-vector loads/stores (x is the only contiguous axis of [d][y][x]);
-``sgm_columns`` walks 16 adjacent columns per work-item on float16 lanes.
+Implementation (see ``kernels/sgm.cl``): x is the only contiguous axis of
+[d][y][x], so both kernels move 16-wide chunks along x.  ``sgm_rows`` walks
+one row per work-item, copying each chunk of all D planes into private
+memory transposed to [x][d] and running the recurrence on float16 lanes over
+d; ``sgm_columns`` walks 16 adjacent columns per work-item on float16 lanes
+over x.
 Private arrays are sized by ``-D MAX_DISP`` (D rounded up to a multiple of
 32).  The four launches accumulate straight into the output (write, add,
 add, add-and-divide), so no per-direction volume is stored.  Measured on
