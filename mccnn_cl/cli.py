@@ -271,7 +271,7 @@ def cmd_match(args):
             if max_disp not in matchers:
                 if ctx is None:
                     ctx = ClContext(args.device)
-                matchers[max_disp] = _make_matcher(args, max_disp, weights, progress=args.verbose and single,
+                matchers[max_disp] = _make_matcher(args, max_disp, weights, progress=single and _tty(),
                                                    ctx=ctx)
             t0 = time.perf_counter()
             disp = matchers[max_disp].compute(_gray(left_img), _gray(right_img))
@@ -292,6 +292,14 @@ def cmd_match(args):
     if batch:
         _say(f"wrote {len(jobs)} disparity maps to {args.output_dir}")
     return 0
+
+
+def _tty() -> bool:
+    """Progress bars only on a terminal (not in logs or pipes)."""
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):
+        return False
 
 
 def _gray(img):
@@ -524,7 +532,7 @@ def cmd_demo(args):
     _check_pair(left, right, max_disp, weights)
     status = training_status(weights.meta, "middlebury/Cones", "Cones") if weights is not None else "n/a"
     t0 = time.perf_counter()
-    matcher = _make_matcher(args, max_disp, weights)
+    matcher = _make_matcher(args, max_disp, weights, progress=_tty())
     t_setup = time.perf_counter() - t0
     t0 = time.perf_counter()
     ours = matcher.compute(left, right)
