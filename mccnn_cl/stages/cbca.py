@@ -1,5 +1,5 @@
 """Cross-based cost aggregation, CBCA (paper, "Cross-based cost aggregation")
-- drives ``kernels/cbca.cl`` (kernels ``cbca_rows`` and ``cbca_columns``).
+- drives ``kernels/cbca.cl`` (``cbca_rows[_short]``, ``cbca_columns[_short]``).
 
 Definition (paper)::
 
@@ -28,25 +28,41 @@ x - l_R(x-d, y') <= x' <= x + r_R(x-d, y') (shift by +d).  Hence
 The row interval depends on (d, y', x) only, not on p's row, so
 |U_d(p)| * C^i(p, d) = sum over the rows y' of S(d, y', x), where S is the
 row sum over the row interval: "orthogonal integral images".  Pass 1
-(``cbca_rows``) computes S for every cell, pass 2 (``cbca_columns``) sums S
-and the row counts down the column and divides.  Both use running prefix
-sums, so the work per cell does not grow with the arm length.
+(rows) computes S for every cell, pass 2 (columns) sums S and the row counts
+down the column and divides.
 
 Validity: for a valid p (d <= x) every q of U_d(p) is valid, because the
 right arm at x - d never leaves the right image: x' - d >= x - d - l_R >= 0.
-The kernels also clamp every interval to the valid cells [d, W - 1] by index,
-so an invalid (NaN) cell can never enter a sum or a count; invalid output
-cells are NaN.  p itself is always in U_d(p), so the count is >= 1.
+The kernels also clamp every interval to the valid cells [d, W - 1] (and
+rows to [0, H - 1]) by index, so an invalid (NaN) cell can never enter a sum
+or a count; invalid output cells are NaN.  p itself is always in U_d(p), so
+the count is >= 1.
 
-Precision: the prefix sums are compensated (TwoSum pairs), so a window sum
-is exact to a few ulp of the window's own magnitude, independent of the line
-length (plain float32 prefixes of a 1240-px row would lose ~1e-4 of the
-cost range).  Tests compare with the float64 reference at 1e-5 of the cost
-range.
+Two implementations of the same two passes (``kernels/cbca.cl``), chosen by
+``max_arm`` (an upper bound of the arm lengths, compiled in as MAX_ARM):
+
+* ``cbca_rows`` / ``cbca_columns`` (any max_arm, the "running sums" of the
+  issue): one work-item walks a row (resp. a column) with a running prefix
+  sum and a look-ahead of MAX_ARM cells kept in a private ring; a window sum
+  is P(b) - P(a - 1), so the work per cell does not grow with the arm
+  length.  The prefix sums are compensated (TwoSum pairs), so a window sum is
+  exact to a few ulp of the window's own magnitude, independent of the line
+  length (plain float32 prefixes of a 1240-px row would lose ~1e-4 of the
+  cost range).
+* ``cbca_rows_short`` / ``cbca_columns_short`` (max_arm <= 8, used whenever
+  it applies unless ``CBCA(ctx, short=False)``): direct sums of the
+  2 max_arm + 1 candidate cells, masked by index, on float16 lanes along x.
+  The work per cell grows with max_arm, but for the paper's arms (<= 3 px)
+  this is ~2.3x faster on PoCL than the scalar running sums, which cannot
+  use the vector units.
+
+Tests compare both with the float64 set-definition reference at 1e-5 of the
+cost range.
 
 Memory: no scratch volume.  Pass 1 writes the row sums into the output (it
-may alias its input: each cell is written after it was read) and pass 2 works
-in place; iteration 1 reads ``d_cost``, later iterations the output.
+may alias its input: each cell is written after the values its window needs
+were read) and pass 2 works in place; iteration 1 reads ``d_cost``, later
+iterations the output.
 """
 
 from __future__ import annotations
@@ -65,11 +81,13 @@ _VW = 16  # lanes per work-item of cbca_columns_short
 class CBCA:
     """C^iterations_CBCA of a float32 [D][H][W] cost volume; see the module docstring.
 
-    ``max_arm`` (default 255, right for any arms): an upper bound of every
-    arm length in the arm buffers; it sizes the kernels' private ring buffers
-    (a program is built per value).  ``mccnn_cl.stages.cross.max_arm(eta)``
-    gives the tight bound (3 for the paper's eta = 4); a tighter bound is
-    faster on GPUs.  Arms longer than ``max_arm`` are truncated to it.
+    ``max_arm`` (``__call__`` argument, default 255, right for any arms): an
+    upper bound of every arm length in the arm buffers; a program is built
+    per value.  PASS THE TIGHT BOUND ``mccnn_cl.stages.cross.max_arm(eta,
+    include_neighbor)`` (3 for the paper's eta = 4): it selects the fast
+    short-arm kernels.  Arms longer than ``max_arm`` are truncated to it.
+    ``short=False`` forces the running-sum kernels (for comparisons).
+    ``__init__``'s ``max_arm`` only pre-builds that program.
     """
 
     def __init__(self, ctx, max_arm: int = ARM_LIMIT, short: bool = True):
