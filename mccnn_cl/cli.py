@@ -520,6 +520,7 @@ def cmd_demo(args):
     from .io import write_image
     from .metrics import evaluate_disparity, fill_invalid
     from .visualize import colorize, label, legend_bar
+    from .weights import default_weights_path
     out = args.output
     if not out.lower().endswith((".png", ".jpg", ".jpeg", ".bmp")):
         raise InputError(f"{out}: the demo writes a picture; use a .png or .jpg name")
@@ -542,11 +543,17 @@ def cmd_demo(args):
     m_base = evaluate_disparity(fill_invalid(base), pair.disp, pair.valid_noc, pair.valid_all)
     n_gt = int(pair.valid_all.sum())
     h, w = left.shape
-    phrase = {"held out": "held out of the weights' training",
-              "trained": "one of the weights' TRAINING pairs",
-              "unknown": "of unknown training status (the weights do not record their pairs)",
-              "n/a": "matched without a network"}[status]
-    _say(f"demo pair: Middlebury Cones at 1/8 size ({w}x{h}), {max_disp} disparities; Cones is {phrase}")
+    _say(f"demo pair: Middlebury Cones at 1/8 size ({w}x{h}), {max_disp} disparities, "
+         "ground truth from structured light")
+    if weights is None:
+        _say("cost:      census (no network)")
+    else:
+        name = (os.path.basename(args.weights) if args.weights else
+                os.path.basename(default_weights_path()) + " (shipped)")
+        phrase = {"held out": "Cones was held out of their training",
+                  "trained": "Cones was one of their TRAINING pairs",
+                  "unknown": "they do not record their training pairs"}[status]
+        _say(f"weights:   {name}; {phrase}")
     _say(f"{'method':<22} {'3-px err':>9} {'bad-2.0':>9} {'EPE':>8} {'time':>8}")
     label_ours = "MC-CNN (OpenCL)" if args.cost == "cnn" else "census+SGM (OpenCL)"
     for name, m, t in ((label_ours, m_ours, t_ours), ("OpenCV SGBM", m_base, t_base)):
