@@ -125,7 +125,7 @@ def _check_pair(left, right, max_disparity, weights, names=("left", "right")):
     h, w = left.shape[:2]
     patch = max(weights.patch_size if weights is not None else 1, 9)  # 9: census window, paper patch
     if h < patch or w < patch:
-        raise InputError(f"image {w}x{h} is smaller than the network's {patch}x{patch} patch")
+        raise InputError(f"image {w}x{h} is smaller than the {patch}x{patch} patch the matching cost needs")
     if max_disparity >= w:
         raise InputError(f"disparity range {max_disparity} is not smaller than the image width {w}; "
                          "pass a smaller --max-disp")
