@@ -3,15 +3,20 @@
     python -m bench.bench_aggregation            # or: python bench/bench_aggregation.py
     python bench/bench_aggregation.py --H 376 --W 1240 --D 228 --repeat 1
 
-Prints, for each stage, the wall time (queue finished) and the bandwidth it
-achieves counting the volume bytes it must move at least (reads + writes of
-D x H x W float32), beside the device's buffer-copy bandwidth measured in the
-same run (copy of one volume: read + write).
+Prints, for each stage, the wall time (queue finished), the CPU time of this
+process over the same interval (PoCL's threads included: on a shared machine
+wall time depends on the load, CPU time much less), and the bandwidth the
+wall time achieves counting the volume bytes the stage must move at least
+(reads + writes of D x H x W float32), beside the buffer-copy bandwidth
+measured in the same run (copy of one volume: read + write).  Best of
+``--repeat`` runs after one warm-up run.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import resource
 import time
 
 import numpy as np
@@ -22,15 +27,27 @@ from mccnn_cl.stages.cross import CrossArms, max_arm
 from mccnn_cl.stages.sgm import SGM
 
 
+def _cpu():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+CPU = {"last": float("nan")}
+
+
 def timed(ctx, fn, repeat):
+    """Best wall time of ``repeat`` runs (after a warm-up); CPU['last'] gets
+    the CPU time of that run."""
     fn()  # warm-up (builds the program)
     ctx.finish()
     best = float("inf")
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        c0, t0 = _cpu(), time.perf_counter()
         fn()
         ctx.finish()
-        best = min(best, time.perf_counter() - t0)
+        t = time.perf_counter() - t0
+        if t < best:
+            best, CPU["last"] = t, _cpu() - c0
     return best
 
 
@@ -45,7 +62,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     D, H, W = args.D, args.H, args.W
     ctx = ClContext(args.device)
-    print(f"device: {ctx.describe()}")
+    print(f"device: {ctx.describe()}; {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}")
     rng = np.random.default_rng(0)
     cost = rng.random((D, H, W), dtype=np.float32)
     cost[np.broadcast_to(np.arange(W)[None, None, :] < np.arange(D)[:, None, None], cost.shape)] = np.nan
@@ -61,7 +78,8 @@ def main(argv=None):
 
     t = timed(ctx, lambda: ctx.cl.enqueue_copy(ctx.queue, d_tmp, d_cost, byte_count=V), args.repeat)
     copy_bw = 2 * V / t / 1e9
-    print(f"buffer copy      {t * 1e3:8.1f} ms  {copy_bw:6.2f} GB/s (read + write of one volume)")
+    print(f"buffer copy      {t * 1e3:8.1f} ms  {copy_bw:6.2f} GB/s (read + write of one volume), "
+          f"cpu {CPU['last'] * 1e3:.0f} ms")
 
     arms = CrossArms(ctx)
     d_al, d_ar = ctx.empty(4 * H * W), ctx.empty(4 * H * W)
@@ -72,7 +90,7 @@ def main(argv=None):
 
     t = timed(ctx, run_arms, args.repeat)
     if "arms" in args.stages:
-        print(f"cross arms (x2)  {t * 1e3:8.1f} ms")
+        print(f"cross arms (x2)  {t * 1e3:8.1f} ms, cpu {CPU['last'] * 1e3:.0f} ms")
 
     cbca = CBCA(ctx)
     for bound in (max_arm(4), 255) if "cbca" in args.stages else ():
@@ -80,12 +98,13 @@ def main(argv=None):
                   args.repeat)
         moved = 4 * 4 * V  # per iteration: rows pass read + write, columns pass read + write
         print(f"CBCA 4 it (max_arm={bound:3d}) {t * 1e3:8.1f} ms  {moved / t / 1e9:6.2f} GB/s "
-              f"({t / 4 * 1e3:.1f} ms per iteration)")
+              f"({t / 4 * 1e3:.1f} ms per iteration), cpu {CPU['last'] * 1e3:.0f} ms")
 
     sgm = SGM(ctx)
-    t = float("nan") if "sgm" not in args.stages else timed(ctx, lambda: sgm(d_cost, d_l, d_r, D, H, W, out=d_out), args.repeat)
-    moved = 11 * V  # 4 reads of C, out written once, then read + written three times
-    print(f"SGM 4 directions {t * 1e3:8.1f} ms  {moved / t / 1e9:6.2f} GB/s")
+    if "sgm" in args.stages:
+        t = timed(ctx, lambda: sgm(d_cost, d_l, d_r, D, H, W, out=d_out), args.repeat)
+        moved = 11 * V  # 4 reads of C, out written once, then read + written three times
+        print(f"SGM 4 directions {t * 1e3:8.1f} ms  {moved / t / 1e9:6.2f} GB/s, cpu {CPU['last'] * 1e3:.0f} ms")
     print(f"(buffer-copy bandwidth {copy_bw:.2f} GB/s)")
 
 
