@@ -177,3 +177,17 @@ def test_in_place(ctx):
     out = CBCA(ctx)(d_cost, d_al, d_ar, D, H, W, max_arm=max_arm(4), out=d_cost)
     assert out is d_cost
     compare(ctx.from_device(d_cost, cost.shape), cbca(cost, arms_l, arms_r, 4), cost)
+
+
+def test_bad_input(ctx):
+    from mccnn_cl.errors import InputError
+    d_cost = ctx.to_device(np.zeros((2, 3, 4), np.float32))
+    d_arms = ctx.to_device(np.zeros((4, 3, 4), np.uint8))
+    with pytest.raises(InputError):
+        CBCA(ctx)(d_cost, d_arms, d_arms, 2, 3, 4, iterations=-1)
+    with pytest.raises(InputError):
+        CBCA(ctx)(d_cost, d_arms, d_arms, 2, 3, 4, max_arm=256)
+    with pytest.raises(InputError):
+        CBCA(ctx)(d_cost, d_arms, d_arms, 0, 3, 4)
+    with pytest.raises(InputError):
+        arms_to_device(ctx, np.zeros((3, 4, 4), np.int32))

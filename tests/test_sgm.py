@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from conftest import POISON
+from mccnn_cl.errors import InputError
 from mccnn_cl.reference.aggregation import SGM_DIRECTIONS, sgm, sgm_direction
 from mccnn_cl.stages.sgm import SGM
 from test_cbca import ad_volume, blocky_image, invalid_mask, random_volume
@@ -116,3 +117,15 @@ def test_clear_minimum_is_kept(ctx):
     got = run_sgm(ctx, cost, img, img)
     wta = np.nanargmin(got, axis=0)
     np.testing.assert_array_equal(wta, true_d)
+
+
+def test_bad_input(ctx):
+    cost = np.zeros((2, 3, 4), np.float32)
+    d_cost = ctx.to_device(cost)
+    d_img = ctx.to_device(np.zeros((3, 4), np.float32))
+    with pytest.raises(InputError):
+        SGM(ctx)(d_cost, d_img, d_img, 2, 3, 4, out=d_cost)
+    with pytest.raises(InputError):
+        SGM(ctx)(d_cost, d_img, d_img, 2, 3, 4, variant="other")
+    with pytest.raises(InputError):
+        SGM(ctx)(d_cost, d_img, d_img, 0, 3, 4)

@@ -59,6 +59,9 @@ from .cross import check_size, launch, scan_local_size
 #: The paper's four directions r = (dx, dy), in the order accumulated.
 DIRECTIONS = ((1, 0), (-1, 0), (0, 1), (0, -1))
 _DISP_ROUND = 32
+#: Most disparity levels SGM accepts: the kernels keep ~136 bytes of private
+#: memory per level and work-item (2048 levels checked on PoCL).
+MAX_LEVELS = 2048
 _VW = 16  # lanes per work-item in sgm_columns (VW in sgm.cl)
 
 
@@ -98,8 +101,8 @@ class SGM:
         must not be ``d_cost``) holding C_SGM, NaN where invalid."""
         H, W = check_size(H, W, "cost volume")
         D = int(D)
-        if D < 1:
-            raise InputError(f"the cost volume needs at least one disparity level, got D = {D}")
+        if not 1 <= D <= MAX_LEVELS:
+            raise InputError(f"SGM takes 1 to {MAX_LEVELS} disparity levels, got D = {D}")
         if out is not None and out is d_cost:
             raise InputError("SGM cannot work in place: out must differ from d_cost")
         if out is None:
