@@ -45,6 +45,24 @@ def flop_counts(w, H, W, D):
     return feat, cells * per_cell, cells
 
 
+class Timer:
+    """Wall-clock and process CPU time (all threads of this process) of a block."""
+
+    def __enter__(self):
+        self.w0, self.c0 = time.perf_counter(), time.process_time()
+        return self
+
+    def __exit__(self, *exc):
+        self.wall = time.perf_counter() - self.w0
+        self.cpu = time.process_time() - self.c0
+
+
+def rates(flop, t):
+    """'X GFLOP/s wall, Y GFLOP/s per CPU-second' for a Timer."""
+    return (f"{flop / t.wall / 1e9:.1f} GFLOP/s wall, "
+            f"{flop / max(t.cpu, 1e-9) / 1e9:.1f} GFLOP/s per CPU-second")
+
+
 def cpu_name():
     try:
         with open("/proc/cpuinfo") as f:
@@ -63,6 +81,9 @@ def main(argv=None):
     ap.add_argument("--disp", type=int, default=64, help="disparity levels D")
     ap.add_argument("--device", default=None, help="OpenCL device spec (see mccnn_cl.cl.select_device)")
     ap.add_argument("--no-torch", action="store_true", help="skip the torch timing")
+    ap.add_argument("--torch-disp", type=int, default=0,
+                    help="time torch on the first N disparities only (default: all D); rates and "
+                         "ratios are per FLOP, so they stay comparable")
     ap.add_argument("--gemm-rows", type=int, default=0,
                     help="rows of the numpy GEMM (default: the valid cells of one disparity)")
     args = ap.parse_args(argv)
@@ -94,19 +115,20 @@ def main(argv=None):
 
     # features alone (both images), then the full call
     Lf = left.astype(np.float64)[:, :, None]
-    t0 = time.perf_counter()
-    for side in ("left", "right"):
-        net._side(Lf, side).release()
-    ctx.finish()
-    t_feat = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    d_cost = net(left, right, D)
-    ctx.finish()
-    t_cl = time.perf_counter() - t0
-    t_head = max(t_cl - t_feat, 1e-9)
-    print(f"OpenCL: total {t_cl:.2f} s = {total_flop / t_cl / 1e9:.1f} GFLOP/s; "
-          f"features {t_feat:.2f} s ({feat_flop / t_feat / 1e9:.1f} GFLOP/s), "
-          f"head ~{t_head:.2f} s ({head_flop / t_head / 1e9:.1f} GFLOP/s)")
+    with Timer() as tf:
+        for side in ("left", "right"):
+            net._side(Lf, side).release()
+        ctx.finish()
+    with Timer() as tc:
+        d_cost = net(left, right, D)
+        ctx.finish()
+    head_wall, head_cpu = max(tc.wall - tf.wall, 1e-9), max(tc.cpu - tf.cpu, 1e-9)
+    print(f"OpenCL: total {tc.wall:.2f} s wall ({tc.cpu:.2f} s CPU): {rates(total_flop, tc)}")
+    print(f"  features {tf.wall:.2f} s: {rates(feat_flop, tf)}")
+    print(f"  head ~{head_wall:.2f} s: {head_flop / head_wall / 1e9:.1f} GFLOP/s wall, "
+          f"{head_flop / head_cpu / 1e9:.1f} GFLOP/s per CPU-second")
+    cl_rate = total_flop / tc.wall / 1e9
+    cl_rate_cpu = total_flop / tc.cpu / 1e9
 
     # numpy GEMM on the head's shapes
     rows = args.gemm_rows or (H - 8) * (W - 8)
@@ -114,12 +136,12 @@ def main(argv=None):
     b = rng.random((w.fc[1][0].shape[1], w.fc[1][0].shape[0])).astype(np.float32)
     a @ b
     reps = 3
-    t0 = time.perf_counter()
-    for _ in range(reps):
-        a @ b
-    t_np = (time.perf_counter() - t0) / reps
-    np_rate = 2 * rows * b.shape[0] * b.shape[1] / t_np / 1e9
-    print(f"numpy GEMM ({rows}x{b.shape[0]}) @ ({b.shape[0]}x{b.shape[1]}) float32: {np_rate:.1f} GFLOP/s")
+    gemm_flop = reps * 2 * rows * b.shape[0] * b.shape[1]
+    with Timer() as tn:
+        for _ in range(reps):
+            a @ b
+    print(f"numpy GEMM ({rows}x{b.shape[0]}) @ ({b.shape[0]}x{b.shape[1]}) float32: {rates(gemm_flop, tn)}")
+    np_rate, np_rate_cpu = gemm_flop / tn.wall / 1e9, gemm_flop / tn.cpu / 1e9
     del a, b
 
     if not args.no_torch:
@@ -128,20 +150,23 @@ def main(argv=None):
         from mccnn_cl.reference.network import cost_volume_torch
         from mccnn_cl.train.model import MCCNN
         model = MCCNN.from_weights(w).eval()
+        Dt = min(args.torch_disp or D, D)
+        ft, ht, _ = flop_counts(w, H, W, Dt)
         cost_volume_torch(w, left[:64, :128], right[:64, :128], 4, model=model)  # warm-up
-        t0 = time.perf_counter()
-        vol_t = cost_volume_torch(w, left, right, D, model=model)
-        t_torch = time.perf_counter() - t0
-        vol_cl = ctx.from_device(d_cost, (D, H - 8, W - 8))
+        with Timer() as tt:
+            vol_t = cost_volume_torch(w, left, right, Dt, model=model)
+        vol_cl = ctx.from_device(d_cost, (D, H - 8, W - 8))[:Dt]
         err = np.nanmax(np.abs(vol_cl - vol_t))
         same_nan = np.array_equal(np.isnan(vol_cl), np.isnan(vol_t))
-        print(f"torch {torch.__version__} ({torch.get_num_threads()} threads): {t_torch:.2f} s = "
-              f"{total_flop / t_torch / 1e9:.1f} GFLOP/s; max |OpenCL - torch| = {err:.2e}, "
-              f"NaN positions {'equal' if same_nan else 'DIFFER'}")
-        print(f"ratio OpenCL/torch speed: {t_torch / t_cl:.2f}x")
-    rate_cl = total_flop / t_cl / 1e9
-    print(f"ratio OpenCL/numpy GEMM rate: {rate_cl / np_rate:.2f} (head alone "
-          f"{head_flop / t_head / 1e9 / np_rate:.2f})")
+        print(f"torch {torch.__version__} ({torch.get_num_threads()} threads), D = {Dt}: "
+              f"{tt.wall:.2f} s wall ({tt.cpu:.2f} s CPU): {rates(ft + ht, tt)}; "
+              f"max |OpenCL - torch| = {err:.2e}, NaN positions {'equal' if same_nan else 'DIFFER'}")
+        t_rate, t_rate_cpu = (ft + ht) / tt.wall / 1e9, (ft + ht) / tt.cpu / 1e9
+        print(f"ratio OpenCL/torch (FLOP rate): {cl_rate / t_rate:.2f}x wall, "
+              f"{cl_rate_cpu / t_rate_cpu:.2f}x per CPU-second")
+    print(f"ratio OpenCL/numpy GEMM (FLOP rate): {cl_rate / np_rate:.2f}x wall, "
+          f"{cl_rate_cpu / np_rate_cpu:.2f}x per CPU-second "
+          f"(head alone {head_flop / head_wall / 1e9 / np_rate:.2f}x wall)")
     print(f"load average after: {os.getloadavg()}")
 
 

@@ -311,4 +311,6 @@ class NetworkCost:
         L = np.asarray(left)
         d = self(left, right, max_disparity)
         h, w = L.shape[0] - self.patch + 1, L.shape[1] - self.patch + 1
-        return self.ctx.from_device(d, (int(max_disparity), h, w))
+        out = self.ctx.from_device(d, (int(max_disparity), h, w))
+        d.release()
+        return out
