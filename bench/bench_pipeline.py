@@ -32,7 +32,8 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("MCCNN_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 # Pipeline stage names (StereoResult.timings keys) -> row of the paper's table.
-GROUPS = {"C_CNN": "matching cost", "cross": "CBCA", "C_CBCA": "CBCA", "C": "CBCA", "C_SGM": "SGM"}
+GROUPS = {"C_CNN": "matching cost", "cross": "CBCA", "C_CBCA": "CBCA", "C": "CBCA", "C_SGM": "SGM",
+          "cross_R": "CBCA", "C_R_CBCA": "CBCA", "C_R": "CBCA", "C_R_SGM": "SGM"}
 
 
 def kitti_pair(height=376, width=1240):
@@ -82,6 +83,51 @@ def time_cnn(ctx, left, right, ndisp, repeat):
                  f"{per:.3f} s per extra disparity"), what
 
 
+def accuracy(ctx):
+    """Error rates of the census pipeline, census WTA (same cost, border copied)
+    and OpenCV SGBM (holes counted as errors, and filled as the KITTI devkit
+    does) on the KITTI 2015 pair (bad-3, non-occluded GT) and the Middlebury
+    scenes with a non-occlusion mask (bad-2, non-occluded GT, ndisp levels)."""
+    from mccnn_cl.baseline import sgbm
+    from mccnn_cl.io import read_kitti_disparity, read_pfm
+    from mccnn_cl.metrics import bad_pixel_rate, fill_invalid
+    from mccnn_cl.pipeline import StereoMatcher, to_gray
+    from mccnn_cl.reference.disparity import enlarge
+    from mccnn_cl.stages.census import CensusCost
+    from mccnn_cl.stages.disparity import WinnerTakeAll
+
+    cases = []
+    k = DATA / "kitti2015" / "training"
+    gt, valid = read_kitti_disparity(k / "disp_noc_0" / "000000_10.png")
+    gt[~valid] = np.nan
+    cases.append(("KITTI 2015 000000", cv2.imread(str(k / "image_2" / "000000_10.png")),
+                  cv2.imread(str(k / "image_3" / "000000_10.png")), gt, None, 228, 3.0))
+    for scene in ("Tsukuba", "Venus", "Cones"):
+        d = DATA / "middlebury" / scene
+        ndisp = int([ln for ln in open(d / "calib.txt") if ln.startswith("ndisp")][0].split("=")[1])
+        mask = cv2.imread(str(d / "mask0nocc.png"), cv2.IMREAD_GRAYSCALE) == 255
+        cases.append((f"Middlebury {scene}", cv2.imread(str(d / "im0.png")), cv2.imread(str(d / "im1.png")),
+                      read_pfm(d / "disp0GT.pfm"), mask, ndisp, 2.0))
+    rows = []
+    for name, left, right, gt, mask, D, thr in cases:
+        disp = StereoMatcher(cost="census", max_disparity=D, device=ctx).compute(left, right)
+        gl, gr = to_gray(left, "left"), to_gray(right, "right")
+        H, W = gl.shape[0] - 8, gl.shape[1] - 8
+        wta = ctx.from_device(WinnerTakeAll(ctx).left(CensusCost(ctx)(gl, gr, D), D, H, W), (H, W), np.int32)
+        wta = enlarge(wta.astype(np.float32), 4, gl.shape)
+        lg = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
+        rg = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
+        sg = sgbm(lg, rg, D)
+        rates = [bad_pixel_rate(x, gt, thr, mask) for x in (disp, wta, sg, fill_invalid(sg))]
+        rows.append((name, thr, D, *rates))
+    print(f"\n| pair (non-occluded GT) | bad-T | D | census pipeline | census WTA | SGBM (holes = errors) "
+          "| SGBM (holes filled) |")
+    print("|---|---|---|---|---|---|---|")
+    for name, thr, D, a, b, c, e in rows:
+        print(f"| {name} | {thr:g} px | {D} | {a:.2f} % | {b:.2f} % | {c:.2f} % | {e:.2f} % |")
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default=None, help="OpenCL device spec (see mccnn_cl.cl.select_device)")
@@ -90,7 +136,14 @@ def main(argv=None):
     ap.add_argument("--cnn-disp", type=int, default=4,
                     help="disparities to run the network for (extrapolated to 228 when fewer); 0 = skip")
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    ap.add_argument("--accuracy", action="store_true",
+                    help="only print error rates on KITTI 2015 000000 and Middlebury Tsukuba/Venus/Cones")
     args = ap.parse_args(argv)
+    if args.accuracy:
+        from mccnn_cl.cl import ClContext
+
+        accuracy(ClContext(args.device))
+        return
 
     from mccnn_cl.baseline import sgbm
     from mccnn_cl.cl import ClContext

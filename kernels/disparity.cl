@@ -104,3 +104,40 @@ __kernel void disparity_lr_check(
     }
     labels[row + x] = label;
 }
+
+/* The right-reference volume, mirrored so that it follows the left-reference
+ * conventions of every stage (cell (d, y, x) valid iff d <= x):
+ *   out(d, y, x) = C_R(d, y, W-1-x) = C_L(d, y, W-1-x+d)   for d <= x,
+ *   NaN otherwise (x + d >= W in the unmirrored right volume).
+ * Cell (d, y, x) then compares the mirrored right image at x with the
+ * mirrored left image at x - d, so running the stereo method on it with the
+ * mirrored images as (left, right) treats the right image as the reference;
+ * disparity_mirror maps the resulting map back.  Global size (W, H, D). */
+__kernel void disparity_right_volume(
+    __global const float *cost, /* C_L, D x H x W */
+    __global float *out,        /* out: mirrored C_R, D x H x W */
+    const int D,                /* disparity levels */
+    const int H,                /* rows */
+    const int W)                /* columns */
+{
+    const int x = get_global_id(0);
+    const int y = get_global_id(1);
+    const int d = get_global_id(2);
+    if (x >= W || y >= H || d >= D)
+        return;
+    out[VIDX(d, y, x, H, W)] = d <= x ? cost[VIDX(d, y, W - 1 - x + d, H, W)] : INVALID_COST;
+}
+
+/* out(y, x) = in(y, W-1-x) for an int32 map.  Global size (W, H). */
+__kernel void disparity_mirror(
+    __global const int *in, /* H x W */
+    __global int *out,      /* out: H x W */
+    const int H,            /* rows */
+    const int W)            /* columns */
+{
+    const int x = get_global_id(0);
+    const int y = get_global_id(1);
+    if (x >= W || y >= H)
+        return;
+    out[(size_t)y * W + x] = in[(size_t)y * W + (W - 1 - x)];
+}

@@ -34,7 +34,7 @@ from .cl import ClContext
 from .errors import InputError, WeightsError
 from .stages.census import CensusCost
 from .stages.cross import CrossArms, max_arm
-from .stages.disparity import Interpolate, LeftRightCheck, Subpixel, WinnerTakeAll
+from .stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpixel, WinnerTakeAll
 from .stages.refine import BilateralFilter, Enlarge, MedianFilter
 from .weights import Weights
 
@@ -50,6 +50,13 @@ class Hyperparameters:
     ``bilateral_guide="image"``, in pixels when ``"disparity"``.
 
     Variant switches (paper default first; see docs/method.md):
+    ``right_reference`` "aggregated" (paper: D^R is "obtained by treating the
+    right image as the reference image"; the right-reference cost is derived
+    from C_CNN by the index shift, never by rerunning the network, then goes
+    through cross arms, CBCA, SGM and CBCA guided by the right image, as in
+    the released code) | "derived" (D^R = argmin_d C(d, y, x + d) on the
+    final left volume C: half the CBCA/SGM time, but left-guided SGM makes
+    D^R worse and the left-right check then rejects good pixels);
     ``cross_include_neighbor`` False (code True); ``sgm_variant`` "paper" |
     "code", ``sgm_p2_times_pi1`` False, ``sgm_outside_large`` True (see
     :mod:`mccnn_cl.stages.sgm`);
@@ -74,6 +81,7 @@ class Hyperparameters:
     sgm_variant: str = "paper"        # "paper" | "code" (P / (q1 q2) when both gradients are large)
     sgm_p2_times_pi1: bool = False    # P2 = Pi1 * Pi2 instead of Pi2
     sgm_outside_large: bool = True    # pd - r outside the right image counts as a large D2
+    right_reference: str = "aggregated"  # D^R: "aggregated" | "derived" (see docs/method.md)
     lr_threshold: float = 1.0         # |d - D^R(pd)| <= this is consistent
     interpolation: str = "paper"      # "paper" | "code"
     subpixel_min_denominator: float = 0.0
@@ -87,6 +95,8 @@ class Hyperparameters:
     def __post_init__(self):
         if self.interpolation not in ("paper", "code"):
             raise InputError(f"interpolation must be 'paper' or 'code', not {self.interpolation!r}")
+        if self.right_reference not in ("derived", "aggregated"):
+            raise InputError(f"right_reference must be 'derived' or 'aggregated', not {self.right_reference!r}")
         if self.sgm_variant not in ("paper", "code"):
             raise InputError(f"sgm_variant must be 'paper' or 'code', not {self.sgm_variant!r}")
         if self.bilateral_guide not in ("image", "disparity"):
@@ -110,7 +120,9 @@ class StereoResult:
 
     ``disparity``: D_BF (float32, the left image's size, pixels).
     ``intermediates``: name -> host array (C_CNN, C_CBCA, C_SGM, C: float32
-    [D][H-2m][W-2m]; D_L, D_R, labels, D_INT: int32 on the cropped domain;
+    [D][H-2m][W-2m]; C_R with ``right_reference="aggregated"``: the final
+    right-reference volume, mirrored left to right (see
+    :class:`mccnn_cl.stages.disparity.RightReference`); D_L, D_R, labels, D_INT: int32 on the cropped domain;
     D_SE: float32 cropped; D_median, D_BF: float32 image size).
     ``timings``: stage -> seconds (queue finished after every stage).
     ``margin``: m, the offset of the cropped domain in the image.
@@ -212,6 +224,7 @@ class StereoMatcher:
         self.cbca = CBCA(ctx)
         self.sgm = SGM(ctx)
         self.wta = WinnerTakeAll(ctx)
+        self.right_ref = RightReference(ctx)
         self.lr_check = LeftRightCheck(ctx)
         self.interpolate = Interpolate(ctx)
         self.subpixel = Subpixel(ctx)
@@ -262,15 +275,21 @@ class StereoMatcher:
         # to the host before the next stage overwrites it.
         arm = max_arm(p.cbca_eta, p.cross_include_neighbor)
         C_CNN = rec("C_CNN", self._matching_cost(I_L, I_R, D), vol)
+        if p.right_reference == "aggregated":  # taken before CBCA overwrites C_CNN
+            C_R = rec("C_R_CNN", self.right_ref.volume(C_CNN, D, H, W))
         arms_L = self.cross(d_J_L, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
         arms_R = rec("cross", self.cross(d_J_R, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor))
         C_CBCA = rec("C_CBCA", self.cbca(C_CNN, arms_L, arms_R, D, H, W, p.cbca_iterations, arm, out=C_CNN), vol)
         C_SGM = rec("C_SGM", self.sgm(C_CBCA, d_J_L, d_J_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                       p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
                                       p.sgm_outside_large), vol)
+        C_CBCA.release()  # C_CNN's buffer, aggregated in place; no longer needed
         C = rec("C", self.cbca(C_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm, out=C_SGM), vol)
         D_L = rec("D_L", self.wta.left(C, D, H, W), crop, np.int32)
-        D_R = rec("D_R", self.wta.right(C, D, H, W), crop, np.int32)
+        if p.right_reference == "derived":
+            D_R = rec("D_R", self.wta.right(C, D, H, W), crop, np.int32)
+        else:
+            D_R = rec("D_R", self._right_reference(C_R, I_L, I_R, rec), crop, np.int32)
         labels = rec("labels", self.lr_check(D_L, D_R, D, H, W, p.lr_threshold), crop, np.int32)
         D_INT = rec("D_INT", self.interpolate(D_L, labels, H, W, p.interpolation), crop, np.int32)
         D_SE = rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp), crop)
@@ -280,6 +299,27 @@ class StereoMatcher:
         D_BF = rec("D_BF", self.bilateral(D_median, guide, Hi, Wi, p.blur_sigma, tau, p.blur_radius), img)
 
         return ctx.from_device(D_BF, img)
+
+    def _right_reference(self, C_R, I_L, I_R, rec):
+        """D^R with the right image as the reference (``right_reference="aggregated"``):
+        the mirrored right-reference cost volume (from C_CNN, network not rerun)
+        through cross arms, CBCA, SGM, CBCA and the left WTA with the mirrored
+        right and left images as (left, right); the map is mirrored back."""
+        p, ctx, m, D = self.params, self.ctx, self.margin, self.max_disparity
+        H, W = I_L.shape[0] - 2 * m, I_L.shape[1] - 2 * m
+        d_K_L = ctx.to_device(np.ascontiguousarray(I_R[m:m + H, m:m + W][:, ::-1]))  # mirrored right image
+        d_K_R = ctx.to_device(np.ascontiguousarray(I_L[m:m + H, m:m + W][:, ::-1]))  # mirrored left image
+        arm = max_arm(p.cbca_eta, p.cross_include_neighbor)
+        arms_L = self.cross(d_K_L, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
+        arms_R = rec("cross_R", self.cross(d_K_R, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor))
+        C_R = rec("C_R_CBCA", self.cbca(C_R, arms_L, arms_R, D, H, W, p.cbca_iterations, arm, out=C_R))
+        C_R_SGM = rec("C_R_SGM", self.sgm(C_R, d_K_L, d_K_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
+                                          p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
+                                          p.sgm_outside_large))
+        C_R.release()
+        C_R = rec("C_R", self.cbca(C_R_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm, out=C_R_SGM),
+                  (D, H, W))
+        return self.right_ref.mirror(self.wta.left(C_R, D, H, W), H, W)
 
     def _matching_cost(self, I_L, I_R, D):
         if not self.progress:

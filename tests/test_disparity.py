@@ -12,7 +12,7 @@ import pytest
 
 from mccnn_cl.reference import disparity as ref
 from mccnn_cl.stages.census import CensusCost
-from mccnn_cl.stages.disparity import Interpolate, LeftRightCheck, Subpixel, WinnerTakeAll
+from mccnn_cl.stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpixel, WinnerTakeAll
 
 from conftest import POISON
 
@@ -232,3 +232,22 @@ def test_census_volume_with_stages(ctx, cones):
     wta = WinnerTakeAll(ctx)
     DL = ctx.from_device(wta.left(d_cost, D, H, W), (H, W), np.int32)
     np.testing.assert_array_equal(DL, ref.wta_left(C))
+
+
+@pytest.mark.parametrize("D,H,W", [(16, 37, 53), (20, 3, 11), (1, 1, 9)])
+def test_right_reference_volume_and_mirror(ctx, D, H, W):
+    """The mirrored right-reference volume is C_R mirrored left to right (exact
+    copies, NaN exactly at d > x), and its left WTA mirrored back is D^R."""
+    rng = np.random.default_rng(D * W)
+    C = random_volume(rng, D, H, W, levels=5)
+    rr = RightReference(ctx)
+    out = rr.volume(ctx.to_device(C), D, H, W, out=poisoned(ctx, D * H * W * 4))
+    CRm = ctx.from_device(out, (D, H, W))
+    expect = ref.right_cost_volume(C)[:, :, ::-1]
+    np.testing.assert_array_equal(np.isnan(CRm), np.isnan(expect))
+    np.testing.assert_array_equal(CRm[~np.isnan(CRm)], expect[~np.isnan(expect)])
+    for d in range(D):
+        assert np.isnan(CRm[d, :, :min(d, W)]).all() and not np.isnan(CRm[d, :, d:]).any()
+    dl = WinnerTakeAll(ctx).left(out, D, H, W)
+    back = rr.mirror(dl, H, W, out=poisoned(ctx, H * W * 4, I32_POISON, np.int32))
+    np.testing.assert_array_equal(ctx.from_device(back, (H, W), np.int32), ref.wta_right(C))

@@ -57,8 +57,9 @@ def test_census_pipeline_beats_wta_on_tsukuba(ctx, shared_data, census_matcher):
     assert e_pipe < 0.6 * e_wta, msg
     assert e_pipe < 8.0, msg
     # every stage timed, in the paper's order
-    assert list(res.timings) == ["C_CNN", "cross", "C_CBCA", "C_SGM", "C", "D_L", "D_R", "labels",
-                                 "D_INT", "D_SE", "D_E", "D_median", "D_BF"]
+    assert list(res.timings) == ["C_CNN", "C_R_CNN", "cross", "C_CBCA", "C_SGM", "C", "D_L", "cross_R",
+                                 "C_R_CBCA", "C_R_SGM", "C_R", "D_R", "labels", "D_INT", "D_SE", "D_E",
+                                 "D_median", "D_BF"]
     assert all(t >= 0 for t in res.timings.values())
 
 
@@ -72,7 +73,7 @@ def test_intermediates_follow_the_references(ctx, shared_data):
     res = m.compute(left, right, return_intermediates=True)
     assert isinstance(res, StereoResult) and res.margin == 4
     it = res.intermediates
-    assert set(it) == {"C_CNN", "C_CBCA", "C_SGM", "C", "D_L", "D_R", "labels", "D_INT", "D_SE", "D_E",
+    assert set(it) == {"C_CNN", "C_CBCA", "C_SGM", "C", "C_R", "D_L", "D_R", "labels", "D_INT", "D_SE", "D_E",
                        "D_median", "D_BF"}
     gl, gr = to_gray(left, "l"), to_gray(right, "r")
     assert gl.std() > 0.05
@@ -82,7 +83,8 @@ def test_intermediates_follow_the_references(ctx, shared_data):
     C = it["C"]
     assert C.shape == (24, 43, 73)
     np.testing.assert_array_equal(it["D_L"], ref.wta_left(C))
-    np.testing.assert_array_equal(it["D_R"], ref.wta_right(C))
+    # right image as the reference: the WTA of the (mirrored) right-reference volume, mirrored back
+    np.testing.assert_array_equal(it["D_R"], ref.wta_left(it["C_R"])[:, ::-1])
     np.testing.assert_array_equal(it["labels"], ref.lr_check(it["D_L"], it["D_R"], 24, 1.0))
     np.testing.assert_array_equal(it["D_INT"], ref.interpolate(it["D_L"], it["labels"]))
     np.testing.assert_allclose(it["D_SE"], ref.subpixel(C, it["D_INT"]), rtol=0, atol=1e-6)
@@ -92,6 +94,16 @@ def test_intermediates_follow_the_references(ctx, shared_data):
     np.testing.assert_allclose(it["D_BF"], expect, rtol=1e-5, atol=1e-4)
     np.testing.assert_array_equal(res.disparity, it["D_BF"])
     np.testing.assert_array_equal(m.compute(left, right), res.disparity)  # same path, no copies
+
+
+def test_right_reference_derived(ctx, shared_data):
+    left, right, _, _, _ = load_pair(shared_data, "Cones")
+    left, right = left[100:151, 150:231], right[100:151, 150:231]
+    m = StereoMatcher(cost="census", max_disparity=24, device=ctx, right_reference="derived")
+    it = m.compute(left, right, return_intermediates=True).intermediates
+    assert "C_R" not in it
+    np.testing.assert_array_equal(it["D_R"], ref.wta_right(it["C"]))
+    np.testing.assert_array_equal(it["labels"], ref.lr_check(it["D_L"], it["D_R"], 24, 1.0))
 
 
 def test_code_variants_run_and_differ(ctx, shared_data):

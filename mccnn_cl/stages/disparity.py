@@ -5,6 +5,9 @@ Stages (device buffers in and out; each ``__call__`` only enqueues work):
 
 * :class:`WinnerTakeAll` - ``kernels/disparity.cl``: D^L and D^R (int32), both
   from the SAME left-reference volume (C_R(d, y, x) = C_L(d, y, x + d)).
+* :class:`RightReference` - ``kernels/disparity.cl``: the mirrored
+  right-reference volume, to run the stereo method with the right image as
+  the reference (``right_reference="aggregated"`` in the pipeline).
 * :class:`LeftRightCheck` - ``kernels/disparity.cl``: labels correct /
   mismatch / occlusion (int32 0 / 1 / 2).
 * :class:`Interpolate` - ``kernels/interpolate.cl``: D_INT (int32).
@@ -60,6 +63,36 @@ class WinnerTakeAll:
     def right(self, d_cost, D, H, W, out=None):
         """D^R (int32 H x W buffer), from the left-reference volume."""
         return self._run(self.k_right, "WTA (right)", d_cost, D, H, W, out)
+
+
+class RightReference:
+    """The right image as the reference, from the left-reference volume (the
+    network is never rerun).
+
+    ``volume(d_cost, D, H, W)``: the right-reference volume mirrored left to
+    right, out(d, y, x) = C_L(d, y, W-1-x+d) (NaN for d > x), which follows
+    the left-reference conventions, so the cross arms, CBCA, SGM and WTA
+    stages run on it unchanged with the mirrored right and left images as
+    (left, right).  ``mirror(d_map, H, W)`` mirrors an int32 map back.
+    """
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self.k_volume = ctx.kernel("disparity.cl", "disparity_right_volume")
+        self.k_mirror = ctx.kernel("disparity.cl", "disparity_mirror")
+
+    def volume(self, d_cost, D, H, W, out=None):
+        if out is None:
+            out = self.ctx.empty(D * H * W * _F32, "right-reference cost volume")
+        launch(self.ctx, "right-reference volume", self.k_volume, (W, H, D), d_cost, out,
+               np.int32(D), np.int32(H), np.int32(W))
+        return out
+
+    def mirror(self, d_map, H, W, out=None):
+        if out is None:
+            out = self.ctx.empty(H * W * _I32, "mirrored map")
+        launch(self.ctx, "mirror", self.k_mirror, (W, H), d_map, out, np.int32(H), np.int32(W))
+        return out
 
 
 class LeftRightCheck:
