@@ -82,3 +82,20 @@ def test_aggregation_chain_is_bit_identical(ctx, shared_data):
         _same_bits(first, run(fresh), "census + CBCA, fresh context")
     finally:
         fresh.close()
+
+
+def test_stereo_matcher_census_disparity_is_bit_identical(ctx, shared_data):
+    """The whole method (census cost, CBCA, SGM, disparity stages, refinement)."""
+    from mccnn_cl.pipeline import StereoMatcher
+
+    left, right = _real_crop(shared_data, 64, 96, y0=110, x0=130)
+    first = StereoMatcher(max_disparity=16, device=ctx, cost="census").compute(left, right)
+    assert first.shape == left.shape and np.isfinite(first).all() and np.ptp(first) > 1
+    _same_bits(first, StereoMatcher(max_disparity=16, device=ctx, cost="census").compute(left, right),
+               "final disparity, same context")
+    fresh = ClContext(ctx.device)
+    try:
+        _same_bits(first, StereoMatcher(max_disparity=16, device=fresh, cost="census").compute(left, right),
+                   "final disparity, fresh context")
+    finally:
+        fresh.close()

@@ -229,6 +229,23 @@ def case_cbca(ctx, rng, chk):
         chk.close(f"CBCA D={D} {H}x{W} eta={eta}", ctx.from_device(out, (D, H, W)), want, atol=1e-5)
 
 
+def case_sgm(ctx, rng, chk):
+    """sgm.cl: the four directions (rows and columns kernels), both penalty variants."""
+    from mccnn_cl.reference.aggregation import sgm
+    from mccnn_cl.stages.sgm import SGM
+
+    st = SGM(ctx)
+    for (D, H, W), kw in (((5, 4, 13), {}), ((7, 5, 5), {"variant": "code", "outside_large": False}),
+                          ((5, 1, 19), {})):
+        img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
+        C = _volume(rng, D, H, W)
+        out = _poisoned(ctx, 4 * D * H * W)
+        st(ctx.to_device(C), ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=out, **kw)
+        # as tests/test_sgm.py: 2e-5 of (cost range + Pi2); float32 path sums re-based every step
+        chk.close(f"SGM D={D} {H}x{W} {kw}", ctx.from_device(out, (D, H, W)),
+                  sgm(C, img_l, img_r, **kw), atol=2e-5 * (1.0 + 32.0))
+
+
 def selftest_bad_kernel(ctx, rng, chk):
     """NOT a stage: a kernel with an out-of-bounds read and a local-memory race,
     to prove the harness fails when Oclgrind finds something."""
@@ -253,6 +270,7 @@ CASES = {
     "census": case_census,
     "cross": case_cross,
     "cbca": case_cbca,
+    "sgm": case_sgm,
     "disparity": case_disparity,
     "refine": case_refine,
 }
