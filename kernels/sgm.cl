@@ -107,11 +107,12 @@ __kernel void sgm_columns(__global const float *cost,  /* D x H x W cost volume 
                 const float16 a = sgm_load(img_r, y * W + x0 - d, n, 0.0f);
                 const float16 b = sgm_load(img_r, py * W + x0 - d, n, 0.0f);
                 const int16 big_r = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
-                const int16 nbig = -(big_l + big_r); /* relational results are -1 for true */
-                const float16 p1 = select(select((float16)(p1_one), (float16)(p1_both), nbig == (int16)(2)),
-                                          (float16)(p1_small), nbig == (int16)(0));
-                const float16 p2 = select(select((float16)(p2_one), (float16)(p2_both), nbig == (int16)(2)),
-                                          (float16)(p2_small), nbig == (int16)(0));
+                const int16 one = big_l ^ big_r; /* masks: -1 (true) or 0 */
+                const int16 both = big_l & big_r;
+                const float16 p1 = select(select((float16)(p1_small), (float16)(p1_one), one),
+                                          (float16)(p1_both), both);
+                const float16 p2 = select(select((float16)(p2_small), (float16)(p2_one), one),
+                                          (float16)(p2_both), both);
                 const float16 pd = prev[d];
                 const float16 best = fmin(fmin(pd, m + p2), fmin(pm1, prev[d + 1]) + p1);
                 val = c - m + best;
