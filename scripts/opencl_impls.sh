@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Install OpenCL implementations and write one .icd file per implementation.
 #
-#   bash scripts/opencl_impls.sh [--no-install] [--dir DIR] [pocl|intel|oclgrind|rusticl|all]...
+#   bash scripts/opencl_impls.sh [--no-install] [--env] [--dir DIR] [pocl|intel|oclgrind|rusticl|all]...
 #
 # For each implementation named (default: pocl) it installs it if missing
 # (idempotent), writes DIR/<impl>.icd holding the absolute path of that
@@ -18,6 +18,10 @@
 #
 # --no-install: only look for the library; exit 3 with an install hint when an
 # implementation is missing (used by the tests, which never install).
+# --env: print KEY=VALUE lines instead of the path: OCL_ICD_VENDORS and the
+# implementation's own variables (one implementation only; OCLGRIND_LOG is
+# left to the caller), e.g.
+#     env $(bash scripts/opencl_impls.sh --env rusticl) .venv/bin/python -m pytest ...
 #
 #   pocl     Debian's PoCL          apt-get install pocl-opencl-icd
 #   intel    Intel CPU runtime      pip install intel-opencl-rt intel-cmplr-lib-rt  (into .venv)
@@ -28,20 +32,25 @@ REPO="$(cd "$(dirname "$0")/.." && pwd)"
 VENV="${VENV:-$REPO/.venv}"
 DIR="${MCCNN_CL_ICD_DIR:-$HOME/.cache/mccnn_cl/icd}"
 INSTALL=1
+PRINT_ENV=0
 IMPLS=()
 while [ $# -gt 0 ]; do
     case "$1" in
         --no-install) INSTALL=0 ;;
+        --env) PRINT_ENV=1 ;;
         --dir) DIR="$2"; shift ;;
         --dir=*) DIR="${1#--dir=}" ;;
         pocl|intel|oclgrind|rusticl) IMPLS+=("$1") ;;
         all) IMPLS+=(pocl intel oclgrind rusticl) ;;
-        -h|--help) sed -n '2,30p' "$0"; exit 0 ;;
-        *) echo "opencl_impls.sh: unknown argument '$1' (pocl|intel|oclgrind|rusticl|all|--no-install|--dir DIR)" >&2; exit 2 ;;
+        -h|--help) sed -n '2,35p' "$0"; exit 0 ;;
+        *) echo "opencl_impls.sh: unknown argument '$1' (pocl|intel|oclgrind|rusticl|all|--no-install|--env|--dir DIR)" >&2; exit 2 ;;
     esac
     shift
 done
 [ ${#IMPLS[@]} -eq 0 ] && IMPLS=(pocl)
+if [ "$PRINT_ENV" -eq 1 ] && [ ${#IMPLS[@]} -ne 1 ]; then
+    echo "opencl_impls.sh: --env takes exactly one implementation" >&2; exit 2
+fi
 SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
 APT_UPDATED=0
 
@@ -89,6 +98,13 @@ install_impl() {
     esac
 }
 
+impl_env() {  # the implementation's own variables besides OCL_ICD_VENDORS
+    case "$1" in
+        rusticl) echo "RUSTICL_ENABLE=llvmpipe" ;;
+        oclgrind) printf '%s\n' OCLGRIND_DATA_RACES=1 OCLGRIND_CHECK_API=1 PYOPENCL_NO_CACHE=1 ;;
+    esac
+}
+
 hint() {
     case "$1" in
         pocl) echo "apt-get install pocl-opencl-icd" ;;
@@ -116,5 +132,10 @@ for impl in "${IMPLS[@]}"; do
     if [ ! -e "$icd" ] || [ "$(cat "$icd")" != "$lib" ]; then
         printf '%s\n' "$lib" > "$icd.tmp.$$" && mv -f "$icd.tmp.$$" "$icd"
     fi
-    echo "$icd"
+    if [ "$PRINT_ENV" -eq 1 ]; then
+        echo "OCL_ICD_VENDORS=$icd"
+        impl_env "$impl"
+    else
+        echo "$icd"
+    fi
 done

@@ -36,23 +36,19 @@ REPO = Path(__file__).resolve().parents[1]
 POISON = np.float32(-1.2345e30)
 
 # One entry per OpenCL implementation the suite knows how to isolate:
-# ``platform`` is a substring of its CL_PLATFORM_NAME, ``env`` what it needs
-# besides OCL_ICD_VENDORS.
+# ``platform`` is a substring of its CL_PLATFORM_NAME.  The environment each
+# needs (OCL_ICD_VENDORS and its own variables, e.g. RUSTICL_ENABLE=llvmpipe,
+# OCLGRIND_DATA_RACES=1 ...) comes from ``scripts/opencl_impls.sh --env``.
 CL_IMPLS = {
-    "pocl": {"platform": "Portable Computing Language", "env": {}},
+    "pocl": {"platform": "Portable Computing Language"},
     # Intel's CPU runtime always returns a build log, which pyopencl reports as
     # a CompilerWarning: filtered for this implementation only.
-    "intel": {"platform": "Intel(R) OpenCL", "env": {},
-              "filterwarnings": ["ignore::pyopencl.CompilerWarning"]},
+    "intel": {"platform": "Intel(R) OpenCL", "filterwarnings": ["ignore::pyopencl.CompilerWarning"]},
     # Oclgrind never aborts: it logs to OCLGRIND_LOG (set per run, see
-    # impl_environ) and a test fails when that log grows.  No binary cache, so
-    # every program goes through the simulator's front end.
-    "oclgrind": {"platform": "Oclgrind",
-                 "env": {"OCLGRIND_DATA_RACES": "1", "OCLGRIND_CHECK_API": "1",
-                         "PYOPENCL_NO_CACHE": "1"}},
-    # Mesa's Rusticl lists no device unless a driver is enabled; llvmpipe is
-    # the CPU one (no cl_khr_fp64).
-    "rusticl": {"platform": "rusticl", "env": {"RUSTICL_ENABLE": "llvmpipe"}},
+    # impl_environ) and a test fails when that log grows.
+    "oclgrind": {"platform": "Oclgrind"},
+    # Mesa's Rusticl on llvmpipe (no cl_khr_fp64).
+    "rusticl": {"platform": "rusticl"},
 }
 
 # Known gaps, as {impl: {node id (relative to the repository): reason}}: such a
@@ -74,28 +70,32 @@ class ImplUnavailable(RuntimeError):
     """A requested OpenCL implementation is not installed (message has the install hint)."""
 
 
+def _impls_script(impl: str, *flags) -> str:
+    if impl not in CL_IMPLS:
+        raise ImplUnavailable(f"unknown OpenCL implementation {impl!r}; known: {', '.join(CL_IMPLS)}")
+    proc = subprocess.run(["bash", str(REPO / "scripts" / "opencl_impls.sh"), "--no-install", *flags, impl],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise ImplUnavailable(proc.stderr.strip() or f"opencl_impls.sh {impl} failed ({proc.returncode})")
+    return proc.stdout
+
+
 def icd_file(impl: str) -> str:
     """Path of the single-implementation ``.icd`` file for ``impl`` (written, never installed).
 
     Runs ``scripts/opencl_impls.sh --no-install impl``; raises
     :class:`ImplUnavailable` with the script's install hint when missing.
     """
-    if impl not in CL_IMPLS:
-        raise ImplUnavailable(f"unknown OpenCL implementation {impl!r}; known: {', '.join(CL_IMPLS)}")
-    proc = subprocess.run(["bash", str(REPO / "scripts" / "opencl_impls.sh"), "--no-install", impl],
-                          capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise ImplUnavailable(proc.stderr.strip() or f"opencl_impls.sh {impl} failed ({proc.returncode})")
-    return proc.stdout.strip().splitlines()[-1]
+    return _impls_script(impl).strip().splitlines()[-1]
 
 
 def impl_environ(impl: str, oclgrind_log=None) -> dict:
-    """Environment variables that make a *new* process use only ``impl``.
+    """Environment variables that make a *new* process use only ``impl``
+    (``scripts/opencl_impls.sh --env``).
 
     ``oclgrind_log``: file for ``OCLGRIND_LOG`` (oclgrind only; required there).
     """
-    env = {"OCL_ICD_VENDORS": icd_file(impl)}
-    env.update(CL_IMPLS[impl]["env"])
+    env = dict(line.split("=", 1) for line in _impls_script(impl, "--env").splitlines() if "=" in line)
     if impl == "oclgrind":
         if oclgrind_log is None:
             raise ValueError("oclgrind needs a log file (OCLGRIND_LOG)")
