@@ -130,7 +130,7 @@ def test_real_images_ad_volume(ctx, shared_data, rel_l, rel_r, y0, x0):
 
 def test_d_at_least_w_single_row_single_column(ctx):
     rng = np.random.default_rng(3)
-    for D, H, W in [(20, 7, 12), (5, 1, 40), (4, 30, 1), (1, 1, 1), (3, 2, 2)]:
+    for D, H, W in [(20, 7, 12), (5, 1, 40), (4, 30, 1), (1, 1, 1), (3, 2, 2), (7, 5, 300), (40, 3, 70)]:
         cost = random_volume(rng, D, H, W)
         check(ctx, cost, blocky_image(rng, H, W), blocky_image(rng, H, W), iterations=3)
 
