@@ -188,13 +188,16 @@ def main(argv=None):
     if cnn is not None:
         print(f"| Convolutional neural network | {cnn[0]:.1f} s ({cnn[1]}; {cnn[2]}) | 95 s |")
     print(f"| Census cost (used for the rows below) | {groups['matching cost']:.2f} s | - |")
-    print(f"| Semiglobal matching | {groups['SGM']:.2f} s | 3 s |")
-    print(f"| Cross-based cost aggregation (arms + 2 x 4 iterations) | {groups['CBCA']:.2f} s | 2 s |")
+    both = " (left and right reference)" if matcher.params.right_reference == "aggregated" else ""
+    print(f"| Semiglobal matching{both} | {groups['SGM']:.2f} s | 3 s |")
+    print(f"| Cross-based cost aggregation{both}: arms + 2 x 4 iterations | {groups['CBCA']:.2f} s | 2 s |")
     print(f"| Everything else | {groups['everything else']:.2f} s | 0.03 s |")
     print(f"| Total, census cost | {total:.2f} s | - |")
     if cnn is not None:
         print(f"| Total with the CNN | {total - groups['matching cost'] + cnn[0]:.1f} s | 100 s |")
     print(f"| OpenCV StereoSGBM (3-way, 240 levels, CPU) | {t_sgbm:.2f} s | - |")
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"\n{os.cpu_count()} CPU cores, load average {load:.1f} at the end of the run")
     print("\nper stage (s): " + ", ".join(f"{k} {v:.3f}" for k, v in stages.items()))
     if args.json:
         with open(args.json, "w") as f:

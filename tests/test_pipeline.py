@@ -188,14 +188,16 @@ def test_default_weights(ctx):
             StereoMatcher(device=ctx)
 
 
-def test_cnn_cost_with_random_weights(ctx, shared_data, tmp_path):
+def test_cnn_cost_with_random_weights(ctx, shared_data, tmp_path, capsys):
     w = Weights.random(conv_layers=[[8, 5], [12, 5], [12, 1]], fc_layers=[16, 16, 2], seed=1)
     w.save(tmp_path / "w.npz")
     left, right, _, _, _ = load_pair(shared_data, "Tsukuba")
     left, right = left[100:140, 100:180], right[100:140, 100:180]
-    for weights in (w, tmp_path / "w.npz"):
-        m = StereoMatcher(weights=weights, max_disparity=12, device=ctx, cost="cnn")
+    for weights, progress in ((w, False), (tmp_path / "w.npz", True)):
+        m = StereoMatcher(weights=weights, max_disparity=12, device=ctx, cost="cnn", progress=progress)
         res = m.compute(left, right, return_intermediates=True)
         assert res.intermediates["C_CNN"].shape == (12, 32, 72)
         assert res.disparity.shape == (40, 80) and np.isfinite(res.disparity).all()
+    err = capsys.readouterr().err
+    assert "cost volume (cnn)" in err and "12/12" in err  # the tqdm bar of the second run
     assert mccnn_cl.StereoMatcher is StereoMatcher
