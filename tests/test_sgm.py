@@ -129,3 +129,31 @@ def test_bad_input(ctx):
         SGM(ctx)(d_cost, d_img, d_img, 2, 3, 4, variant="other")
     with pytest.raises(InputError):
         SGM(ctx)(d_cost, d_img, d_img, 0, 3, 4)
+
+
+def test_chain_arms_cbca_sgm_cbca_on_real_images(ctx, shared_data):
+    """The paper's order, all on the device: arms, C_CBCA^4, C_SGM, CBCA again
+    (now on costs of the SGM's larger range), against the references."""
+    from mccnn_cl.reference.aggregation import cbca, cross_arms
+    from mccnn_cl.stages.cbca import CBCA
+    from mccnn_cl.stages.cross import CrossArms, max_arm
+
+    H, W, D = 21, 43, 12
+    imgs = []
+    for rel in ("middlebury/Cones/im0.png", "middlebury/Cones/im1.png"):
+        img = cv2.imread(str(shared_data / rel), cv2.IMREAD_GRAYSCALE)
+        imgs.append(img[300:300 + H, 250:250 + W].astype(np.float32) / 255.0)
+    cost = ad_volume(imgs[0], imgs[1], D)
+    arms_l, arms_r = cross_arms(imgs[0]), cross_arms(imgs[1])
+    want = cbca(sgm(cbca(cost, arms_l, arms_r), imgs[0], imgs[1]), arms_l, arms_r)
+
+    d_l, d_r = ctx.to_device(imgs[0]), ctx.to_device(imgs[1])
+    d_al, d_ar = CrossArms(ctx)(d_l, H, W), CrossArms(ctx)(d_r, H, W)
+    aggregate, smooth = CBCA(ctx), SGM(ctx)
+    d_c = aggregate(ctx.to_device(cost), d_al, d_ar, D, H, W, max_arm=max_arm(4))
+    d_s = smooth(d_c, d_l, d_r, D, H, W)
+    d_out = aggregate(d_s, d_al, d_ar, D, H, W, max_arm=max_arm(4))
+    got = ctx.from_device(d_out, cost.shape)
+    np.testing.assert_array_equal(np.isnan(got), invalid_mask(D, H, W))
+    np.testing.assert_allclose(got, want, rtol=0, atol=2e-5 * (1.0 + 32.0))
+    assert np.nanstd(got) > 0.1
