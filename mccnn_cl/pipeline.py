@@ -124,7 +124,11 @@ class StereoResult:
     right-reference volume, mirrored left to right (see
     :class:`mccnn_cl.stages.disparity.RightReference`); D_L, D_R, labels, D_INT: int32 on the cropped domain;
     D_SE: float32 cropped; D_median, D_BF: float32 image size).
-    ``timings``: stage -> seconds (queue finished after every stage).
+    ``timings``: stage -> seconds (queue finished after every stage), keyed by
+    the output names above plus ``cross`` (arms), and with
+    ``right_reference="aggregated"`` ``right_volume`` (the shifted, mirrored
+    C_CNN), ``cross_R``, ``C_R_CBCA``, ``C_R_SGM``, ``C_R`` (the same stages
+    for the right reference).
     ``margin``: m, the offset of the cropped domain in the image.
     """
 
@@ -276,7 +280,7 @@ class StereoMatcher:
         arm = max_arm(p.cbca_eta, p.cross_include_neighbor)
         C_CNN = rec("C_CNN", self._matching_cost(I_L, I_R, D), vol)
         if p.right_reference == "aggregated":  # taken before CBCA overwrites C_CNN
-            C_R = rec("C_R_CNN", self.right_ref.volume(C_CNN, D, H, W))
+            C_R = rec("right_volume", self.right_ref.volume(C_CNN, D, H, W))
         arms_L = self.cross(d_J_L, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
         arms_R = rec("cross", self.cross(d_J_R, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor))
         C_CBCA = rec("C_CBCA", self.cbca(C_CNN, arms_L, arms_R, D, H, W, p.cbca_iterations, arm, out=C_CNN), vol)
