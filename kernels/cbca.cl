@@ -1,7 +1,11 @@
 /* cbca.cl - cross-based cost aggregation (paper, "Cross-based cost
- * aggregation"), one iteration = cbca_rows then cbca_columns.
- * Driven by mccnn_cl/stages/cbca.py (the derivation of the two passes from
- * the set U_d(p) is in that module's docstring).
+ * aggregation"); one iteration = a rows pass (row sums over each cell's row
+ * extent) then a columns pass (sums of row sums over the rows of U_d(p),
+ * divided by the cell count).  Driven by mccnn_cl/stages/cbca.py (the
+ * derivation of the two passes from the set U_d(p) is in that module's
+ * docstring).  Two implementations: cbca_rows / cbca_columns (running sums,
+ * any MAX_ARM, described here) and cbca_rows_short / cbca_columns_short
+ * (float16 direct sums, MAX_ARM <= CBCA_SHORT_MAX, further down).
  *
  * Arms: bytes in four planes [4][H][W] (left, right, up, down), as written
  * by cross.cl; ARM(a, k, i) is arm k of pixel index i = y * W + x.
@@ -10,7 +14,7 @@
  * private ring buffers (RING = 2 * MAX_ARM + 2 entries).  Arms longer than
  * MAX_ARM are truncated to MAX_ARM.
  *
- * Both passes walk a line (a row of one disparity plane, or a column) with a
+ * Running sums: both passes walk a line (a row of one disparity plane, or a column) with a
  * running prefix sum P and a look-ahead of MAX_ARM cells: at step t cell t is
  * added to P and the output of cell t - MAX_ARM, whose window [a, b] lies in
  * [t - 2 MAX_ARM, t], is P(b) - P(a - 1) read from the ring.  The output of a
