@@ -7,8 +7,8 @@ Definition (paper)::
     C^0 = C,   C^i(p, d) = mean of C^{i-1}(q, d) over q in U_d(p),   i = 1..4
 
 where U(p) is the union of the horizontal arms of all pixels on p's vertical
-arm.  Arms come from :class:`mccnn_cl.stages.cross.CrossArms` (uchar4 per
-pixel: left l, right r, up u, down w).
+arm.  Arms come from :class:`mccnn_cl.stages.cross.CrossArms` (byte planes
+[4][H][W]: left l, right r, up u, down w).
 
 Derivation of the two passes.  Write p = (x, y).  p's vertical arm is the
 column segment {(x, y') : y - u(x, y) <= y' <= y + w(x, y)}, one pixel per
