@@ -433,7 +433,9 @@ def synthetic_pair(width, height, max_disparity, seed=0):
 
 
 # StereoMatcher's stage names (pipeline.py) -> the bench's groups; unknown names go by substring.
-_STAGE_OF = {"C_CNN": "network", "cross": "CBCA", "C_CBCA": "CBCA", "C": "CBCA", "C_SGM": "SGM"}
+_STAGE_OF = {"C_CNN": "network", "cross": "CBCA", "C_CBCA": "CBCA", "C": "CBCA", "C_SGM": "SGM",
+             # right-reference volume (right_reference="aggregated"): the same stages again
+             "cross_R": "CBCA", "C_R_CBCA": "CBCA", "C_R_SGM": "SGM", "C_R": "CBCA", "right_volume": "rest"}
 _STAGE_GROUPS = (("network", ("network", "cnn", "census", "conv")),
                  ("CBCA", ("cbca", "cross", "aggregat")),
                  ("SGM", ("sgm", "semiglobal")))
