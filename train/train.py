@@ -394,6 +394,7 @@ def main(argv=None) -> int:
         except RuntimeError:
             pass
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    commit = _git_commit()  # the code that trains, not whatever HEAD is when it ends
     cfg = TrainConfig(epochs=args.epochs, examples_per_epoch=args.examples_per_epoch,
                       batch_size=args.batch_size, lr=args.lr, lr_steps=tuple(args.lr_steps),
                       lr_factor=args.lr_factor, momentum=args.momentum, weight_decay=args.weight_decay,
@@ -419,7 +420,7 @@ def main(argv=None) -> int:
     prov = result["provenance"]
     prov["command"] = "python -m mccnn_cl.train.train " + " ".join(shlex.quote(a) for a in
                                                                    (argv if argv is not None else sys.argv[1:]))
-    prov["git_commit"] = _git_commit()
+    prov["git_commit"] = commit
     prov["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     export = args.export or str(Path(args.out) / "weights.npz")
     result["model"].cpu().to_weights({"training": prov}).save(export)
