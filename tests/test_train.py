@@ -10,7 +10,7 @@ import torch
 from mccnn_cl.datasets import StereoPair, load_middlebury
 from mccnn_cl.errors import InputError
 from mccnn_cl.train.evaluate import main as eval_main
-from mccnn_cl.train.evaluate import make_validation, row_features, wta_costs, wta_error
+from mccnn_cl.train.evaluate import census_wta_error, make_validation, row_features, wta_costs, wta_error
 from mccnn_cl.train.model import MCCNN
 from mccnn_cl.train.patches import PatchSampler, normalise
 from mccnn_cl.train.train import TrainConfig, augment_batch, lr_at, main, select_pairs, train
@@ -127,6 +127,13 @@ def test_validation_set_and_wta(venus):
     m = MCCNN(SMALL_CONV, SMALL_FC).he_init_()
     res = wta_error(m, vset, "cpu")
     assert res["n"] == 300 and 0 <= res["err3"] <= 1
+    # The census baseline is right where the answer is certain: a noise image shifted by 7 px.
+    base = census_wta_error(vset)
+    assert base["n"] == 300 and base["err3"] < 0.5
+    noise = np.random.default_rng(0).normal(size=px.left.shape).astype(np.float32)
+    shifted = dataclasses.replace(px, left=noise, right=np.roll(noise, -7, axis=1), gt=np.full(300, 7, np.float32))
+    shifted.xs = np.maximum(px.xs, 20)
+    assert census_wta_error(dataclasses.replace(vset, pixels=[shifted]))["err3"] == 0
 
 
 def test_lr_schedule_and_augment():

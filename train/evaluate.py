@@ -27,7 +27,7 @@ from mccnn_cl.errors import InputError
 
 from .patches import Batch, PatchSampler, normalise
 
-__all__ = ["ValidationSet", "make_validation", "patch_metrics", "wta_error", "validate",
+__all__ = ["ValidationSet", "make_validation", "patch_metrics", "wta_error", "validate", "census_wta_error",
            "KITTI_NDISP"]
 
 KITTI_NDISP = 228  # the paper's KITTI disparity range
@@ -190,6 +190,38 @@ def wta_error(model, vset: ValidationSet, device, threshold: float = 3.0) -> dic
     return {"err3": bad / total, "per_pair": per_pair, "n": total, "mean_abs": abs_sum / total}
 
 
+def census_wta_error(vset: ValidationSet, window: int = 9, threshold: float = 3.0) -> dict:
+    """Baseline for context: WTA on a ``window``² census cost (Hamming distance) at the same pixels.
+
+    Same pixels, disparity range and validity rule as :func:`wta_error`
+    (the census window equals the 9x9 patch, so the same cropped domain);
+    ties go to the smallest disparity.  Works on the normalised images (the
+    census only compares intensities, so normalisation does not change it).
+    """
+    r = window // 2
+    bad, total, per_pair = 0, 0, {}
+    for px in vset.pixels:
+        h, w = px.left.shape
+        offs = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1) if (dy, dx) != (0, 0)]
+
+        def codes(img, y):  # (W - 2r, bits) census of row y, columns r .. W-r-1
+            c = img[y, r:w - r]
+            return np.stack([img[y + dy, r + dx:w - r + dx] < c for dy, dx in offs], axis=1)
+        errs = []
+        rows = {y: (codes(px.left, y), codes(px.right, y)) for y in np.unique(px.ys)}
+        for x, y, g in zip(px.xs, px.ys, px.gt):
+            cl, cr = rows[y]
+            xv = x - r
+            nd = min(px.ndisp, xv + 1)
+            cost = (cr[xv - np.arange(nd)] != cl[xv]).sum(axis=1)
+            errs.append(abs(int(np.argmin(cost)) - g))
+        errs = np.array(errs)
+        per_pair[px.key] = float((errs > threshold).mean())
+        bad += int((errs > threshold).sum())
+        total += len(errs)
+    return {"err3": bad / max(total, 1), "per_pair": per_pair, "n": total}
+
+
 @torch.no_grad()
 def validate(model, vset: ValidationSet, device) -> dict:
     """Both measures: ``{"val_loss", "val_accuracy", "val_err3", "val_err3_per_pair", ...}``."""
@@ -229,6 +261,8 @@ def main(argv=None) -> int:
     ap.add_argument("--ndisp", type=int, default=None, help="WTA disparity range (default: pair's, 228 KITTI)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--baseline", action="store_true",
+                    help="also report a 9x9 census WTA error at the same pixels, for context")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -246,6 +280,9 @@ def main(argv=None) -> int:
         return 2
     res = validate(model, vset, "cpu")
     res["pairs"] = [r.key for r in refs]
+    if args.baseline:
+        b = census_wta_error(vset)
+        res.update(census_err3=b["err3"], census_err3_per_pair=b["per_pair"])
     print(json.dumps(res, indent=1))
     return 0
 
