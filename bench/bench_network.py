@@ -114,10 +114,15 @@ def main(argv=None):
     print(f"warm-up {time.perf_counter() - t0:.2f} s")
 
     # features alone (both images), then the full call
-    Lf = left.astype(np.float64)[:, :, None]
+    from mccnn_cl.stages.network import normalise
+    P = w.patch_size
+    rows = net.band_rows(H - P + 1, W - P + 1)
+    print(f"bands of {rows} volume rows")
     with Timer() as tf:
-        for side in ("left", "right"):
-            net._side(Lf, side).release()
+        for img, is_left in ((left, True), (right, False)):
+            n = normalise(img)[:, :, None]
+            for y0 in range(0, H - P + 1, rows):
+                net._half(n[y0:y0 + rows + P - 1], is_left).release()
         ctx.finish()
     with Timer() as tc:
         d_cost = net(left, right, D)

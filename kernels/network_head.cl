@@ -12,8 +12,9 @@
  * network_head fuses that whole chain for a tile of TM cells of one
  * disparity: the activations of the tile live in local memory (ping-pong,
  * 2 x TM x HP floats) and only the cost is written to global memory.  The
- * cells of disparity d that are valid (x >= d) are numbered
- * i = y * (W - d) + (x - d), i in [0, H (W - d)); tile t holds i in
+ * image is processed in bands of rows [y0, y0 + hb) (A and B hold that band
+ * only).  The cells of the band and of disparity d that are valid (x >= d)
+ * are numbered i = (y - y0) (W - d) + (x - d), i in [0, hb (W - d)); tile t holds i in
  * [t TM, t TM + TM), so tiles run across image rows and only the last tile of
  * a disparity is partly empty.  Invalid cells (x < d) are never computed here;
  * network_mark_invalid writes NaN into them.
@@ -126,6 +127,8 @@ __kernel void network_head(
     __global float *cost,       /* cost volume, [D][H][W] */
     int h,                      /* H: cropped height (volume rows) */
     int w,                      /* W: cropped width (volume columns) */
+    int y0,                     /* first volume row of this band (fa, fb hold rows y0 ..) */
+    int hb,                     /* rows in this band */
     int d0)                     /* first disparity of this launch (d = d0 + group id 1) */
 {
     __local float act[2 * TM * HP];
@@ -134,7 +137,7 @@ __kernel void network_head(
     const int nx = w - d;                       /* valid cells per row */
     if (nx <= 0)
         return;                                 /* uniform over the group */
-    const int n_valid = h * nx;
+    const int n_valid = hb * nx;
     const int first = (int)get_group_id(0) * TM;
     if (first >= n_valid)
         return;                                 /* uniform over the group */
@@ -155,7 +158,7 @@ __kernel void network_head(
         const int r = i / NCG;
         const int kv = i - r * NCG;
         const int m = min(first + r, n_valid - 1);   /* past-the-end rows: repeat, not stored */
-        const int y = m / nx;
+        const int y = m / nx;                   /* row within the band */
         const int x = d + (m - y * nx);
         const size_t p = (size_t)y * (size_t)w + (size_t)x;
         const VT s = VLOAD(fa + p * HP + kv * RN) + VLOAD(fb + (p - (size_t)d) * HP + kv * RN);
@@ -187,7 +190,7 @@ __kernel void network_head(
         const float z1 = vsum(s1) + b8[1];
         const int y = m / nx;
         const int x = d + (m - y * nx);
-        cost[VIDX(d, y, x, h, w)] = 1.0f / (1.0f + exp(z1 - z0));
+        cost[VIDX(d, y0 + y, x, h, w)] = 1.0f / (1.0f + exp(z1 - z0));
     }
 }
 

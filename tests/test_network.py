@@ -111,7 +111,7 @@ def test_paper_net_real_crops(ctx, paper_weights, shared_data, crop):
     check(got, ref.cost_volume(paper_weights, left, right, D), D, 32, 52)
 
 
-def test_matches_torch_model(ctx, paper_weights, shared_data):
+def test_matches_torch_model(ctx, paper_weights, shared_data, monkeypatch):
     """MCCNN.from_weights run convolutionally (features -> L4 split -> head) in torch."""
     left = read_gray(shared_data / "kitti2015/training/image_2/000001_10.png")[200:236, 300:360]
     right = read_gray(shared_data / "kitti2015/training/image_3/000001_10.png")[200:236, 300:360]
@@ -121,6 +121,10 @@ def test_matches_torch_model(ctx, paper_weights, shared_data):
     got = run_poisoned(ctx, net, left, right, D)
     expected = ref.cost_volume_torch(paper_weights, left, right, D)
     check(got, expected, D, 28, 52)
+    # in bands of 8 volume rows (4 bands): the same bits
+    import mccnn_cl.stages.network as stage
+    monkeypatch.setattr(stage, "BAND_BYTES", 8 * 52 * net.hp * 4)
+    np.testing.assert_array_equal(run_poisoned(ctx, net, left, right, D), got)
     # and the torch module on explicit 9x9 patch pairs for a few cells
     from mccnn_cl.train.model import MCCNN
     m = MCCNN.from_weights(paper_weights)
@@ -182,6 +186,16 @@ def test_compute_progress_and_chunks(ctx, monkeypatch):
     expected = ref.cost_volume(w, left, right, 10)
     check(got, expected, 10, 10, 27)
     np.testing.assert_array_equal(got, got2)
+    # bands of 3 volume rows (the last one 1 row): seams exact, progress still in disparities
+    monkeypatch.setattr(stage, "BAND_BYTES", 3 * 27 * net.hp * 4)
+    assert net.band_rows(10, 27) == 3
+    calls.clear()
+    got3 = ctx.from_device(net(left, right, 10, progress=lambda done, total: calls.append((done, total))),
+                           (10, 10, 27))
+    assert [c[1] for c in calls] == [10] * len(calls) and calls[-1] == (10, 10)
+    assert all(a[0] <= b[0] for a, b in zip(calls, calls[1:]))
+    check(got3, expected, 10, 10, 27)
+    np.testing.assert_array_equal(got3, got)  # per-cell arithmetic does not depend on the band
 
 
 def test_normalise():

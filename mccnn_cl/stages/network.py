@@ -46,6 +46,10 @@ HEAD_CL = "network_head.cl"
 # (progress reporting, GPU watchdogs) while launches stay large.
 CHUNK_CELLS = 1 << 20
 
+# Bytes of one band's A (and of its B): the image is processed in bands of
+# volume rows so scratch memory stays bounded whatever the image size.
+BAND_BYTES = 256 << 20
+
 
 def normalise(img) -> np.ndarray:
     """Per-image standardisation used by the network: ``(I - mean(I)) / std(I)``.
@@ -243,26 +247,39 @@ class NetworkCost:
                           n_pixels, self.hp)
         return d_out
 
-    def _side(self, img, name):
-        """Normalise, upload and run one image through L1-L3 and its half of L4."""
-        H, W = img.shape[:2]
-        d_img = self.ctx.to_device(normalise(img))
+    def _half(self, band: np.ndarray, left: bool):
+        """Upload a normalised float32 image band (rows x W x C) and run it through
+        L1-L3 and its half of L4; returns the ``[pixels][hp]`` buffer A or B."""
+        H, W = band.shape[:2]
+        d_img = self.ctx.to_device(np.ascontiguousarray(band, dtype=np.float32))
         d_feat = self.features(d_img, H, W)
         d_img.release()
         n = (H - self.patch + 1) * (W - self.patch + 1)
-        d_half = self.split_l4(d_feat, n, left=(name == "left"))
+        d_half = self.split_l4(d_feat, n, left=left)
         d_feat.release()
         return d_half
+
+    def band_rows(self, h: int, w: int) -> int:
+        """Volume rows per band: A and B of one band take at most BAND_BYTES each."""
+        row = w * self.hp * 4
+        self.ctx.check_alloc(row, f"network L4 split of one row ({w} x {self.hp})")
+        return max(1, min(h, min(BAND_BYTES, self.ctx.max_alloc) // row))
 
     def __call__(self, left, right, max_disparity, progress=None, out=None):
         """Cost volume C_CNN on the device (see module docstring).
 
         ``left``, ``right``: 2-D gray images of the same shape (any scale; each
-        is normalised here).  ``max_disparity``: D, disparities ``0 .. D-1``.
-        ``progress``: optional ``callable(done, total)`` called after each
-        chunk of disparities (then the queue is waited on per chunk).
-        ``out``: optional device buffer of at least ``D*H*W*4`` bytes to write
-        into (else a new one is allocated).  Returns the device buffer.
+        is normalised here, over the whole image).  ``max_disparity``: D,
+        disparities ``0 .. D-1``.  ``progress``: optional
+        ``callable(done, total)`` called after each chunk of disparities with
+        ``total = D`` and ``done`` rising to D (then the queue is waited on per
+        chunk).  ``out``: optional device buffer of at least ``D*H*W*4`` bytes
+        to write into (else a new one is allocated).  Returns the device buffer.
+
+        Scratch memory is bounded: the image is processed in bands of volume
+        rows whose A and B buffers take at most ``BAND_BYTES`` each (the
+        feature maps of a band are smaller); each band's input rows overlap
+        the next band's by P - 1 rows, so the band seams are exact.
         """
         ctx = self.ctx
         L = _as_image(left, "left", self.channels, self.patch)
@@ -274,10 +291,11 @@ class NetworkCost:
         D = int(max_disparity)
         if D < 1:
             raise InputError(f"max_disparity must be >= 1, got {D}")
-        h, w = L.shape[0] - self.patch + 1, L.shape[1] - self.patch + 1
+        P = self.patch
+        h, w = L.shape[0] - P + 1, L.shape[1] - P + 1
         nbytes = D * h * w * 4
         ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
-        ctx.check_alloc(h * w * self.hp * 4, f"network L4 split ({h} x {w} x {self.hp})")
+        rows = self.band_rows(h, w)
         if out is None:
             d_cost = ctx.empty(nbytes, "cost volume")
         else:
@@ -285,25 +303,33 @@ class NetworkCost:
                 raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
             d_cost = out
 
-        d_a = self._side(L, "left")
-        d_b = self._side(R, "right")
-        per_chunk = max(1, min(D, CHUNK_CELLS // max(1, h * w)))
         q = ctx.queue
-        for d0 in range(0, D, per_chunk):
-            nd = min(per_chunk, D - d0)
-            n_valid = h * max(w - d0, 0)
-            tiles = max(1, math.ceil(n_valid / self.tm))
-            if n_valid > 0:
-                self._head(q, (tiles * self.nwi, nd), (self.nwi, 1),
-                           d_a, d_b, self._d_wh, self._d_bh, self._d_w8, self._d_b8, d_cost,
-                           np.int32(h), np.int32(w), np.int32(d0))
-            self._mark(q, (w, h, nd), None, d_cost, np.int32(h), np.int32(w), np.int32(d0))
-            if progress is not None:
-                q.finish()
-                progress(d0 + nd, D)
-        q.finish()
-        d_a.release()
-        d_b.release()
+        i32 = np.int32
+        # NaN into every invalid cell (x < d) of the volume, once
+        self._mark(q, (w, h, D), None, d_cost, i32(h), i32(w), i32(0))
+        Ln, Rn = normalise(L), normalise(R)
+        bands = range(0, h, rows)
+        done = 0
+        for y0 in bands:
+            hb = min(rows, h - y0)
+            d_a = self._half(Ln[y0:y0 + hb + P - 1], left=True)
+            d_b = self._half(Rn[y0:y0 + hb + P - 1], left=False)
+            per_chunk = max(1, min(D, CHUNK_CELLS // max(1, hb * w)))
+            for d0 in range(0, D, per_chunk):
+                nd = min(per_chunk, D - d0)
+                n_valid = hb * max(w - d0, 0)
+                if n_valid > 0:
+                    tiles = math.ceil(n_valid / self.tm)
+                    self._head(q, (tiles * self.nwi, nd), (self.nwi, 1),
+                               d_a, d_b, self._d_wh, self._d_bh, self._d_w8, self._d_b8, d_cost,
+                               i32(h), i32(w), i32(y0), i32(hb), i32(d0))
+                done += nd
+                if progress is not None:
+                    q.finish()
+                    progress(done // len(bands), D)
+            q.finish()
+            d_a.release()
+            d_b.release()
         return d_cost
 
     def compute(self, left, right, max_disparity) -> np.ndarray:
