@@ -19,6 +19,11 @@ cell ``(d, y, x)`` is the softmax probability of the bad-match class (index 0)
 for the left patch centred at image ``(x + 4, y + 4)`` and the right patch
 centred at ``(x + 4 - d, y + 4)``; cells with ``x - d < 0`` hold NaN.
 
+Memory: the volume is one buffer of D*H*W floats; everything else is
+scratch bounded by ``BAND_BYTES``: the image is processed in bands of volume
+rows (A and B of one band at most ``BAND_BYTES`` each), and each band's
+disparities in chunks of about ``CHUNK_CELLS`` cells per launch.
+
 Device buffer layouts (all float32, channel-last, pixel-major):
 ``features`` -> ``[(H_img-8) * (W_img-8)][NP]`` (L3 output, NP = maps padded
 to the vector width, padded channels 0); ``split_l4`` -> ``[pixels][HP]``
@@ -33,7 +38,7 @@ import math
 import numpy as np
 
 from ..cl import round_up
-from ..errors import InputError
+from ..errors import InputError, OpenCLError
 from ..weights import Weights
 
 log = logging.getLogger(__name__)
@@ -134,7 +139,7 @@ class NetworkCost:
         self.rn = rn
 
         # -- conv layers L1..L3: k-major weights, outputs padded to RN ---------
-        self._conv = []  # (kernel, d_w, d_b, ks, cin, cs, np_out)
+        self._conv = []  # (kernel, d_w, d_b, kernel size, padded outputs)
         cs = self.channels  # the image is uploaded with C channels, stride C
         for W, b in weights.conv:
             cout, cin, ks, _ = W.shape
@@ -303,7 +308,17 @@ class NetworkCost:
                 raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
             d_cost = out
 
-        q = ctx.queue
+        try:
+            self._enqueue(L, R, D, h, w, rows, d_cost, progress)
+        except ctx.cl.Error as exc:
+            raise OpenCLError(f"network (C_CNN, {D} x {h} x {w}) failed on {ctx.describe()}: "
+                              f"{exc}") from exc
+        return d_cost
+
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress):
+        """The launches of :meth:`__call__` (inputs already checked)."""
+        q = self.ctx.queue
+        P = self.patch
         i32 = np.int32
         # NaN into every invalid cell (x < d) of the volume, once
         self._mark(q, (w, h, D), None, d_cost, i32(h), i32(w), i32(0))
@@ -330,7 +345,6 @@ class NetworkCost:
             q.finish()
             d_a.release()
             d_b.release()
-        return d_cost
 
     def compute(self, left, right, max_disparity) -> np.ndarray:
         """Host copy of :meth:`__call__`: float32 array ``[D][H_img-8][W_img-8]``."""
