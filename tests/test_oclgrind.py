@@ -112,11 +112,19 @@ def case_network(ctx, rng, chk):
             # fewer work-items than (row, column) groups, each walking several
             NetworkCost(ctx, w, tiles={"TM": 256, "RM": 1, "RN": 1, "ROWS_FASTEST": 0, "CONV_RM": 1})]
     sizes = ((12, 20, 5), (11, 13, 7), (12, 17, 5), (12, 15, 4))  # 2nd: D >= W (cropped W = 5)
-    for net, (h, wd, D) in zip(nets, sizes):
+    import mccnn_cl.stages.network as network_module
+
+    for i, (net, (h, wd, D)) in enumerate(zip(nets, sizes)):
         left, right = _images(rng, h, wd)
         H, W = h - 2 * w.margin, wd - 2 * w.margin
         out = _poisoned(ctx, D * H * W * 4)
-        net(left, right, D, out=out)
+        saved = network_module.BAND_BYTES, network_module.CHUNK_CELLS
+        if i == 1:  # bands of one volume row, chunks of one disparity: seams and chunking
+            network_module.BAND_BYTES, network_module.CHUNK_CELLS = 1, 1
+        try:
+            net(left, right, D, out=out)
+        finally:
+            network_module.BAND_BYTES, network_module.CHUNK_CELLS = saved
         got = ctx.from_device(out, (D, H, W))
         # float32 kernel vs float64 reference through 7 layers of 4-8 units:
         # rounding differences are ~1e-6 on costs in [0, 1]
