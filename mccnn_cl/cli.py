@@ -568,12 +568,14 @@ def cmd_demo(args):
     import cv2
     def tile(img, caption):  # 2x, nearest: crisp pixels, room for the caption
         big = cv2.resize(img, None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST)
-        return label(big, caption, height=24, scale=0.55)
+        return label(big, caption, height=24, scale=0.5)
 
     tiles = [tile(cv2.cvtColor(left, cv2.COLOR_GRAY2BGR) if pair.left.ndim == 2 else pair.left, "left image"),
              tile(colorize(pair.disp, 0, vmax), "ground truth (black: unknown)"),
-             tile(colorize(ours, 0, vmax), f"{label_ours}: bad-2.0 {m_ours['bad2_all']:.1f} %"),
-             tile(colorize(base, 0, vmax), f"OpenCV SGBM: bad-2.0 {m_base['bad2_all']:.1f} % (black: holes)")]
+             tile(colorize(ours, 0, vmax),
+                  f"{label_ours}: 3-px {m_ours['bad3_all']:.1f} %, bad-2 {m_ours['bad2_all']:.1f} %"),
+             tile(colorize(base, 0, vmax),
+                  f"OpenCV SGBM: 3-px {m_base['bad3_all']:.1f} %, bad-2 {m_base['bad2_all']:.1f} %")]
     gap = np.full((tiles[0].shape[0], 6, 3), 255, np.uint8)
     top = np.hstack([tiles[0], gap, tiles[1]])
     bottom = np.hstack([tiles[2], gap, tiles[3]])

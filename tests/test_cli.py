@@ -241,3 +241,20 @@ def test_bench_and_demo_census(tmp_path):
     assert "3-px err" in so and "OpenCV SGBM" in so and "wrote" in so
     img = cv2.imread(str(out))
     assert img.shape[1] == 2 * (2 * 225) + 6 and img.shape[0] > 4 * 188  # 2x tiles, 2 x 2
+
+
+def test_demo_with_shipped_weights(tmp_path):
+    """The README's first command: the shipped network on the bundled (held-out) Cones pair."""
+    out = tmp_path / "demo.png"
+    rc, so, se = run("demo", "-o", out)
+    assert rc == 0, se
+    assert "mccnn_kitti_mb_v1.npz (shipped); Cones was held out of their training" in so
+    row = next(line for line in so.splitlines() if line.startswith("MC-CNN (OpenCL)"))
+    bad3, bad2 = (float(v.rstrip("%")) for v in row.split()[2:4])
+    # shipped v1 scores 6.5 % / 11.3 % here (SGBM 8.2 % / 10.7 %); a clearly worse figure means
+    # the weights or the pipeline regressed
+    assert bad3 < 10.0 and bad2 < 16.0, so
+    h, w, _ = cv2.imread(str(out)).shape
+    assert w == 2 * (2 * 225) + 6 and h > 2 * (24 + 2 * 188) + 12  # 2 x 2 tiles at 2x, captions, legend
+    rc, _, se = run("demo", "-o", out)  # the picture exists now
+    assert_one_line_error(rc, se, 2, "exists", "--force")
