@@ -372,7 +372,8 @@ def cmd_evaluate(args):
                "pairs": results, "mean": mean}
         _say(json.dumps(_jsonable(doc), indent=2))
     else:
-        _say(f"MC-CNN ({_weights_label(args)}) beside OpenCV SGBM; errors in % of GT pixels, "
+        who = f"MC-CNN ({_weights_label(args)})" if args.cost == "cnn" else "census cost + the MC-CNN stereo method"
+        _say(f"{who} beside OpenCV SGBM; errors in % of GT pixels, "
              + ("holes filled as the KITTI devkit does" if not args.no_fill else "holes counted as errors"))
         _say(format_table(results, mean))
         _say("training: whether the weights' metadata lists the pair as a training pair "
