@@ -148,9 +148,10 @@ def case_census(ctx, rng, chk):
 def case_disparity(ctx, rng, chk):
     """disparity.cl (WTA left/right, LR check), interpolate.cl, subpixel.cl."""
     from mccnn_cl.reference import disparity as ref
-    from mccnn_cl.stages.disparity import Interpolate, LeftRightCheck, Subpixel, WinnerTakeAll
+    from mccnn_cl.stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpixel, WinnerTakeAll
 
     wta, lrc, itp, sub = WinnerTakeAll(ctx), LeftRightCheck(ctx), Interpolate(ctx), Subpixel(ctx)
+    rr = RightReference(ctx)
     for (D, H, W) in ((5, 4, 13), (7, 3, 5)):
         C = _volume(rng, D, H, W)
         d_C = ctx.to_device(C)
@@ -162,6 +163,14 @@ def case_disparity(ctx, rng, chk):
         DL, DR = ref.wta_left(C), ref.wta_right(C)
         chk.close(f"WTA left D={D} {H}x{W}", ctx.from_device(d_l, (H, W), np.int32), DL)
         chk.close(f"WTA right D={D} {H}x{W}", ctx.from_device(d_r, (H, W), np.int32), DR)
+        # right reference: mirrored C_R (exact copy of cells), WTA on it, mirrored back
+        d_crm = _poisoned(ctx, D * H * W * 4)
+        rr.volume(d_C, D, H, W, out=d_crm)
+        chk.close(f"right-reference volume D={D} {H}x{W}", ctx.from_device(d_crm, (D, H, W)),
+                  ref.right_cost_volume(C)[:, :, ::-1])
+        d_back = _poisoned(ctx, n, np.int32)
+        rr.mirror(wta.left(d_crm, D, H, W), H, W, out=d_back)
+        chk.close(f"mirrored WTA of C_R D={D} {H}x{W}", ctx.from_device(d_back, (H, W), np.int32), DR)
         lab = ref.lr_check(DL, DR, D)
         chk.close(f"LR check D={D} {H}x{W}", ctx.from_device(d_lab, (H, W), np.int32), lab)
         for directions in ("paper", "code"):
