@@ -295,6 +295,18 @@ CASES = {
     "disparity": case_disparity,
     "refine": case_refine,
 }
+# The kernels each case must have fetched (checked in the worker): together
+# they must cover every kernel the package uses (test_every_kernel_is_covered).
+CASE_KERNELS = {
+    "network": {"network_conv", "network_head", "network_mark_invalid"},
+    "census": {"census_transform", "census_cost"},
+    "cross": {"cross_build"},
+    "cbca": {"cbca_rows", "cbca_columns", "cbca_rows_short", "cbca_columns_short"},
+    "sgm": {"sgm_rows", "sgm_columns"},
+    "disparity": {"disparity_wta_left", "disparity_wta_right", "disparity_lr_check",
+                  "disparity_right_volume", "disparity_mirror", "interpolate_fill", "subpixel_refine"},
+    "refine": {"refine_enlarge", "refine_median", "refine_bilateral"},
+}
 SELFTESTS = {"selftest_bad_kernel": selftest_bad_kernel}
 # everything the worker can run by name (cases of stages not committed yet included)
 RUNNABLE = {**{n[5:]: f for n, f in globals().items() if n.startswith("case_")}, **SELFTESTS}
@@ -311,11 +323,23 @@ def run_case(name: str, expect_platform: str | None) -> dict:
     if expect_platform and expect_platform.lower() not in plat.lower():
         return {"case": name, "ok": False, "error": f"runs on {plat!r}, expected {expect_platform!r}"}
     chk = Checks()
+    fetched = set()
+    plain_kernel = ctx.kernel
+
+    def kernel(filename, kname, **defines):  # records which kernels the stages fetch
+        fetched.add(kname)
+        return plain_kernel(filename, kname, **defines)
+
+    ctx.kernel = kernel
     t0 = time.perf_counter()
     RUNNABLE[name](ctx, np.random.default_rng(1234), chk)
     ctx.finish()
+    missing = sorted(CASE_KERNELS.get(name, set()) - fetched)
+    if missing:
+        chk.results.append({"name": f"kernels not fetched: {missing}", "ok": False, "shape": [], "err": None})
     return {"case": name, "ok": not chk.failures, "device": ctx.describe(),
-            "seconds": round(time.perf_counter() - t0, 2), "checks": chk.results}
+            "seconds": round(time.perf_counter() - t0, 2), "checks": chk.results,
+            "kernels": sorted(fetched)}
 
 
 def main(argv=None) -> int:
@@ -420,6 +444,23 @@ if pytest is not None:
         assert not res["ok"]
         assert "Invalid read" in res["oclgrind_errors"], res["oclgrind_errors"][:3000]
         assert "data race" in res["oclgrind_errors"], res["oclgrind_errors"][:3000]
+
+    def test_every_kernel_is_covered():
+        """Every kernel of kernels/*.cl that the package fetches by name is in some case."""
+        import re
+
+        repo = HERE.parent
+        defined = {}
+        for cl_file in sorted((repo / "kernels").glob("*.cl")):
+            for k in re.findall(r"__kernel\s+void\s+(\w+)", cl_file.read_text(encoding="utf-8")):
+                defined[k] = cl_file.name
+        used_text = "\n".join(p.read_text(encoding="utf-8") for p in sorted((repo / "mccnn_cl").rglob("*.py")))
+        used = {k for k in defined if re.search(rf"[\"']{k}[\"']", used_text)}
+        covered = set().union(*(CASE_KERNELS[c] for c in CASES))
+        assert used, "no kernel names found in mccnn_cl/"
+        missing = sorted(f"{k} ({defined[k]})" for k in used - covered)
+        assert not missing, ("kernels used by the package but not run under Oclgrind: "
+                             f"{missing}; add them to a case in tests/test_oclgrind.py")
 
     def test_worker_detects_a_wrong_result():
         """The comparison helper really fails on a wrong element (a test that cannot fail is a defect)."""
