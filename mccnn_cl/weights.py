@@ -144,6 +144,9 @@ class Weights:
         path = os.fspath(path)
         if not os.path.exists(path):
             raise WeightsError(f"weights file not found: {path}")
+        if not zipfile.is_zipfile(path):
+            raise WeightsError(f"{path}: not a readable mccnn_cl weights file "
+                               "(not an .npz archive: truncated, or another kind of file)")
         try:
             with np.load(path, allow_pickle=False) as z:
                 files = dict((k, z[k]) for k in z.files)
