@@ -52,10 +52,18 @@ CL_IMPLS = {
 }
 
 # Known gaps, as {impl: {node id (relative to the repository): reason}}: such a
-# test is xfail (strict: an unexpected pass is reported) on that impl only.
+# test is xfail on that impl only, strict (an unexpected pass is reported)
+# unless the reason is given as (reason, False) for gaps that depend on speed.
 KNOWN_GAPS: dict = {
     "intel": {},
-    "rusticl": {},
+    "rusticl": {
+        # measured: the network kernels run ~460x slower on llvmpipe than on PoCL
+        # (docs/portability.md), so the shipped-network demo cannot finish in the
+        # test's 180 s; its results agree with PoCL where it does finish
+        "tests/test_cli.py::test_demo_with_shipped_weights":
+            ("the full-size network on the demo pair needs far more than the test's 180 s "
+             "subprocess timeout on Rusticl/llvmpipe", False),
+    },
     "oclgrind": {},
     "pocl": {},
 }
@@ -163,12 +171,15 @@ def pytest_collection_modifyitems(config, items):
         return
     gaps = KNOWN_GAPS.get(impl, {})
     for item in items:
-        reason = gaps.get(item.nodeid)
+        reason, strict = gaps.get(item.nodeid), True
+        if isinstance(reason, tuple):
+            reason, strict = reason
         for m in item.iter_markers("cl_impl_xfail"):
             if m.args and m.args[0] == impl:
                 reason = m.kwargs.get("reason", f"known gap of {impl}")
+                strict = m.kwargs.get("strict", True)
         if reason:
-            item.add_marker(pytest.mark.xfail(reason=f"[{impl}] {reason}", strict=True))
+            item.add_marker(pytest.mark.xfail(reason=f"[{impl}] {reason}", strict=strict))
 
 
 @pytest.fixture(scope="session")
