@@ -292,6 +292,10 @@ __kernel void cbca_columns_short(__global float *buf,          /* row sums in, C
 #define RS (2 * MAX_ARM + 1)
     float16 ring[RS * CBCA_GROUPS]; /* row sums of rows t - 2 MAX_ARM .. t, [slot][group] */
     int16 cring[RS * CBCA_GROUPS];  /* their cell counts */
+    for (int i = 0; i < RS * CBCA_GROUPS; ++i) { /* slots of rows above the image: defined zeros */
+        ring[i] = (float16)(0.0f);
+        cring[i] = (int16)(0);
+    }
     int head = RS - 1;
     for (int t = 0; t < H + MAX_ARM; ++t) {
         head = head + 1 == RS ? 0 : head + 1;
