@@ -173,29 +173,6 @@ __kernel void cbca_columns(__global float *buf,           /* D x H x W row sums 
 #define VW 16
 #if MAX_ARM <= CBCA_SHORT_MAX
 
-/* Lanes 0..15 = p[first + i]; lanes with i >= n or first + i < 0 are not read and get 0. */
-static inline float16 cbca_load(__global const float *p, const int first, const int n)
-{
-    if (n == VW && first >= 0)
-        return vload16(0, p + first);
-    float t[VW];
-    for (int i = 0; i < VW; ++i)
-        t[i] = (i < n && first + i >= 0) ? p[first + i] : 0.0f;
-    return vload16(0, t);
-}
-
-static inline void cbca_store(const float16 v, __global float *p, const int n)
-{
-    if (n == VW) {
-        vstore16(v, 0, p);
-        return;
-    }
-    float t[VW];
-    vstore16(v, 0, t);
-    for (int i = 0; i < n; ++i)
-        p[i] = t[i];
-}
-
 /* Arm k of the 16 pixels first .. first + 15 of one image; lanes not read
  * (i >= n or first + i < 0) get 0. */
 static inline int16 cbca_arm16(__global const uchar *a, const int k, const int first, const int n,
@@ -235,14 +212,14 @@ __kernel void cbca_rows_short(__global const float *src,     /* D x H x W cost C
     const int nch = (W + VW - 1) / VW;
     {
         const int n = min(VW, W);
-        vstore16(select((float16)(0.0f), cbca_load(src, row, n), LANES >= (int16)(d)), 0, win + VW);
+        vstore16(select((float16)(0.0f), load16_partial(src, row, n, 0.0f), LANES >= (int16)(d)), 0, win + VW);
     }
     for (int c = 0; c < nch; ++c) {
         const int x0 = c * VW;
         const int n = min(VW, W - x0);
         if (c + 1 < nch) {
             const int x1 = x0 + VW;
-            const float16 nx = cbca_load(src, row + x1, min(VW, W - x1));
+            const float16 nx = load16_partial(src, row + x1, min(VW, W - x1), 0.0f);
             vstore16(select((float16)(0.0f), nx, (int16)(x1) + LANES >= (int16)(d)), 0, win + 2 * VW);
         } else {
             vstore16((float16)(0.0f), 0, win + 2 * VW);
@@ -262,7 +239,7 @@ __kernel void cbca_rows_short(__global const float *src,     /* D x H x W cost C
                 s += select((float16)(0.0f), vload16(0, win + VW + k), take);
             }
         }
-        cbca_store(select((float16)(INVALID_COST), s, valid), dst + row + x0, n);
+        store16_partial(select((float16)(INVALID_COST), s, valid), dst + row + x0, n);
         for (int i = 0; i < 2 * VW; ++i)
             win[i] = win[i + VW];
     }
@@ -310,7 +287,7 @@ __kernel void cbca_columns_short(__global float *buf,          /* row sums in, C
             const int16 xs = (int16)(x0) + LANES;
             const int16 valid = (xs >= (int16)(d)) & (LANES < (int16)(n));
             if (t < H) {
-                ring[head * CBCA_GROUPS + g] = select((float16)(0.0f), cbca_load(buf, VIDX(d, t, x0, H, W), n), valid);
+                ring[head * CBCA_GROUPS + g] = select((float16)(0.0f), load16_partial(buf, VIDX(d, t, x0, H, W), n, 0.0f), valid);
                 const int it = t * W + x0;
                 const int16 l = min(min(cbca_arm16(arms_l, ARM_LEFT, it, n, H, W), cbca_arm16(arms_r, ARM_LEFT, it - d, n, H, W)),
                                     min((int16)(MAX_ARM), xs - (int16)(d)));
@@ -335,7 +312,7 @@ __kernel void cbca_columns_short(__global float *buf,          /* row sums in, C
                     cnt += select((int16)(0), cring[slot * CBCA_GROUPS + g], take);
                 }
                 const float16 res = s / convert_float16(max(cnt, (int16)(1)));
-                cbca_store(select((float16)(INVALID_COST), res, valid), buf + VIDX(d, y, x0, H, W), n);
+                store16_partial(select((float16)(INVALID_COST), res, valid), buf + VIDX(d, y, x0, H, W), n);
             }
         }
     }

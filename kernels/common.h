@@ -21,4 +21,29 @@
 /* Index of cell (d, y, x) in a D x H x W volume. */
 #define VIDX(d, y, x, H, W) (((size_t)(d) * (size_t)(H) + (size_t)(y)) * (size_t)(W) + (size_t)(x))
 
+/* Partial 16-wide vector access at the end of a row.  load16_partial gives
+ * lanes i = 0..15 = p[first + i]; lanes with i >= n or first + i < 0 are not
+ * read and get `fill`.  store16_partial writes lanes 0 .. n-1 (n <= 16). */
+static inline float16 load16_partial(__global const float *p, const int first, const int n, const float fill)
+{
+    if (n == 16 && first >= 0)
+        return vload16(0, p + first);
+    float t[16];
+    for (int i = 0; i < 16; ++i)
+        t[i] = (i < n && first + i >= 0) ? p[first + i] : fill;
+    return vload16(0, t);
+}
+
+static inline void store16_partial(const float16 v, __global float *p, const int n)
+{
+    if (n == 16) {
+        vstore16(v, 0, p);
+        return;
+    }
+    float t[16];
+    vstore16(v, 0, t);
+    for (int i = 0; i < n; ++i)
+        p[i] = t[i];
+}
+
 #endif /* MCCNN_COMMON_H */

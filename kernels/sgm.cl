@@ -28,30 +28,6 @@
 #endif
 #define VW 16
 
-/* n (<= VW) floats from p[first .. first + n - 1], lanes whose index
- * first + i is < 0 or i >= n are not read and get `fill`. */
-static inline float16 sgm_load(__global const float *p, const int first, const int n, const float fill)
-{
-    if (n == VW && first >= 0)
-        return vload16(0, p + first);
-    float t[VW];
-    for (int i = 0; i < VW; ++i)
-        t[i] = (i < n && first + i >= 0) ? p[first + i] : fill;
-    return vload16(0, t);
-}
-
-/* Store lanes 0 .. n-1 of v to p[0 .. n-1]. */
-static inline void sgm_store(const float16 v, __global float *p, const int n)
-{
-    if (n == VW) {
-        vstore16(v, 0, p);
-        return;
-    }
-    float t[VW];
-    vstore16(v, 0, t);
-    for (int i = 0; i < n; ++i)
-        p[i] = t[i];
-}
 
 /* Combine C_r into the output according to mode (see the header). */
 #define SGM_COMBINE(old, val, mode) \
@@ -91,21 +67,21 @@ __kernel void sgm_columns(__global const float *cost,  /* D x H x W cost volume 
         const int py = y - dy;
         int16 big_l = (int16)(0);
         if (j > 0)
-            big_l = isless(fabs(sgm_load(img_l, y * W + x0, n, 0.0f) - sgm_load(img_l, py * W + x0, n, 0.0f)),
+            big_l = isless(fabs(load16_partial(img_l, y * W + x0, n, 0.0f) - load16_partial(img_l, py * W + x0, n, 0.0f)),
                            (float16)(tau_so)) == (int16)(0);
         float16 newm = (float16)(INFINITY);
         float16 pm1 = (float16)(INFINITY); /* C_r(p - r, d - 1) */
         for (int d = 0; d <= dmax; ++d) {
             const int16 valid = (xs >= (int16)(d)) & in_tile;
             const size_t i0 = VIDX(d, y, x0, H, W);
-            const float16 c = sgm_load(cost, i0, n, 0.0f);
+            const float16 c = load16_partial(cost, i0, n, 0.0f);
             float16 val;
             if (j == 0) {
                 val = c; /* first pixel of the path */
             } else {
                 /* pd = (x - d, y), pd - r = (x - d, py): inside whenever x - d >= 0 */
-                const float16 a = sgm_load(img_r, y * W + x0 - d, n, 0.0f);
-                const float16 b = sgm_load(img_r, py * W + x0 - d, n, 0.0f);
+                const float16 a = load16_partial(img_r, y * W + x0 - d, n, 0.0f);
+                const float16 b = load16_partial(img_r, py * W + x0 - d, n, 0.0f);
                 const int16 big_r = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
                 const int16 one = big_l ^ big_r; /* masks: -1 (true) or 0 */
                 const int16 both = big_l & big_r;
@@ -125,14 +101,14 @@ __kernel void sgm_columns(__global const float *cost,  /* D x H x W cost volume 
             if (mode == 0) {
                 o = select((float16)(NAN), val, valid);
             } else {
-                const float16 old = sgm_load(out, i0, n, 0.0f);
+                const float16 old = load16_partial(out, i0, n, 0.0f);
                 o = select(old, SGM_COMBINE(old, val, mode), valid);
             }
-            sgm_store(o, out + i0, n);
+            store16_partial(o, out + i0, n);
         }
         if (mode == 0)
             for (int d = dmax + 1; d < D; ++d)
-                sgm_store((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
+                store16_partial((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
         m = newm;
     }
 }
@@ -188,11 +164,11 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
         const int dmaxc = min(D - 1, x0 + n - 1);
         for (int d = 0; d <= dmaxc; ++d) { /* load the chunk, transposed */
             const size_t i0 = VIDX(d, y, x0, H, W);
-            vstore16(sgm_load(cost, i0, n, 0.0f), 0, t);
+            vstore16(load16_partial(cost, i0, n, 0.0f), 0, t);
             for (int k = 0; k < VW; ++k)
                 blk_c[k * MAX_DISP + d] = t[k];
             if (mode != 0) {
-                vstore16(sgm_load(out, i0, n, 0.0f), 0, t);
+                vstore16(load16_partial(out, i0, n, 0.0f), 0, t);
                 for (int k = 0; k < VW; ++k)
                     blk_o[k * MAX_DISP + d] = t[k];
             }
@@ -268,10 +244,10 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
         for (int d = 0; d <= dmaxc; ++d) { /* write the chunk back */
             for (int k = 0; k < VW; ++k)
                 t[k] = blk_o[k * MAX_DISP + d];
-            sgm_store(vload16(0, t), out + VIDX(d, y, x0, H, W), n);
+            store16_partial(vload16(0, t), out + VIDX(d, y, x0, H, W), n);
         }
         if (mode == 0)
             for (int d = dmaxc + 1; d < D; ++d)
-                sgm_store((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
+                store16_partial((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
     }
 }
