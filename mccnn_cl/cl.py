@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+import weakref
 from contextlib import ExitStack
 from dataclasses import dataclass
 from importlib import resources
@@ -41,6 +42,50 @@ def _cl():
     except ImportError as exc:  # pragma: no cover - dependency missing
         raise NoOpenCLDeviceError(f"pyopencl is not installed ({exc}); pip install pyopencl") from exc
     return cl
+
+
+_TRACKED = {}
+
+
+def _tracked_buffer_class(cl):
+    """A ``pyopencl.Buffer`` subclass whose release (explicit, or by garbage
+    collection) is reported to :class:`MemoryTracker` exactly once."""
+    cls = _TRACKED.get(id(cl))
+    if cls is None:
+        class TrackedBuffer(cl.Buffer):
+            _on_free = None
+
+            def release(self):
+                if self._on_free is not None:
+                    self._on_free()
+                super().release()
+
+        cls = _TRACKED[id(cl)] = TrackedBuffer
+    return cls
+
+
+class MemoryTracker:
+    """Bytes of device buffers made through a :class:`ClContext` (``to_device``,
+    ``empty``): ``live`` now, ``peak`` since the last :meth:`reset_peak`.
+    Buffers made directly with pyopencl are not counted."""
+
+    def __init__(self):
+        self.live = 0
+        self.peak = 0
+        self.count = 0
+
+    def add(self, buf, nbytes: int):
+        self.live += nbytes
+        self.count += 1
+        self.peak = max(self.peak, self.live)
+        buf._on_free = weakref.finalize(buf, self._free, nbytes)
+
+    def _free(self, nbytes: int):
+        self.live -= nbytes
+        self.count -= 1
+
+    def reset_peak(self) -> None:
+        self.peak = self.live
 
 
 def _version_tuple(text: str) -> tuple:
@@ -180,6 +225,8 @@ class ClContext:
         self.queue = cl.CommandQueue(self.context, properties=props)
         self._programs: dict = {}
         self._kernels: dict = {}
+        self.memory = MemoryTracker()
+        self._buffer = _tracked_buffer_class(cl)
         self._exit = ExitStack()
         self.kernel_dir = str(self._exit.enter_context(kernel_source_dir()))
         log.info("mccnn_cl OpenCL device: %s (%s)", self.describe(), self.reason)
@@ -259,13 +306,19 @@ class ClContext:
     def to_device(self, array: np.ndarray):
         """Copy a host array to a new read-only buffer (C-contiguous)."""
         a = np.ascontiguousarray(array)
+        self.check_alloc(a.nbytes, "input buffer")
         mf = self.cl.mem_flags
-        return self.cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+        buf = self._buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+        self.memory.add(buf, max(a.nbytes, 1))
+        return buf
 
     def empty(self, nbytes: int, what: str = "buffer"):
         """A new read-write buffer of ``nbytes`` (checked against the max allocation)."""
         self.check_alloc(nbytes, what)
-        return self.cl.Buffer(self.context, self.cl.mem_flags.READ_WRITE, size=max(int(nbytes), 4))
+        size = max(int(nbytes), 4)
+        buf = self._buffer(self.context, self.cl.mem_flags.READ_WRITE, size=size)
+        self.memory.add(buf, size)
+        return buf
 
     def from_device(self, buf, shape, dtype=np.float32) -> np.ndarray:
         """Blocking copy of a device buffer into a new host array."""

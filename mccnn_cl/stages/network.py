@@ -287,17 +287,7 @@ class NetworkCost:
         the next band's by P - 1 rows, so the band seams are exact.
         """
         ctx = self.ctx
-        L = _as_image(left, "left", self.channels, self.patch)
-        R = _as_image(right, "right", self.channels, self.patch)
-        if L.shape != R.shape:
-            raise InputError(f"left and right images differ in size: {L.shape[:2]} vs {R.shape[:2]}")
-        if isinstance(max_disparity, (bool, np.bool_)) or not isinstance(max_disparity, (int, np.integer)):
-            raise InputError(f"max_disparity must be an integer, got {max_disparity!r}")
-        D = int(max_disparity)
-        if D < 1:
-            raise InputError(f"max_disparity must be >= 1, got {D}")
-        P = self.patch
-        h, w = L.shape[0] - P + 1, L.shape[1] - P + 1
+        L, R, D, h, w = self._check(left, right, max_disparity)
         nbytes = D * h * w * 4
         ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
         rows = self.band_rows(h, w)
@@ -315,18 +305,63 @@ class NetworkCost:
                               f"{exc}") from exc
         return d_cost
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress):
-        """The launches of :meth:`__call__` (inputs already checked)."""
+    def _check(self, left, right, max_disparity):
+        L = _as_image(left, "left", self.channels, self.patch)
+        R = _as_image(right, "right", self.channels, self.patch)
+        if L.shape != R.shape:
+            raise InputError(f"left and right images differ in size: {L.shape[:2]} vs {R.shape[:2]}")
+        if isinstance(max_disparity, (bool, np.bool_)) or not isinstance(max_disparity, (int, np.integer)):
+            raise InputError(f"max_disparity must be an integer, got {max_disparity!r}")
+        D = int(max_disparity)
+        if D < 1:
+            raise InputError(f"max_disparity must be >= 1, got {D}")
+        P = self.patch
+        return L, R, D, L.shape[0] - P + 1, L.shape[1] - P + 1
+
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
+        """C_CNN as a host array (float32 ``[D][H_img-8][W_img-8]``), for
+        volumes larger than the device can hold: each band of rows is
+        computed into one band-sized device buffer of at most ``max_bytes``
+        (default: the device's max allocation) and copied out.  Values are
+        identical to :meth:`__call__`'s (same kernels, same bands' seams)."""
+        ctx = self.ctx
+        L, R, D, h, w = self._check(left, right, max_disparity)
+        row = D * w * 4
+        limit = ctx.max_alloc if max_bytes is None else min(int(max_bytes), ctx.max_alloc)
+        if row > limit:
+            raise InputError(f"one row of the cost volume ({D} x {w} float32, {row / 2**20:.1f} MiB) does not "
+                             f"fit in {limit / 2**20:.1f} MiB of device memory; reduce the disparity range "
+                             "or the image width")
+        rows = min(self.band_rows(h, w), limit // row)
+        out = np.empty((D, h, w), np.float32)
+        d_band = ctx.empty(D * rows * w * 4, "cost volume band")
+        try:
+            self._enqueue(L, R, D, h, w, rows, d_band, progress, host=out)
+        except ctx.cl.Error as exc:
+            raise OpenCLError(f"network (C_CNN, {D} x {h} x {w}, in bands of {rows} rows) failed on "
+                              f"{ctx.describe()}: {exc}") from exc
+        finally:
+            d_band.release()
+        return out
+
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
+        """The launches of :meth:`__call__` (inputs already checked).  With
+        ``host`` (a [D][h][w] array), ``d_cost`` holds one band at a time
+        ([D][hb][w]), copied into ``host`` after each band."""
         q = self.ctx.queue
         P = self.patch
         i32 = np.int32
-        # NaN into every invalid cell (x < d) of the volume, once
-        self._mark(q, (w, h, D), None, d_cost, i32(h), i32(w), i32(0))
+        if host is None:  # NaN into every invalid cell (x < d) of the volume, once
+            self._mark(q, (w, h, D), None, d_cost, i32(h), i32(w), i32(0))
         Ln, Rn = normalise(L), normalise(R)
         bands = range(0, h, rows)
         done = 0
         for y0 in bands:
             hb = min(rows, h - y0)
+            # the volume the head writes into: whole (rows y0 ..), or this band alone
+            vh, vy0 = (h, y0) if host is None else (hb, 0)
+            if host is not None:
+                self._mark(q, (w, hb, D), None, d_cost, i32(hb), i32(w), i32(0))
             d_a = self._half(Ln[y0:y0 + hb + P - 1], left=True)
             d_b = self._half(Rn[y0:y0 + hb + P - 1], left=False)
             per_chunk = max(1, min(D, CHUNK_CELLS // max(1, hb * w)))
@@ -337,7 +372,7 @@ class NetworkCost:
                     tiles = math.ceil(n_valid / self.tm)
                     self._head(q, (tiles * self.nwi, nd), (self.nwi, 1),
                                d_a, d_b, self._d_wh, self._d_bh, self._d_w8, self._d_b8, d_cost,
-                               i32(h), i32(w), i32(y0), i32(hb), i32(d0))
+                               i32(vh), i32(w), i32(vy0), i32(hb), i32(d0))
                 done += nd
                 if progress is not None:
                     q.finish()
@@ -345,6 +380,10 @@ class NetworkCost:
             q.finish()
             d_a.release()
             d_b.release()
+            if host is not None:
+                band = np.empty((D, hb, w), np.float32)
+                self.ctx.cl.enqueue_copy(q, band, d_cost)
+                host[:, y0:y0 + hb, :] = band
 
     def compute(self, left, right, max_disparity) -> np.ndarray:
         """Host copy of :meth:`__call__`: float32 array ``[D][H_img-8][W_img-8]``."""
