@@ -113,12 +113,35 @@ __kernel void sgm_columns(__global const float *cost,  /* D x H x W cost volume 
     }
 }
 
+/* Transpose of a 16 x 16 block held as 16 float16 rows: afterwards r[i].sj
+ * is the former r[j].si.  Each stage splits every pair of rows into their
+ * even and odd lanes (rows 0..7 take the even ones, 8..15 the odd ones),
+ * which rotates the 8-bit index (row, lane) right by one bit; four stages
+ * swap row and lane.  Pure register shuffles (no private-memory round trip). */
+static inline void transpose16(float16 *r)
+{
+    __attribute__((opencl_unroll_hint))
+    for (int s = 0; s < 4; ++s) {
+        float16 t[VW];
+        __attribute__((opencl_unroll_hint))
+        for (int i = 0; i < VW / 2; ++i) {
+            t[i] = (float16)(r[2 * i].even, r[2 * i + 1].even);
+            t[i + VW / 2] = (float16)(r[2 * i].odd, r[2 * i + 1].odd);
+        }
+        __attribute__((opencl_unroll_hint))
+        for (int i = 0; i < VW; ++i)
+            r[i] = t[i];
+    }
+}
+
 /* Horizontal paths.  One work-item walks one row.  For each chunk of 16
- * x it copies the chunk's costs (and, in modes 1 and 2, the partial sums)
- * into private blocks transposed to [x][d], so that the recurrence at one
+ * x it copies the chunk's costs into a private block transposed to [x][d]
+ * (16 x 16 tiles transposed in registers), so that the recurrence at one
  * pixel runs on float16 lanes over d: C_r(p - r, d - 1), (d) and (d + 1)
  * are three shifted loads of the array prev, which holds C_r(p - r, d) at
- * index d + 1 with +INFINITY at index 0 and beyond the valid range. */
+ * index d + 1 with +INFINITY at index 0 and beyond the valid range.  C_r
+ * overwrites the costs in the block; the block is transposed back and
+ * combined with the output row by row (vector loads of the output along x). */
 __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (NaN invalid) */
                        __global const float *img_l, /* H x W left image, gray in [0, 1] */
                        __global const float *img_r, /* H x W right image, gray in [0, 1] */
@@ -142,13 +165,10 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
         return;
     __global const float *il = img_l + y * W;
     __global const float *ir = img_r + y * W;
-    float blk_c[VW * MAX_DISP]; /* costs of one chunk, [k][d] */
-    float blk_o[VW * MAX_DISP]; /* output of one chunk, [k][d] */
+    float blk[VW * MAX_DISP]; /* one chunk, [k][d]: costs, overwritten by C_r */
     float buf_a[MAX_DISP + 2 + VW], buf_b[MAX_DISP + 2 + VW];
     float *prev = buf_a; /* C_r(p - r, d) at prev[d + 1] */
     float *cur = buf_b;  /* C_r(p, d) at cur[d + 1] */
-    for (int i = 0; i < VW * MAX_DISP; ++i)
-        blk_c[i] = 0.0f; /* lanes beyond the valid range are read, never used */
     for (int i = 0; i < MAX_DISP + 2 + VW; ++i) {
         buf_a[i] = INFINITY;
         buf_b[i] = INFINITY;
@@ -156,22 +176,22 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
     const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     const uint16 reverse = (uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
     float m = INFINITY; /* min_k C_r(p - r, k) */
-    float t[VW];
+    float16 r[VW];
     const int nchunks = (W + VW - 1) / VW;
     for (int ci = 0; ci < nchunks; ++ci) {
         const int x0 = (dx > 0 ? ci : nchunks - 1 - ci) * VW;
         const int n = min(VW, W - x0);
         const int dmaxc = min(D - 1, x0 + n - 1);
-        for (int d = 0; d <= dmaxc; ++d) { /* load the chunk, transposed */
-            const size_t i0 = VIDX(d, y, x0, H, W);
-            vstore16(load16_partial(cost, i0, n, 0.0f), 0, t);
+        const int ntiles = dmaxc / VW + 1;
+        for (int g = 0; g < ntiles; ++g) { /* load the chunk, transposed; d > dmaxc read as 0 */
+            const int d0 = g * VW;
+            __attribute__((opencl_unroll_hint))
+            for (int i = 0; i < VW; ++i)
+                r[i] = d0 + i <= dmaxc ? load16_partial(cost, VIDX(d0 + i, y, x0, H, W), n, 0.0f)
+                                       : (float16)(0.0f);
+            transpose16(r);
             for (int k = 0; k < VW; ++k)
-                blk_c[k * MAX_DISP + d] = t[k];
-            if (mode != 0) {
-                vstore16(load16_partial(out, i0, n, 0.0f), 0, t);
-                for (int k = 0; k < VW; ++k)
-                    blk_o[k * MAX_DISP + d] = t[k];
-            }
+                vstore16(r[k], 0, blk + k * MAX_DISP + d0);
         }
         for (int kk = 0; kk < n; ++kk) {
             const int k = dx > 0 ? kk : n - 1 - kk;
@@ -188,7 +208,8 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
                 const int d0 = v * VW;
                 const int16 ds = (int16)(d0) + lane;
                 const int16 valid = ds <= (int16)(dmax);
-                const float16 c = vload16(0, blk_c + k * MAX_DISP + d0);
+                float *bp = blk + k * MAX_DISP + d0;
+                const float16 c = vload16(0, bp);
                 float16 val;
                 if (first) {
                     val = c;
@@ -223,14 +244,8 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
                 }
                 val = select((float16)(INFINITY), val, valid);
                 vstore16(val, 0, cur + d0 + 1);
+                vstore16(val, 0, bp); /* lanes d > dmax: discarded at write-back */
                 newm = fmin(newm, val);
-                float *o = blk_o + k * MAX_DISP + d0;
-                if (mode == 0) {
-                    vstore16(select((float16)(INVALID_COST), val, valid), 0, o);
-                } else {
-                    const float16 old = vload16(0, o);
-                    vstore16(select(old, SGM_COMBINE(old, val, mode), valid), 0, o);
-                }
             }
             vstore16((float16)(INFINITY), 0, cur + nvec * VW + 1); /* d beyond the valid range */
             const float8 m8 = fmin(newm.lo, newm.hi);
@@ -241,10 +256,28 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
             prev = cur;
             cur = sw;
         }
-        for (int d = 0; d <= dmaxc; ++d) { /* write the chunk back */
+        const int16 xs = (int16)(x0) + lane;
+        for (int g = 0; g < ntiles; ++g) { /* write the chunk back, rows d of 16 x */
+            const int d0 = g * VW;
             for (int k = 0; k < VW; ++k)
-                t[k] = blk_o[k * MAX_DISP + d];
-            store16_partial(vload16(0, t), out + VIDX(d, y, x0, H, W), n);
+                r[k] = vload16(0, blk + k * MAX_DISP + d0);
+            transpose16(r);
+            __attribute__((opencl_unroll_hint))
+            for (int i = 0; i < VW; ++i) {
+                const int d = d0 + i;
+                if (d > dmaxc)
+                    break;
+                const int16 valid = xs >= (int16)(d);
+                const size_t i0 = VIDX(d, y, x0, H, W);
+                float16 o;
+                if (mode == 0) {
+                    o = select((float16)(INVALID_COST), r[i], valid);
+                } else {
+                    const float16 old = load16_partial(out, i0, n, 0.0f);
+                    o = select(old, SGM_COMBINE(old, r[i], mode), valid);
+                }
+                store16_partial(o, out + i0, n);
+            }
         }
         if (mode == 0)
             for (int d = dmaxc + 1; d < D; ++d)
