@@ -177,6 +177,7 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
     const uint16 reverse = (uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
     float m = INFINITY; /* min_k C_r(p - r, k) */
     float16 r[VW];
+    int big_r_row[MAX_DISP + VW]; /* D2 large, per right pixel of the chunk (below) */
     const int nchunks = (W + VW - 1) / VW;
     for (int ci = 0; ci < nchunks; ++ci) {
         const int x0 = (dx > 0 ? ci : nchunks - 1 - ci) * VW;
@@ -192,6 +193,30 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
             transpose16(r);
             for (int k = 0; k < VW; ++k)
                 vstore16(r[k], 0, blk + k * MAX_DISP + d0);
+        }
+        /* D2 >= tau_so (-1) or not (0) for the right pixels xr = base + t this chunk
+         * names (x0 - dmaxc <= xr < x0 + n); entries with xr < 0 are never used */
+        const int base = x0 - ntiles * VW;
+        for (int t0 = 0; t0 < (ntiles + 1) * VW; t0 += VW) {
+            const int xa = base + t0, xb = xa - dx;
+            float16 a, b;
+            if (xa >= 0 && xb >= 0 && xa + VW <= W && xb + VW <= W) {
+                a = vload16(0, ir + xa);
+                b = vload16(0, ir + xb);
+            } else {
+                float ta[VW], tb[VW];
+                for (int i = 0; i < VW; ++i) {
+                    ta[i] = (xa + i >= 0 && xa + i < W) ? ir[xa + i] : 0.0f;
+                    tb[i] = (xb + i >= 0 && xb + i < W) ? ir[xb + i] : 0.0f;
+                }
+                a = vload16(0, ta);
+                b = vload16(0, tb);
+            }
+            const int16 xrp = (int16)(xb) + lane;
+            const int16 outside = (xrp < (int16)(0)) | (xrp >= (int16)(W));
+            int16 big = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
+            big = select(big, (int16)(outside_large ? -1 : 0), outside);
+            vstore16(big, 0, big_r_row + t0);
         }
         for (int kk = 0; kk < n; ++kk) {
             const int k = dx > 0 ? kk : n - 1 - kk;
@@ -214,26 +239,9 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
                 if (first) {
                     val = c;
                 } else {
-                    /* right gradients at pd = x - d and pd - r = x - d - dx, lanes d0 .. d0 + 15 */
-                    float16 a, b;
-                    const int xa = x - d0 - (VW - 1), xb = xa - dx;
-                    if (xa >= 0 && xb >= 0 && xb + VW - 1 < W) {
-                        a = shuffle(vload16(0, ir + xa), reverse);
-                        b = shuffle(vload16(0, ir + xb), reverse);
-                    } else {
-                        float ta[VW], tb[VW];
-                        for (int i = 0; i < VW; ++i) {
-                            const int xr = x - d0 - i, xrp = xr - dx;
-                            ta[i] = xr >= 0 ? ir[xr] : 0.0f;
-                            tb[i] = (xrp >= 0 && xrp < W) ? ir[xrp] : 0.0f;
-                        }
-                        a = vload16(0, ta);
-                        b = vload16(0, tb);
-                    }
-                    const int16 xrp = (int16)(x - dx - d0) - lane;
-                    const int16 outside = (xrp < (int16)(0)) | (xrp >= (int16)(W));
-                    int16 big_r = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
-                    big_r = select(big_r, (int16)(outside_large ? -1 : 0), outside);
+                    /* D2 large at pd = x - d, lanes d0 .. d0 + 15: big_r[xr - base] reversed */
+                    const int16 big_r = as_int16(shuffle(vload16(0, (const uint *)big_r_row + (x - d0 - base - (VW - 1))),
+                                                         reverse));
                     const float16 p1 = select((float16)(p1_a), (float16)(p1_b), big_r);
                     const float16 p2 = select((float16)(p2_a), (float16)(p2_b), big_r);
                     const float16 pm = vload16(0, prev + d0);     /* d - 1 */
