@@ -24,6 +24,7 @@ intensity scales and the paper-vs-released-code variants: ``docs/method.md``.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from dataclasses import dataclass, field
 
@@ -38,7 +39,57 @@ from .stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpi
 from .stages.refine import BilateralFilter, Enlarge, MedianFilter
 from .weights import Weights
 
+log = logging.getLogger(__name__)
+
 PATCH = 9  # the paper's network patch and the census window: the smallest image
+#: Image-sized buffers the method keeps at most (images, cross arms of both
+#: references, disparity maps and labels), counted in float32 images: an
+#: upper bound used by :meth:`StereoMatcher.memory_plan`.
+MAP_BUFFERS = 24
+#: Fewest core rows of a tile (fewer would spend most of the work on overlap).
+MIN_TILE_ROWS = 16
+#: Default ``tile_overlap``: rows of context above and below a tile's core.
+TILE_OVERLAP = 64
+
+
+@dataclass
+class MemoryPlan:
+    """Device memory use of one :meth:`StereoMatcher.compute` call (bytes).
+
+    ``volume_bytes``: one D x H x W float32 cost volume of the whole image;
+    ``volumes``: volumes alive at once (3 with the aggregated right
+    reference, 2 with the derived one); ``peak_bytes``: estimated peak of
+    device buffers (an upper bound); ``budget``: the ``memory_limit`` it was
+    planned for; ``tiles``: ``(core_start, core_stop, start, stop)`` row
+    ranges of the cost volume's domain (one tile covering every row: the
+    whole image at once); ``overlap``: rows of context on each side of a
+    core; ``host_bytes``: host memory holding the network's cost volume when
+    tiled (0 otherwise); ``tile_budget``: device bytes for the network's
+    band volume when the volume goes to the host; ``tiled``: the volume stages run
+    tile by tile (the network's volume through host memory), else on the
+    whole image at once.
+    """
+
+    volume_bytes: int
+    volumes: int
+    peak_bytes: int
+    budget: int
+    tiles: list
+    overlap: int
+    host_bytes: int
+    tile_budget: int
+    tiled: bool
+
+    def describe(self) -> str:
+        mib = 2 ** 20
+        text = (f"cost volume {self.volume_bytes / mib:.0f} MiB, {self.volumes} alive at once; "
+                f"planned device peak {self.peak_bytes / mib:.0f} MiB of {self.budget / mib:.0f} MiB")
+        if self.tiled:
+            cores = [c1 - c0 for c0, c1, _, _ in self.tiles]
+            text += (f"; {len(self.tiles)} row tiles of {max(cores)} rows + {self.overlap} overlap"
+                     + (f", network volume in host memory ({self.host_bytes / mib:.0f} MiB)"
+                        if self.host_bytes else ""))
+        return text
 
 
 @dataclass
@@ -130,12 +181,20 @@ class StereoResult:
     C_CNN), ``cross_R``, ``C_R_CBCA``, ``C_R_SGM``, ``C_R`` (the same stages
     for the right reference).
     ``margin``: m, the offset of the cropped domain in the image.
+    ``plan``: the :class:`MemoryPlan` followed; ``peak_device_bytes``: the
+    peak of the device buffers the run held (measured: every buffer made
+    through the context, freed when released or collected).  When the plan
+    is tiled, volumes are not kept (only maps, assembled from the tiles'
+    cores) and a stage's time is the sum over tiles (``C_CNN_upload``: the
+    host-to-device copies of the network's volume).
     """
 
     disparity: np.ndarray
     intermediates: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     margin: int = 4
+    plan: MemoryPlan | None = None
+    peak_device_bytes: int = 0
 
 
 def to_gray(img, name: str) -> np.ndarray:
@@ -179,12 +238,23 @@ class StereoMatcher:
         The matching cost: the network, or a 9 x 9 census transform (no weights).
     progress : bool
         Show a tqdm bar while the cost volume is computed.
+    memory_limit : None or int
+        Bytes of device memory the method may use (default: 3/4 of the
+        device's global memory).  When the whole image's cost volumes do not
+        fit it, or one volume exceeds the device's max allocation, the
+        volume stages run on row tiles (see :meth:`memory_plan`).
+    tile_overlap : int
+        Rows of context above and below each tile's core rows (default
+        ``TILE_OVERLAP``).  The network and cross-based aggregation are exact
+        within it; SGM's vertical paths and interpolation's search are cut at
+        the tile's edge (see docs/method.md, "Large images").
     **hyperparameters
         Overrides of :class:`Hyperparameters` fields by name.
     """
 
     def __init__(self, weights=None, max_disparity: int = 228, device=None, cost: str = "cnn",
-                 progress: bool = False, **hyperparameters):
+                 progress: bool = False, memory_limit: int | None = None,
+                 tile_overlap: int = TILE_OVERLAP, **hyperparameters):
         unknown = sorted(set(hyperparameters) - set(Hyperparameters.names()))
         if unknown:
             raise TypeError(f"unknown hyperparameter(s) {', '.join(unknown)}; valid names: "
@@ -200,6 +270,15 @@ class StereoMatcher:
         self.cost_name = cost
         self.progress = bool(progress)
         self.ctx = device if isinstance(device, ClContext) else ClContext(device)
+        for name, value in (("memory_limit", memory_limit), ("tile_overlap", tile_overlap)):
+            if value is not None and (isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer))):
+                raise InputError(f"{name} must be an integer, not {value!r}")
+        if memory_limit is not None and memory_limit < 1:
+            raise InputError(f"memory_limit must be a positive number of bytes, not {memory_limit}")
+        if tile_overlap is None or tile_overlap < 0:
+            raise InputError(f"tile_overlap must be >= 0, not {tile_overlap}")
+        self.memory_limit = int(memory_limit) if memory_limit is not None else int(0.75 * self.ctx.global_mem)
+        self.tile_overlap = int(tile_overlap)
 
         if cost == "cnn":
             from .stages.network import NetworkCost
@@ -260,25 +339,67 @@ class StereoMatcher:
         """
         I_L, I_R = self._inputs(left, right)
         rec = _Recorder(self.ctx, keep=return_intermediates, timed=return_intermediates or timings)
+        self.ctx.memory.reset_peak()
         out = self._run(I_L, I_R, rec)
         if not (return_intermediates or timings):
             return out
-        return StereoResult(out, rec.arrays, rec.times, self.margin)
+        return StereoResult(out, rec.arrays, rec.times, self.margin, rec.plan, self.ctx.memory.peak)
 
     def _run(self, I_L, I_R, rec):
-        p, ctx, m, D = self.params, self.ctx, self.margin, self.max_disparity
+        ctx, m, D = self.ctx, self.margin, self.max_disparity
         Hi, Wi = I_L.shape
         H, W = Hi - 2 * m, Wi - 2 * m
-        vol, img, crop = (D, H, W), (Hi, Wi), (H, W)
-        d_I_L = ctx.to_device(I_L)                                      # I^L, image size (bilateral)
-        d_J_L = ctx.to_device(np.ascontiguousarray(I_L[m:m + H, m:m + W]))  # I^L, I^R on the
-        d_J_R = ctx.to_device(np.ascontiguousarray(I_R[m:m + H, m:m + W]))  # cost volume's domain
+        plan = rec.plan = self.memory_plan(I_L.shape)
+        d_I_L = ctx.to_device(I_L)                    # I^L, image size (bilateral)
+        J_L = I_L[m:m + H, m:m + W]                   # I^L, I^R on the cost volume's domain
+        J_R = I_R[m:m + H, m:m + W]
         rec.start()
+        if not plan.tiled:
+            C_CNN = rec("C_CNN", self._matching_cost(I_L, I_R, D), (D, H, W))
+            D_SE = self._volume_stages(C_CNN, J_L, J_R, rec)
+        else:
+            D_SE = ctx.to_device(self._tiled_volume_stages(I_L, I_R, J_L, J_R, plan, rec))
+        return self._map_stages(D_SE, d_I_L, Hi, Wi, rec)
 
+    def _tiled_volume_stages(self, I_L, I_R, J_L, J_R, plan, rec):
+        """D_SE (host, H x W) of an image too large for one device volume: the
+        volume stages run on row tiles with ``plan.overlap`` rows of overlap,
+        each tile's core rows kept.  The network's volume is computed once into
+        host memory and each tile's rows streamed to the device; census is
+        computed per tile (it is local)."""
+        ctx, m, D = self.ctx, self.margin, self.max_disparity
+        H, W = J_L.shape
+        host = None
+        if self.cost_name == "cnn":
+            host = rec("C_CNN", self._matching_cost(I_L, I_R, D, to_host=plan.tile_budget))
+        D_SE = np.empty((H, W), np.float32)
+        for i, (c0, c1, e0, e1) in enumerate(plan.tiles):
+            log.info("tile %d/%d: volume rows %d..%d (core %d..%d)", i + 1, len(plan.tiles), e0, e1, c0, c1)
+            rec.tile(c0 - e0, c1 - e0, c0, (H, W))
+            if host is None:
+                d_cost = rec("C_CNN", self.cost(I_L[e0:e1 + 2 * m], I_R[e0:e1 + 2 * m], D))
+            else:
+                d_cost = ctx.empty(D * (e1 - e0) * W * 4, "cost volume tile")
+                ctx.cl.enqueue_copy(ctx.queue, d_cost, np.ascontiguousarray(host[:, e0:e1]))
+                rec("C_CNN_upload", d_cost)
+            d_se = self._volume_stages(d_cost, J_L[e0:e1], J_R[e0:e1], rec)
+            del d_cost
+            D_SE[c0:c1] = ctx.from_device(d_se, (e1 - e0, W))[c0 - e0:c1 - e0]
+        rec.tile(None)
+        return D_SE
+
+    def _volume_stages(self, C_CNN, J_L, J_R, rec):
+        """C_CNN (device, D x h x W) through CBCA, SGM, CBCA, WTA, the left-right
+        check, interpolation and subpixel enhancement; returns D_SE (device).
+        ``J_L``, ``J_R``: the images on the volume's domain (host, h x W)."""
+        p, ctx, D = self.params, self.ctx, self.max_disparity
+        H, W = J_L.shape
+        vol, crop = (D, H, W), (H, W)
+        d_J_L = ctx.to_device(np.ascontiguousarray(J_L))
+        d_J_R = ctx.to_device(np.ascontiguousarray(J_R))
         # CBCA aggregates in place (out=its input): a recorded volume is copied
         # to the host before the next stage overwrites it.
         arm = max_arm(p.cbca_eta, p.cross_include_neighbor)
-        C_CNN = rec("C_CNN", self._matching_cost(I_L, I_R, D), vol)
         if p.right_reference == "aggregated":  # taken before CBCA overwrites C_CNN
             C_R = rec("right_volume", self.right_ref.volume(C_CNN, D, H, W))
         arms_L = self.cross(d_J_L, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
@@ -293,26 +414,31 @@ class StereoMatcher:
         if p.right_reference == "derived":
             D_R = rec("D_R", self.wta.right(C, D, H, W), crop, np.int32)
         else:
-            D_R = rec("D_R", self._right_reference(C_R, I_L, I_R, rec), crop, np.int32)
+            D_R = rec("D_R", self._right_reference(C_R, J_L, J_R, rec), crop, np.int32)
         labels = rec("labels", self.lr_check(D_L, D_R, D, H, W, p.lr_threshold), crop, np.int32)
         D_INT = rec("D_INT", self.interpolate(D_L, labels, H, W, p.interpolation), crop, np.int32)
-        D_SE = rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp), crop)
+        return rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp), crop)
+
+    def _map_stages(self, D_SE, d_I_L, Hi, Wi, rec):
+        """D_SE (device, cropped domain) -> enlarged, median, bilateral: D_BF (host)."""
+        p, m = self.params, self.margin
+        H, W = Hi - 2 * m, Wi - 2 * m
+        img = (Hi, Wi)
         D_E = rec("D_E", self.enlarge(D_SE, H, W, Hi, Wi, m), img)
         D_median = rec("D_median", self.median(D_E, Hi, Wi), img)
         guide, tau = (d_I_L, p.blur_tau / 255.0) if p.bilateral_guide == "image" else (D_median, p.blur_tau)
         D_BF = rec("D_BF", self.bilateral(D_median, guide, Hi, Wi, p.blur_sigma, tau, p.blur_radius), img)
+        return self.ctx.from_device(D_BF, img)
 
-        return ctx.from_device(D_BF, img)
-
-    def _right_reference(self, C_R, I_L, I_R, rec):
+    def _right_reference(self, C_R, J_L, J_R, rec):
         """D^R with the right image as the reference (``right_reference="aggregated"``):
         the mirrored right-reference cost volume (from C_CNN, network not rerun)
         through cross arms, CBCA, SGM, CBCA and the left WTA with the mirrored
         right and left images as (left, right); the map is mirrored back."""
-        p, ctx, m, D = self.params, self.ctx, self.margin, self.max_disparity
-        H, W = I_L.shape[0] - 2 * m, I_L.shape[1] - 2 * m
-        d_K_L = ctx.to_device(np.ascontiguousarray(I_R[m:m + H, m:m + W][:, ::-1]))  # mirrored right image
-        d_K_R = ctx.to_device(np.ascontiguousarray(I_L[m:m + H, m:m + W][:, ::-1]))  # mirrored left image
+        p, ctx, D = self.params, self.ctx, self.max_disparity
+        H, W = J_L.shape
+        d_K_L = ctx.to_device(np.ascontiguousarray(J_R[:, ::-1]))  # mirrored right image
+        d_K_R = ctx.to_device(np.ascontiguousarray(J_L[:, ::-1]))  # mirrored left image
         arm = max_arm(p.cbca_eta, p.cross_include_neighbor)
         arms_L = self.cross(d_K_L, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
         arms_R = rec("cross_R", self.cross(d_K_R, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor))
@@ -325,42 +451,112 @@ class StereoMatcher:
                   (D, H, W))
         return self.right_ref.mirror(self.wta.left(C_R, D, H, W), H, W)
 
-    def _matching_cost(self, I_L, I_R, D):
+    def _matching_cost(self, I_L, I_R, D, to_host=None):
+        """C_CNN on the device, or with ``to_host`` (bytes of device memory the
+        bands may use; network only) as a host array computed band by band."""
+        def run(progress=None):
+            if to_host is not None:
+                return self.cost.to_host(I_L, I_R, D, max_bytes=to_host, progress=progress)
+            return self.cost(I_L, I_R, D, progress=progress)
+
         if not self.progress:
-            return self.cost(I_L, I_R, D)
+            return run()
         from tqdm.auto import tqdm
 
         with tqdm(total=D, desc=f"cost volume ({self.cost_name})", unit="disp") as bar:
             def report(done, total):
                 bar.update(done - bar.n)
-            d_cost = self.cost(I_L, I_R, D, progress=report)
+            out = run(report)
             self.ctx.finish()
             bar.update(D - bar.n)
-        return d_cost
+        return out
+
+    # -- memory --------------------------------------------------------------
+    def memory_plan(self, shape) -> "MemoryPlan":
+        """How :meth:`compute` will use device memory for images of ``shape``
+        (H_img, W_img): the whole image at once when its volumes fit
+        ``memory_limit`` and the device's max allocation, else row tiles."""
+        Hi, Wi = int(shape[0]), int(shape[1])
+        m, D = self.margin, self.max_disparity
+        H, W = Hi - 2 * m, Wi - 2 * m
+        row = D * W * 4                                    # one volume row, bytes
+        nvol = 3 if self.params.right_reference == "aggregated" else 2
+        maps = MAP_BUFFERS * Hi * Wi * 4                    # images, arms, disparity maps
+        if self.cost_name == "cnn":
+            from .stages import network
+
+            net = self.cost
+            rows = min(H, max(1, network.BAND_BYTES // (W * net.hp * 4)))
+            widest = max([conv[4] for conv in net._conv] + [net.hp])   # channels of the widest map
+            scratch = 2 * rows * W * net.hp * 4 + 2 * (rows + net.patch) * Wi * widest * 4
+        else:
+            scratch = 2 * 3 * H * W * 4                     # census bit planes
+        budget, max_alloc = self.memory_limit, self.ctx.max_alloc
+        whole = nvol * row * H + scratch + maps
+        overlap = self.tile_overlap
+        if row * H <= max_alloc and whole <= budget:
+            return MemoryPlan(row * H, nvol, whole, budget, [(0, H, 0, H)], overlap, 0, budget, False)
+        tile_scratch = 0 if self.cost_name == "cnn" else 2 * 3 * (2 * overlap + MIN_TILE_ROWS) * W * 4
+        ext = min(max_alloc // row, max(0, budget - maps - tile_scratch) // (nvol * row))
+        core = H if ext >= H else ext - 2 * overlap
+        if core < MIN_TILE_ROWS:
+            need = nvol * row * (2 * overlap + MIN_TILE_ROWS) + maps + tile_scratch
+            raise InputError(
+                f"{Wi}x{Hi} with {D} disparities does not fit: row tiles of {MIN_TILE_ROWS} rows plus "
+                f"{overlap} rows of overlap on each side need {need / 2**20:.0f} MiB of device memory "
+                f"(memory_limit {budget / 2**20:.0f} MiB, max allocation {max_alloc / 2**20:.0f} MiB on "
+                f"{self.ctx.describe()}); reduce the disparity range or the image width, or raise memory_limit")
+        n = -(-H // core)
+        core = -(-H // n)
+        tiles = [(c0, min(H, c0 + core), max(0, c0 - overlap), min(H, c0 + core + overlap))
+                 for c0 in range(0, H, core)]
+        ext_max = max(e1 - e0 for _, _, e0, e1 in tiles)
+        peak = nvol * row * ext_max + maps + tile_scratch
+        host, band_budget = 0, 0
+        if self.cost_name == "cnn":  # the network's phase: one band volume + its scratch, before the tiles
+            host = row * H
+            band_budget = max(row, budget - maps - scratch)
+            peak = max(peak, min(band_budget, row * H) + scratch + maps)
+        return MemoryPlan(row * H, nvol, peak, budget, tiles, overlap, host, band_budget, True)
 
 
 class _Recorder:
     """Per-stage bookkeeping of :meth:`StereoMatcher._run`: when timed, waits for
-    the queue after each stage and records the wall time since the previous
-    stage; when keeping, copies the stage's output buffer to the host."""
+    the queue after each stage and adds the wall time since the previous stage
+    to that stage's total (tiles add up); when keeping, copies the stage's
+    output buffer to the host.  Inside a tile (:meth:`tile`) volumes are not
+    kept and maps keep only the tile's core rows, placed in full-size arrays."""
 
     def __init__(self, ctx, keep: bool, timed: bool):
         self.ctx, self.keep, self.timed = ctx, keep, timed
         self.arrays, self.times = {}, {}
         self.t = 0.0
+        self.plan = None
+        self._tile = None
 
     def start(self):
         if self.timed:
             self.ctx.finish()
             self.t = time.perf_counter()
 
+    def tile(self, r0, r1=None, y0=None, full=None):
+        """Inside a tile: rows r0..r1 of its maps are rows y0.. of a ``full``-shaped map.
+        ``tile(None)``: outside tiles."""
+        self._tile = None if r0 is None else (r0, r1, y0, full)
+
     def __call__(self, name, buf, shape=None, dtype=np.float32):
         if self.timed:
             self.ctx.finish()
             now = time.perf_counter()
-            self.times[name] = now - self.t
+            self.times[name] = self.times.get(name, 0.0) + now - self.t
         if self.keep and shape is not None:
-            self.arrays[name] = self.ctx.from_device(buf, shape, dtype)
+            if self._tile is None:
+                self.arrays[name] = self.ctx.from_device(buf, shape, dtype)
+            elif len(shape) == 2:
+                r0, r1, y0, full = self._tile
+                if name not in self.arrays:
+                    self.arrays[name] = np.empty(full, dtype)
+                self.arrays[name][y0:y0 + r1 - r0] = self.ctx.from_device(buf, shape, dtype)[r0:r1]
         if self.timed:
             self.t = time.perf_counter()  # copies do not count
         return buf
