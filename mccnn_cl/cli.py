@@ -52,6 +52,9 @@ def _matcher_options(p, default_disp_help):
     p.add_argument("--device", metavar="SPEC", default=None,
                    help="OpenCL device: gpu, cpu, PLATFORM[:DEVICE] name parts, or P:D indices "
                         "(default: $PYOPENCL_CTX, else GPU > accelerator > CPU)")
+    p.add_argument("--memory-limit", type=float, default=None, metavar="MiB",
+                   help="device memory the method may use, in MiB (default: 3/4 of the device's); larger "
+                        "images run in row tiles (docs/method.md, 'Large images')")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", dest="hyper",
                    help="stereo-method hyperparameter, e.g. --set sgm_pi2=64 --set interpolation=code "
                         "(names: mccnn_cl.pipeline.Hyperparameters); repeatable")
@@ -86,6 +89,11 @@ def _make_matcher(args, max_disparity, weights, progress=False, ctx=None):
                   cost=args.cost, progress=progress)
     if args.cost == "cnn":
         kwargs["weights"] = weights
+    limit = getattr(args, "memory_limit", None)
+    if limit is not None:
+        if not limit > 0:
+            raise InputError(f"--memory-limit must be a positive number of MiB, got {limit:g}")
+        kwargs["memory_limit"] = int(limit * 2**20)
     hyper = _hyperparameters(getattr(args, "hyper", []))
     try:
         return StereoMatcher(**kwargs, **hyper)
@@ -503,6 +511,14 @@ def cmd_bench(args):
     _say(f"{'total (' + ('MC-CNN' if args.cost == 'cnn' else 'census') + ' pipeline)':<28} {total:>9.3f}")
     _say(f"{'OpenCV SGBM (same range)':<28} {min(base_times):>9.3f}")
     _say(f"cost volume: {max_disp} x {h - 2 * margin} x {w - 2 * margin} float32 = {vol / 2**20:.0f} MiB each")
+    plan = res.plan
+    _say(f"device memory: peak {res.peak_device_bytes / 2**20:.0f} MiB measured (buffers held at once), "
+         f"{plan.peak_bytes / 2**20:.0f} MiB planned, limit {plan.budget / 2**20:.0f} MiB; "
+         f"device {matcher.ctx.global_mem / 2**20:.0f} MiB, max allocation {matcher.ctx.max_alloc / 2**20:.0f} MiB")
+    if plan.tiled:
+        _say(f"tiles: {plan.describe()}")
+    else:
+        _say(f"tiles: none (the whole image at once: {plan.volumes} volumes)")
     if args.verbose:
         for name, sec in raw.items():
             _say(f"  {name:<26} {float(sec):>9.4f}")

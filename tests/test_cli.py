@@ -233,8 +233,18 @@ def test_evaluate_tsukuba_beside_sgbm(shared_data, tmp_path):
 def test_bench_and_demo_census(tmp_path):
     rc, so, se = run("bench", "--cost", "census", "--size", "160x96", "--max-disp", 16)
     assert rc == 0, se
-    for word in ("matching cost (census)", "CBCA", "SGM", "OpenCV SGBM", "cost volume: 16 x 88 x 152"):
+    for word in ("matching cost (census)", "CBCA", "SGM", "OpenCV SGBM", "cost volume: 16 x 88 x 152",
+                 "device memory: peak", "tiles: none"):
         assert word in so, so
+    # a memory limit below the whole image's needs: row tiles, peak reported under the limit
+    rc, so, se = run("bench", "--cost", "census", "--size", "160x600", "--max-disp", 16, "--memory-limit", 16)
+    assert rc == 0, se
+    mem = next(line for line in so.splitlines() if line.startswith("device memory"))
+    peak, limit = float(mem.split()[3]), float(mem.split("limit ")[1].split()[0])
+    assert 0 < peak <= limit == 16, mem
+    assert "row tiles of" in so, so
+    rc, _, se = run("bench", "--cost", "census", "--size", "160x600", "--max-disp", 16, "--memory-limit", 0.5)
+    assert_one_line_error(rc, se, 2, "does not fit", "memory_limit")
     out = tmp_path / "demo.png"
     rc, so, se = run("demo", "--cost", "census", "-o", out, script=True)
     assert rc == 0, se
