@@ -28,6 +28,18 @@
 #endif
 #define VW 16
 
+/* Prefetch hint for the line holding *p.  PoCL compiles OpenCL's prefetch()
+ * to nothing; with -D SGM_CPU_PREFETCH=1 (set by the host for devices of type
+ * CPU only) clang's __builtin_prefetch emits a real prefetch instruction. */
+#if defined(SGM_CPU_PREFETCH) && defined(__has_builtin)
+#if SGM_CPU_PREFETCH && __has_builtin(__builtin_prefetch)
+#define SGM_PREFETCH(p) __builtin_prefetch(p)
+#endif
+#endif
+#ifndef SGM_PREFETCH
+#define SGM_PREFETCH(p) prefetch((p), 1)
+#endif
+
 
 /* Combine C_r into the output according to mode (see the header). */
 #define SGM_COMBINE(old, val, mode) \
@@ -218,9 +230,19 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
             big = select(big, (int16)(outside_large ? -1 : 0), outside);
             vstore16(big, 0, big_r_row + t0);
         }
+        /* the next chunk's lines of every plane, spread over this chunk's pixels */
+        const int cin = ci + 1 < nchunks ? ci + 1 : ci;
+        const int x0n = (dx > 0 ? cin : nchunks - 1 - cin) * VW;
+        const int dmaxn = min(D - 1, x0n + min(VW, W - x0n) - 1);
+        const int pf_per = dmaxn / VW + 1;
         for (int kk = 0; kk < n; ++kk) {
             const int k = dx > 0 ? kk : n - 1 - kk;
             const int x = x0 + k;
+            for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
+                SGM_PREFETCH(cost + VIDX(d, y, x0n, H, W));
+                if (mode != 0)
+                    SGM_PREFETCH(out + VIDX(d, y, x0n, H, W));
+            }
             const int dmax = min(D - 1, x);
             const int nvec = dmax / VW + 1;
             const int first = x == (dx > 0 ? 0 : W - 1); /* first pixel of the path: C_r = C */

@@ -88,8 +88,10 @@ class SGM:
         max_disp = -(-int(D) // _DISP_ROUND) * _DISP_ROUND
         k = self._kernels.get(max_disp)
         if k is None:
-            k = [self.ctx.kernel("sgm.cl", "sgm_rows", MAX_DISP=max_disp),
-                 self.ctx.kernel("sgm.cl", "sgm_columns", MAX_DISP=max_disp)]
+            # prefetch instructions: only on devices that are plainly CPUs
+            cpu = int(self.ctx.device.type) == int(self.ctx.cl.device_type.CPU)
+            k = [self.ctx.kernel("sgm.cl", "sgm_rows", MAX_DISP=max_disp, SGM_CPU_PREFETCH=cpu),
+                 self.ctx.kernel("sgm.cl", "sgm_columns", MAX_DISP=max_disp, SGM_CPU_PREFETCH=cpu)]
             k = [(kern, scan_local_size(self.ctx, kern)) for kern in k]
             self._kernels[max_disp] = k
         return k
