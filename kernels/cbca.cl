@@ -318,4 +318,140 @@ __kernel void cbca_columns_short(__global float *buf,          /* row sums in, C
     }
 #undef RS
 }
+
+/* One whole short-arm iteration per launch: the rows pass and the columns
+ * pass above fused, so the volume is read once and written once (the two
+ * passes move it twice each).  One work-item per disparity plane walks down
+ * the rows: at step t it forms the row sums of row t exactly as
+ * cbca_rows_short does (same masked float16 sums, same order) into a ring of
+ * the last 2 MAX_ARM + 1 rows kept in global scratch (`ring`, one W-float row
+ * per slot, plus the rows' cell counts in `cring`; a few tens of KB per plane,
+ * which stay in the cache), then sums the ring rows of U_d(p) for row
+ * t - MAX_ARM exactly as cbca_columns_short does and writes that row.  The
+ * results are therefore bit-identical to the two-pass kernels.  dst may be
+ * src: row t - MAX_ARM is written only after row t was read, all by the same
+ * work-item, and no work-item reads another plane. */
+#define RS (2 * MAX_ARM + 1)
+__kernel void cbca_fused_short(__global const float *src,     /* D x H x W cost C^{i-1} */
+                               __global float *dst,           /* out: C^i (may alias src) */
+                               __global float *ring,          /* scratch: D x RS x W row sums */
+                               __global uchar *cring,         /* scratch: D x RS x W cell counts */
+                               __global const uchar *arms_l,  /* 4 x H x W arms of the left image */
+                               __global const uchar *arms_r,  /* 4 x H x W arms of the right image */
+                               const int D,                   /* disparity levels */
+                               const int H,                   /* height */
+                               const int W)                   /* width */
+{
+    const int d = get_global_id(0);
+    if (d >= D)
+        return;
+    __global float *rg = ring + (size_t)d * RS * (size_t)W;
+    __global uchar *cg = cring + (size_t)d * RS * (size_t)W;
+    for (int i = 0; i < RS * W; ++i) { /* slots of rows above the image: defined zeros */
+        rg[i] = 0.0f;
+        cg[i] = (uchar)0;
+    }
+    const int nch = (W + VW - 1) / VW;
+    const int c0 = min(d, W) / VW; /* chunks before c0 hold no valid cell */
+    int head = RS - 1;
+    for (int t = 0; t < H + MAX_ARM; ++t) {
+        head = head + 1 == RS ? 0 : head + 1;
+        if (t < H) { /* row sums and cell counts of row t into slot head */
+            const size_t row = VIDX(d, t, 0, H, W);
+            for (int c = c0; c < nch; ++c) {
+                const int x0 = c * VW;
+                const int n = min(VW, W - x0);
+                const int16 xs = (int16)(x0) + LANES;
+                const int16 valid = (xs >= (int16)(d)) & (LANES < (int16)(n));
+                const int it = t * W + x0;
+                const int16 l = min(min(cbca_arm16(arms_l, ARM_LEFT, it, n, H, W), cbca_arm16(arms_r, ARM_LEFT, it - d, n, H, W)),
+                                    min((int16)(MAX_ARM), xs - (int16)(d)));
+                const int16 r = min(min(cbca_arm16(arms_l, ARM_RIGHT, it, n, H, W), cbca_arm16(arms_r, ARM_RIGHT, it - d, n, H, W)),
+                                    min((int16)(MAX_ARM), (int16)(W - 1) - xs));
+                float16 s = (float16)(0.0f);
+                if (x0 >= MAX_ARM && x0 + VW + MAX_ARM <= W) {
+                    /* interior: the window lies in the row; invalid (NaN)
+                     * cells are never selected (l <= x - d) */
+                    __global const float *p = src + row + x0;
+#pragma unroll
+                    for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {
+                        const int16 take = ((int16)(k) >= -l) & ((int16)(k) <= r);
+                        s += select((float16)(0.0f), vload16(0, p + k), take);
+                    }
+                } else {
+                    /* row ends: cells outside the row as 0 (never selected) */
+                    float win[VW + 2 * MAX_ARM];
+                    for (int i = 0; i < VW + 2 * MAX_ARM; ++i) {
+                        const int xi = x0 - MAX_ARM + i;
+                        win[i] = (xi >= 0 && xi < W) ? src[row + xi] : 0.0f;
+                    }
+#pragma unroll
+                    for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {
+                        const int16 take = ((int16)(k) >= -l) & ((int16)(k) <= r);
+                        s += select((float16)(0.0f), vload16(0, win + MAX_ARM + k), take);
+                    }
+                }
+                const size_t o = (size_t)head * W + x0;
+                store16_partial(select((float16)(0.0f), s, valid), rg + o, n);
+                const uchar16 cnt = convert_uchar16(select((int16)(0), l + r + (int16)(1), valid));
+                if (n == VW) {
+                    vstore16(cnt, 0, cg + o);
+                } else {
+                    uchar tc[VW];
+                    vstore16(cnt, 0, tc);
+                    for (int i = 0; i < n; ++i)
+                        cg[o + i] = tc[i];
+                }
+            }
+        }
+        const int y = t - MAX_ARM;
+        if (y < 0)
+            continue;
+        const size_t orow = VIDX(d, y, 0, H, W);
+        for (int c = 0; c < nch; ++c) { /* row y of C^i */
+            const int x0 = c * VW;
+            const int n = min(VW, W - x0);
+            if (c < c0) {
+                store16_partial((float16)(INVALID_COST), dst + orow + x0, n);
+                continue;
+            }
+            const int16 xs = (int16)(x0) + LANES;
+            const int16 valid = (xs >= (int16)(d)) & (LANES < (int16)(n));
+            const int iy = y * W + x0;
+            const int16 u = min(min(cbca_arm16(arms_l, ARM_UP, iy, n, H, W), cbca_arm16(arms_r, ARM_UP, iy - d, n, H, W)),
+                                (int16)(min(MAX_ARM, y)));
+            const int16 w = min(min(cbca_arm16(arms_l, ARM_DOWN, iy, n, H, W), cbca_arm16(arms_r, ARM_DOWN, iy - d, n, H, W)),
+                                (int16)(min(MAX_ARM, H - 1 - y)));
+            float16 s = (float16)(0.0f);
+            int16 cnt = (int16)(0);
+#pragma unroll
+            for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {
+                int slot = head - (MAX_ARM - k); /* row y + k */
+                slot = slot < 0 ? slot + RS : slot;
+                const size_t o = (size_t)slot * W + x0;
+                const int16 take = ((int16)(k) >= -u) & ((int16)(k) <= w);
+                float16 v;
+                int16 m;
+                if (n == VW) {
+                    v = vload16(0, rg + o);
+                    m = convert_int16(vload16(0, cg + o));
+                } else {
+                    float tv[VW];
+                    uchar tc[VW];
+                    for (int i = 0; i < VW; ++i) {
+                        tv[i] = i < n ? rg[o + i] : 0.0f;
+                        tc[i] = i < n ? cg[o + i] : (uchar)0;
+                    }
+                    v = vload16(0, tv);
+                    m = convert_int16(vload16(0, tc));
+                }
+                s += select((float16)(0.0f), v, take);
+                cnt += select((int16)(0), m, take);
+            }
+            const float16 res = s / convert_float16(max(cnt, (int16)(1)));
+            store16_partial(select((float16)(INVALID_COST), res, valid), dst + orow + x0, n);
+        }
+    }
+}
+#undef RS
 #endif /* MAX_ARM <= CBCA_SHORT_MAX */

@@ -15,7 +15,7 @@ import pytest
 
 from conftest import POISON
 from mccnn_cl.reference.aggregation import cbca, cross_arms
-from mccnn_cl.stages.cbca import CBCA
+from mccnn_cl.stages.cbca import CBCA, SHORT_MAX
 from mccnn_cl.stages.cross import CrossArms, arms_to_device, max_arm
 
 
@@ -45,20 +45,22 @@ def ad_volume(img_l, img_r, D):
     return c
 
 
-#: The implementations: (short-arm vector kernels allowed, max_arm); None = the
-#: tight bound of the arms at hand.  Short + tight is the fast path; generic
-#: with 255 and with the tight bound (ring wrap-around) is the running-sum path.
-IMPLS = [(True, None), (False, None), (False, 255)]
+#: The implementations: (short-arm vector kernels allowed, fused short-arm
+#: kernel allowed, max_arm); None = the tight bound of the arms at hand.
+#: Short + fused + tight is the fast path (one launch per iteration), short +
+#: tight the two-pass short-arm kernels; generic with 255 and with the tight
+#: bound (ring wrap-around) is the running-sum path.
+IMPLS = [(True, True, None), (True, False, None), (False, False, None), (False, False, 255)]
 
 
-def run_cbca(ctx, cost, arms_l, arms_r, iterations=4, short=True, max_arm=None):
+def run_cbca(ctx, cost, arms_l, arms_r, iterations=4, short=True, max_arm=None, fused=True):
     D, H, W = cost.shape
     if max_arm is None:
         max_arm = int(max(arms_l.max(), arms_r.max()))
     d_out = ctx.empty(cost.nbytes)
     ctx.fill(d_out, POISON, cost.nbytes)
     d_cost = ctx.to_device(cost)
-    CBCA(ctx, short=short)(d_cost, arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r), D, H, W,
+    CBCA(ctx, short=short, fused=fused)(d_cost, arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r), D, H, W,
                            iterations=iterations, max_arm=max_arm, out=d_out)
     got = ctx.from_device(d_out, cost.shape)
     np.testing.assert_array_equal(ctx.from_device(d_cost, cost.shape), cost)  # input untouched
@@ -78,10 +80,14 @@ def check(ctx, cost, img_l, img_r, iterations=4, eta=4, include_neighbor=False):
     arms_r = cross_arms(img_r, eta=eta, include_neighbor=include_neighbor)
     want = cbca(cost, arms_l, arms_r, iterations)
     results = []
-    for short, bound in IMPLS:
-        got = run_cbca(ctx, cost, arms_l, arms_r, iterations, short, bound)
+    for short, fused, bound in IMPLS:
+        got = run_cbca(ctx, cost, arms_l, arms_r, iterations, short, bound, fused)
         compare(got, want, cost)
         results.append(got)
+    if max(arms_l.max(), arms_r.max()) <= SHORT_MAX:
+        # the fused kernel does the two short passes' float operations in the
+        # same order: bit-identical (NaN payloads included)
+        np.testing.assert_array_equal(results[0].view(np.uint32), results[1].view(np.uint32))
     return results[0], want
 
 
@@ -156,16 +162,17 @@ def test_constant_volume_stays_constant_and_zero_iterations(ctx):
     img_l, img_r = blocky_image(rng, H, W), blocky_image(rng, H, W)
     arms_l, arms_r = cross_arms(img_l), cross_arms(img_r)
     valid = ~invalid_mask(D, H, W)
-    for short, bound in IMPLS:
-        got = run_cbca(ctx, cost, arms_l, arms_r, 4, short, bound)
+    for short, fused, bound in IMPLS:
+        got = run_cbca(ctx, cost, arms_l, arms_r, 4, short, bound, fused)
         np.testing.assert_allclose(got[valid], 0.7, rtol=1e-6)
         assert np.isnan(got[~valid]).all()
-        np.testing.assert_array_equal(run_cbca(ctx, cost, arms_l, arms_r, 0, short, bound), cost)
+        np.testing.assert_array_equal(run_cbca(ctx, cost, arms_l, arms_r, 0, short, bound, fused), cost)
 
 
-def test_in_place(ctx):
+@pytest.mark.parametrize("fused", [True, False])
+def test_in_place(ctx, fused):
     rng = np.random.default_rng(6)
-    D, H, W = 7, 13, 17
+    D, H, W = 7, 13, 37
     cost = random_volume(rng, D, H, W)
     img_l, img_r = blocky_image(rng, H, W), blocky_image(rng, H, W)
     arms_l, arms_r = cross_arms(img_l), cross_arms(img_r)
@@ -174,9 +181,30 @@ def test_in_place(ctx):
     # arms straight from the CrossArms stage this time
     d_al = CrossArms(ctx)(ctx.to_device(img_l), H, W)
     d_ar = CrossArms(ctx)(ctx.to_device(img_r), H, W)
-    out = CBCA(ctx)(d_cost, d_al, d_ar, D, H, W, max_arm=max_arm(4), out=d_cost)
+    stage = CBCA(ctx, fused=fused)
+    out = stage(d_cost, d_al, d_ar, D, H, W, max_arm=max_arm(4), out=d_cost)
     assert out is d_cost
     compare(ctx.from_device(d_cost, cost.shape), cbca(cost, arms_l, arms_r, 4), cost)
+    assert CBCA.scratch_volumes == 0
+
+
+def test_scratch_reused_across_sizes(ctx):
+    """The fused path's scratch rings grow for a wider/deeper volume and are
+    reused for a smaller one (stale ring contents must not leak into sums)."""
+    rng = np.random.default_rng(7)
+    stage = CBCA(ctx)
+    assert CBCA.scratch_bytes(228, 1232, max_arm(4)) == 5 * 228 * 7 * 1232
+    assert CBCA.scratch_bytes(228, 1232, 255) == 0
+    assert CBCA.scratch_bytes(228, 1232, max_arm(4), fused=False) == 0
+    for D, H, W in [(6, 9, 40), (11, 12, 70), (5, 8, 33)]:
+        cost = random_volume(rng, D, H, W)
+        img_l, img_r = blocky_image(rng, H, W), blocky_image(rng, H, W)
+        arms_l, arms_r = cross_arms(img_l), cross_arms(img_r)
+        d_out = ctx.empty(cost.nbytes)
+        ctx.fill(d_out, POISON, cost.nbytes)
+        stage(ctx.to_device(cost), arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r), D, H, W,
+              iterations=2, max_arm=max_arm(4), out=d_out)
+        compare(ctx.from_device(d_out, cost.shape), cbca(cost, arms_l, arms_r, 2), cost)
 
 
 def test_bad_input(ctx):

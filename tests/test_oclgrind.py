@@ -232,22 +232,32 @@ def case_cross(ctx, rng, chk):
 
 
 def case_cbca(ctx, rng, chk):
-    """cbca.cl: rows + columns passes, 2 iterations, arms from the CrossArms stage."""
+    """cbca.cl: fused short-arm kernel (out of place and in place), rows +
+    columns passes, 2 iterations, arms from the CrossArms stage."""
     from mccnn_cl.reference.aggregation import cbca, cross_arms
     from mccnn_cl.stages.cbca import CBCA
     from mccnn_cl.stages.cross import CrossArms, max_arm
 
-    for (D, H, W), eta, bound in (((5, 4, 13), 4, max_arm(4)), ((7, 5, 5), 9, 255)):
+    for (D, H, W), eta, bound, fused, in_place in (((5, 4, 13), 4, max_arm(4), False, False),
+                                                   ((7, 5, 5), 9, 255, False, False),
+                                                   ((4, 3, 40), 4, max_arm(4), True, False),
+                                                   ((3, 5, 21), 4, max_arm(4), True, True)):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
         C = _volume(rng, D, H, W)
         d_al = CrossArms(ctx)(ctx.to_device(img_l), H, W, eta=eta)
         d_ar = CrossArms(ctx)(ctx.to_device(img_r), H, W, eta=eta)
-        out = _poisoned(ctx, 4 * D * H * W)
-        CBCA(ctx, max_arm=bound)(ctx.to_device(C), d_al, d_ar, D, H, W, iterations=2, max_arm=bound, out=out)
+        if in_place:
+            out = ctx.empty(C.nbytes, "test in-place volume")
+            ctx.cl.enqueue_copy(ctx.queue, out, C)
+            src = out
+        else:
+            out = _poisoned(ctx, 4 * D * H * W)
+            src = ctx.to_device(C)
+        CBCA(ctx, max_arm=bound, fused=fused)(src, d_al, d_ar, D, H, W, iterations=2, max_arm=bound, out=out)
         want = cbca(C, cross_arms(img_l, eta=eta), cross_arms(img_r, eta=eta), 2)
         # means of <= 81 float32 costs in [0, 1] with compensated sums: the
         # stage's own tests use 1e-5 of the cost range
-        chk.close(f"CBCA D={D} {H}x{W} eta={eta}", ctx.from_device(out, (D, H, W)), want, atol=1e-5)
+        chk.close(f"CBCA D={D} {H}x{W} eta={eta} fused={fused} in_place={in_place}", ctx.from_device(out, (D, H, W)), want, atol=1e-5)
 
 
 def case_sgm(ctx, rng, chk):
@@ -301,7 +311,7 @@ CASE_KERNELS = {
     "network": {"network_conv", "network_head", "network_mark_invalid"},
     "census": {"census_transform", "census_cost"},
     "cross": {"cross_build"},
-    "cbca": {"cbca_rows", "cbca_columns", "cbca_rows_short", "cbca_columns_short"},
+    "cbca": {"cbca_rows", "cbca_columns", "cbca_rows_short", "cbca_columns_short", "cbca_fused_short"},
     "sgm": {"sgm_rows", "sgm_columns"},
     "disparity": {"disparity_wta_left", "disparity_wta_right", "disparity_lr_check",
                   "disparity_right_volume", "disparity_mirror", "interpolate_fill", "subpixel_refine"},
