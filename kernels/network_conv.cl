@@ -42,17 +42,7 @@
 #error "RELU (0 or 1) must be defined"
 #endif
 
-#define CAT_(a, b) a##b
-#define CAT(a, b) CAT_(a, b)
-#if RN == 1
-#define VT float
-#define VLOAD(p) (*(p))
-#define VSTORE(v, p) (*(p) = (v))
-#else
-#define VT CAT(float, RN)
-#define VLOAD(p) CAT(vload, RN)(0, (p))
-#define VSTORE(v, p) CAT(vstore, RN)((v), 0, (p))
-#endif
+#include "vector.h"
 
 __kernel void network_conv(
     __global const float *in,   /* input map, [h_in][w_in][CS] (channels used: CIN) */

@@ -53,17 +53,7 @@
 #error "ROWS_FASTEST (1: consecutive work-items take consecutive row groups) must be defined"
 #endif
 
-#define CAT_(a, b) a##b
-#define CAT(a, b) CAT_(a, b)
-#if RN == 1
-#define VT float
-#define VLOAD(p) (*(p))
-#define VSTORE(v, p) (*(p) = (v))
-#else
-#define VT CAT(float, RN)
-#define VLOAD(p) CAT(vload, RN)(0, (p))
-#define VSTORE(v, p) CAT(vstore, RN)((v), 0, (p))
-#endif
+#include "vector.h"
 
 #define NCG (HP / RN)          /* column groups */
 #define NRG (TM / RM)          /* row groups */
