@@ -86,6 +86,11 @@ __kernel void sgm_columns(__global const float *cost,  /* D x H x W cost volume 
         for (int d = 0; d <= dmax; ++d) {
             const int16 valid = (xs >= (int16)(d)) & in_tile;
             const size_t i0 = VIDX(d, y, x0, H, W);
+            if (j + 1 < H) { /* this plane's lines of the next row on the path */
+                SGM_PREFETCH(cost + VIDX(d, y + dy, x0, H, W));
+                if (mode != 0)
+                    SGM_PREFETCH(out + VIDX(d, y + dy, x0, H, W));
+            }
             const float16 c = load16_partial(cost, i0, n, 0.0f);
             float16 val;
             if (j == 0) {
@@ -130,7 +135,7 @@ __kernel void sgm_columns(__global const float *cost,  /* D x H x W cost volume 
  * even and odd lanes (rows 0..7 take the even ones, 8..15 the odd ones),
  * which rotates the 8-bit index (row, lane) right by one bit; four stages
  * swap row and lane.  Pure register shuffles (no private-memory round trip). */
-static inline void transpose16(float16 *r)
+static inline __attribute__((always_inline)) void transpose16(float16 *r)
 {
     __attribute__((opencl_unroll_hint))
     for (int s = 0; s < 4; ++s) {
