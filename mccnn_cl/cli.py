@@ -462,6 +462,83 @@ def _group_timings(timings: dict) -> dict:
     return out
 
 
+def _numpy_gemm_rate(n=131072, k=300, repeat=3) -> float:
+    """FLOP/s of numpy's float32 GEMM on the head's shape (n x k) @ (k x k), best of ``repeat``."""
+    rng = np.random.default_rng(0)
+    a = rng.random((n, k), dtype=np.float32)
+    b = rng.random((k, k), dtype=np.float32)
+    a @ b  # warm-up (thread pool start)
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - t0)
+    return 2.0 * n * k * k / best
+
+
+def _copy_bandwidth(ctx, repeat=3) -> float:
+    """Bytes/s of a device buffer-to-buffer copy (read + write counted), best of
+    ``repeat``, of 256 MiB (beyond any cache) or the max allocation if smaller."""
+    nbytes = int(min(256 << 20, ctx.max_alloc))
+    src, dst = ctx.empty(nbytes, "bench copy source"), ctx.empty(nbytes, "bench copy target")
+    ctx.fill(src, 0.5, nbytes)  # real pages: an untouched buffer may read as the shared zero page
+    ctx.fill(dst, 0.25, nbytes)
+    ctx.cl.enqueue_copy(ctx.queue, dst, src, byte_count=nbytes)
+    ctx.finish()
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        ctx.cl.enqueue_copy(ctx.queue, dst, src, byte_count=nbytes)
+        ctx.finish()
+        best = min(best, time.perf_counter() - t0)
+    src.release()
+    dst.release()
+    return 2.0 * nbytes / best
+
+
+def _bench_rates(matcher, shape, groups, total, sgbm_time, vol):
+    """Second table of ``bench``: each stage's achieved rate beside a baseline
+    measured in this run, and its time over the floor that baseline implies.
+
+    Network: FLOP (NetworkCost.flops) / numpy's float32 GEMM rate on the
+    head's shape.  CBCA, SGM, the rest: the volume traffic any
+    implementation of this pass structure needs at least (one read and one
+    write of the D x H x W volume per CBCA iteration and per SGM call, per
+    reference; the right-reference volume, read + write; each WTA, one
+    read) over the device's buffer-copy bandwidth."""
+    p = matcher.params
+    nref = 2 if p.right_reference == "aggregated" else 1
+    copy_bw = _copy_bandwidth(matcher.ctx)
+    traffic = {"CBCA": nref * (p.cbca_iterations + p.cbca_iterations_after) * 2 * vol,
+               "SGM": nref * 2 * vol,
+               "rest": (2 * vol if nref == 2 else 0) + 2 * vol}
+    rows, floor = [], 0.0
+    if matcher.cost_name == "cnn":
+        gemm = _numpy_gemm_rate()
+        flop = matcher.cost.flops(shape[0], shape[1], matcher.max_disparity)["total"]
+        t = groups["network"]
+        rows.append(("matching cost (network)", f"{flop / t / 1e9:.1f} GFLOP/s", f"numpy GEMM {gemm / 1e9:.1f} GFLOP/s",
+                     t / (flop / gemm)))
+        floor += flop / gemm
+    stereo_t = stereo_b = 0.0
+    for name, title in (("CBCA", "CBCA (arms + 2 passes)"), ("SGM", "SGM"), ("rest", "the rest (WTA ... bilateral)")):
+        t, b = groups[name], traffic[name]
+        stereo_t, stereo_b = stereo_t + t, stereo_b + b
+        rows.append((title, f"{b / t / 1e9:.2f} GB/s ({b / vol:.0f} V)", f"copy {copy_bw / 1e9:.2f} GB/s",
+                     t / (b / copy_bw)))
+    rows.append(("stereo method (after cost)", f"{stereo_b / stereo_t / 1e9:.2f} GB/s ({stereo_b / vol:.0f} V)",
+                 f"copy {copy_bw / 1e9:.2f} GB/s", stereo_t / (stereo_b / copy_bw)))
+    floor += stereo_b / copy_bw
+    _say(f"rates beside baselines measured in this run (V = one volume read or written; ratio = time / floor):")
+    _say(f"{'stage':<28} {'achieved':>24} {'baseline':>26} {'ratio':>8}")
+    for title, got, base, ratio in rows:
+        _say(f"{title:<28} {got:>24} {base:>26} {ratio:>7.2f}x")
+    what = "network FLOP / GEMM + volume traffic / copy" if matcher.cost_name == "cnn" else "volume traffic / copy"
+    _say(f"{'whole pipeline':<28} {f'floor {floor:.3f} s':>24} {what:>26} {total / floor:>7.2f}x")
+    _say(f"{'whole pipeline vs SGBM':<28} {f'{total:.3f} s':>24} {f'OpenCV SGBM {sgbm_time:.3f} s':>26} "
+         f"{total / sgbm_time:>7.1f}x")
+
+
 def cmd_bench(args):
     from .baseline import sgbm
     from .io import read_image
@@ -511,6 +588,7 @@ def cmd_bench(args):
     _say(f"{'total (' + ('MC-CNN' if args.cost == 'cnn' else 'census') + ' pipeline)':<28} {total:>9.3f}")
     _say(f"{'OpenCV SGBM (same range)':<28} {min(base_times):>9.3f}")
     _say(f"cost volume: {max_disp} x {h - 2 * margin} x {w - 2 * margin} float32 = {vol / 2**20:.0f} MiB each")
+    _bench_rates(matcher, left.shape, groups, total, min(base_times), vol)
     plan = res.plan
     _say(f"device memory: peak {res.peak_device_bytes / 2**20:.0f} MiB measured (buffers held at once), "
          f"{plan.peak_bytes / 2**20:.0f} MiB planned, limit {plan.budget / 2**20:.0f} MiB; "

@@ -234,8 +234,11 @@ def test_bench_and_demo_census(tmp_path):
     rc, so, se = run("bench", "--cost", "census", "--size", "160x96", "--max-disp", 16)
     assert rc == 0, se
     for word in ("matching cost (census)", "CBCA", "SGM", "OpenCV SGBM", "cost volume: 16 x 88 x 152",
-                 "device memory: peak", "tiles: none"):
+                 "device memory: peak", "tiles: none", "rates beside baselines", "whole pipeline vs SGBM"):
         assert word in so, so
+    # the rates table: CBCA's floor traffic is 2 references x 8 iterations x (read + write) = 32 volumes
+    cbca = next(line for line in so.splitlines() if line.startswith("CBCA") and "GB/s" in line)
+    assert "(32 V)" in cbca and "copy" in cbca and cbca.endswith("x"), cbca
     # a memory limit below the whole image's needs: row tiles, peak reported under the limit
     rc, so, se = run("bench", "--cost", "census", "--size", "160x600", "--max-disp", 16, "--memory-limit", 16)
     assert rc == 0, se

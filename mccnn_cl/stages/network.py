@@ -264,6 +264,26 @@ class NetworkCost:
         d_feat.release()
         return d_half
 
+    def flops(self, height: int, width: int, max_disparity: int) -> dict:
+        """Arithmetic of one cost volume for images of ``height`` x ``width``
+        (2 FLOP per multiply-add, unpadded layer sizes): ``features`` (conv
+        layers and the L4 split, both images), ``head`` (per valid cell
+        x >= d: L4 add, the hidden layers, the last layer), ``total``."""
+        wts = self.weights
+        hh, ww = int(height), int(width)
+        feat = 0
+        for W, _ in wts.conv:  # valid convolutions, both images
+            cout, cin, ks, _ = W.shape
+            hh, ww = hh - ks + 1, ww - ks + 1
+            feat += 2 * 2 * hh * ww * ks * ks * cin * cout
+        n4 = wts.fc[0][0].shape[0]
+        feat += 2 * 2 * hh * ww * wts.feature_maps * n4           # A and B
+        per_cell = n4 + sum(2 * W.shape[0] * W.shape[1] for W, _ in wts.fc[1:])
+        D = int(max_disparity)
+        valid = hh * sum(max(ww - d, 0) for d in range(D))
+        return {"features": feat, "head": valid * per_cell, "total": feat + valid * per_cell,
+                "valid_cells": valid}
+
     def band_rows(self, h: int, w: int) -> int:
         """Volume rows per band: A and B of one band take at most BAND_BYTES each."""
         row = w * self.hp * 4
