@@ -255,3 +255,16 @@ def test_to_host_bands_identical(ctx, max_rows):
     assert np.isnan(got[D - 1, :, :D - 1]).all() and np.isfinite(got[0]).all()
     with pytest.raises(InputError, match="does not fit"):
         net.to_host(left, right, D, max_bytes=D * wd * 4 - 1)
+
+
+def test_flops_count(ctx, paper_weights):
+    """NetworkCost.flops: the paper's per-cell head is 300 adds (L4 = A + B) +
+    3 x 300 x 300 + 300 x 2 multiply-adds; valid cells are x >= d on the 9x9-valid domain."""
+    net = NetworkCost(ctx, paper_weights)
+    f = net.flops(20, 30, 5)
+    h, w = 20 - 8, 30 - 8
+    assert f["valid_cells"] == sum(1 for d in range(5) for y in range(h) for x in range(w) if x >= d)
+    assert f["head"] == f["valid_cells"] * (300 + 2 * 3 * 300 * 300 + 2 * 300 * 2)
+    conv = 2 * 2 * (26 * 16 * 25 * 1 * 32 + 22 * 12 * 25 * 32 * 200 + 22 * 12 * 200 * 200)
+    assert f["features"] == conv + 2 * 2 * 12 * 22 * 200 * 300
+    assert f["total"] == f["features"] + f["head"]
