@@ -3,6 +3,7 @@
  * per direction and accumulates C_SGM = (1/4) sum_r C_r in the output.
  *
  * Required define: MAX_DISP >= D; it sizes the private arrays.
+ * Optional define: SGM_CPU_PREFETCH=1 (CPU devices), see SGM_PREFETCH.
  *
  * Validity is decided by index: the cost of cell (d, y, x) is used only when
  * d <= x; entries of C_r(p - r, .) beyond p - r's valid range hold
@@ -15,9 +16,14 @@
  *  - sgm_columns (vertical paths): one work-item walks 16 adjacent columns
  *    at once, all arithmetic on float16 lanes;
  *  - sgm_rows (horizontal paths): one work-item walks one row; for each
- *    chunk of 16 x it copies the chunk's D x 16 costs (and partial sums)
- *    into private memory transposed to [x][d], runs the recurrence over
- *    those 16 pixels on float16 lanes over d, and writes the chunk back.
+ *    chunk of 16 x it copies the chunk's D x 16 costs into private memory
+ *    transposed to [x][d] (16 x 16 tiles, transposed in registers), runs
+ *    the recurrence over those 16 pixels on float16 lanes over d (C_r
+ *    overwriting the costs), and transposes the chunk back into the output.
+ * Each step of either kernel reads one line in each of D planes, H x W
+ * floats apart; the next step's lines are prefetched (SGM_PREFETCH).
+ * Private memory per work-item, at MAX_DISP levels: sgm_rows 76 bytes per
+ * level (+ ~1.4 KB), sgm_columns 64 bytes per level.
  * Output modes: 0 writes C_r (NaN in invalid cells), 1 adds C_r, 2 adds C_r
  * and divides by 4.
  */

@@ -38,12 +38,20 @@ q2 = 10, v = 2.
 Implementation (see ``kernels/sgm.cl``): x is the only contiguous axis of
 [d][y][x], so both kernels move 16-wide chunks along x.  ``sgm_rows`` walks
 one row per work-item, copying each chunk of all D planes into private
-memory transposed to [x][d] and running the recurrence on float16 lanes over
-d; ``sgm_columns`` walks 16 adjacent columns per work-item on float16 lanes
+memory transposed to [x][d] (16 x 16 tiles transposed in registers) and
+running the recurrence on float16 lanes over d, C_r overwriting the costs
+in the block before it is transposed back and combined with the output;
+the right-image gradient decisions are taken once per chunk.
+``sgm_columns`` walks 16 adjacent columns per work-item on float16 lanes
 over x.
 Private arrays are sized by ``-D MAX_DISP`` (D rounded up to a multiple of
-32).  The four launches accumulate straight into the output (write, add,
-add, add-and-divide), so no per-direction volume is stored.  Measured on
+32): ``sgm_rows`` ~76 bytes per level (about 21 KB at MAX_DISP = 256, i.e.
+KITTI's D = 228), ``sgm_columns`` 64 bytes per level (16.4 KB).  The four
+launches accumulate straight into the output (write, add, add,
+add-and-divide), so no per-direction volume is stored.  Each pass reads one
+64-byte line in each of D planes per step, which no hardware prefetcher
+follows: on devices of type CPU the kernels prefetch the next step's lines
+(``prefetch``, below); elsewhere OpenCL's ``prefetch()`` hint.  Measured on
 PoCL (2 cores) this is several times faster than one scalar work-item per
 scanline, which touched D pages per step.
 """
@@ -59,8 +67,8 @@ from .cross import check_size, launch, scan_local_size
 #: The paper's four directions r = (dx, dy), in the order accumulated.
 DIRECTIONS = ((1, 0), (-1, 0), (0, 1), (0, -1))
 _DISP_ROUND = 32
-#: Most disparity levels SGM accepts: the kernels keep ~136 bytes of private
-#: memory per level and work-item (2048 levels checked on PoCL).
+#: Most disparity levels SGM accepts: the kernels keep up to ~76 bytes of
+#: private memory per level and work-item (2048 levels checked on PoCL).
 MAX_LEVELS = 2048
 _VW = 16  # lanes per work-item in sgm_columns (VW in sgm.cl)
 
@@ -78,20 +86,26 @@ def penalty_table(pi1=1.0, pi2=32.0, q1=4.0, q2=10.0, v=2.0, vertical=False, var
 
 
 class SGM:
-    """C_SGM of a float32 [D][H][W] cost volume; see the module docstring."""
+    """C_SGM of a float32 [D][H][W] cost volume; see the module docstring.
 
-    def __init__(self, ctx):
+    ``prefetch``: use CPU prefetch instructions (clang's ``__builtin_prefetch``)
+    in the kernels; None (default) does so on devices whose type is exactly
+    CPU (not Oclgrind, which reports CPU | GPU).  Hints only: the results are
+    the same either way."""
+
+    def __init__(self, ctx, prefetch=None):
         self.ctx = ctx
         self._kernels = {}
+        if prefetch is None:
+            prefetch = int(ctx.device.type) == int(ctx.cl.device_type.CPU)
+        self.prefetch = bool(prefetch)
 
     def _kernel(self, D):
         max_disp = -(-int(D) // _DISP_ROUND) * _DISP_ROUND
         k = self._kernels.get(max_disp)
         if k is None:
-            # prefetch instructions: only on devices that are plainly CPUs
-            cpu = int(self.ctx.device.type) == int(self.ctx.cl.device_type.CPU)
-            k = [self.ctx.kernel("sgm.cl", "sgm_rows", MAX_DISP=max_disp, SGM_CPU_PREFETCH=cpu),
-                 self.ctx.kernel("sgm.cl", "sgm_columns", MAX_DISP=max_disp, SGM_CPU_PREFETCH=cpu)]
+            k = [self.ctx.kernel("sgm.cl", name, MAX_DISP=max_disp, SGM_CPU_PREFETCH=int(self.prefetch))
+                 for name in ("sgm_rows", "sgm_columns")]
             k = [(kern, scan_local_size(self.ctx, kern)) for kern in k]
             self._kernels[max_disp] = k
         return k
