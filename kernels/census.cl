@@ -52,7 +52,7 @@ __kernel void census_transform(
 __kernel void census_cost(
     __global const uint *bits_l, /* census of the left image, 3 x H x W */
     __global const uint *bits_r, /* census of the right image, 3 x H x W */
-    __global float *cost,        /* out: D x H x W */
+    __global vol_t *cost,        /* out: D x H x W */
     const int D,                 /* disparity levels */
     const int H,                 /* cropped rows */
     const int W)                 /* cropped columns */
@@ -72,5 +72,5 @@ __kernel void census_cost(
             n += popcount(bits_l[w * plane + pl] ^ bits_r[w * plane + pr]);
         c = (float)n / (float)CENSUS_BITS;
     }
-    cost[VIDX(d, y, x, H, W)] = c;
+    VOL_SET(cost, VIDX(d, y, x, H, W), c);
 }

@@ -12,6 +12,12 @@
  *    invalid cell never enters a sum, a mean or a minimum.
  *  - Right-reference volumes: C_R(d, y, x) = C_L(d, y, x + d), invalid when
  *    x + d >= W.
+ *  - Volume storage: float32, or with -D VOL_HALF=1 IEEE half precision
+ *    (storage only: values are converted to float on load and rounded to
+ *    nearest even on store with vload_half / vstore_half, which need no
+ *    cl_khr_fp16; all arithmetic stays float).  Kernels declare volumes as
+ *    `vol_t *` and access them through VOL_GET / VOL_SET / vol_load16_partial /
+ *    vol_store16_partial.
  */
 #ifndef MCCNN_COMMON_H
 #define MCCNN_COMMON_H
@@ -44,6 +50,47 @@ static inline void store16_partial(const float16 v, __global float *p, const int
     vstore16(v, 0, t);
     for (int i = 0; i < n; ++i)
         p[i] = t[i];
+}
+
+/* Volume element type and access (see the header comment). */
+#ifndef VOL_HALF
+#define VOL_HALF 0
+#endif
+#if VOL_HALF
+#define vol_t half
+#define VOL_GET(p, i) vload_half((size_t)(i), (p))
+#define VOL_SET(p, i, v) vstore_half((v), (size_t)(i), (p))
+#define VOL_LOAD16(p) vload_half16(0, (p))
+#define VOL_STORE16(v, p) vstore_half16((v), 0, (p))
+#else
+#define vol_t float
+#define VOL_GET(p, i) ((p)[i])
+#define VOL_SET(p, i, v) ((p)[i] = (v))
+#define VOL_LOAD16(p) vload16(0, (p))
+#define VOL_STORE16(v, p) vstore16((v), 0, (p))
+#endif
+
+/* load16_partial / store16_partial for volumes (vol_t storage). */
+static inline float16 vol_load16_partial(__global const vol_t *p, const int first, const int n, const float fill)
+{
+    if (n == 16 && first >= 0)
+        return VOL_LOAD16(p + first);
+    float t[16];
+    for (int i = 0; i < 16; ++i)
+        t[i] = (i < n && first + i >= 0) ? VOL_GET(p, first + i) : fill;
+    return vload16(0, t);
+}
+
+static inline void vol_store16_partial(const float16 v, __global vol_t *p, const int n)
+{
+    if (n == 16) {
+        VOL_STORE16(v, p);
+        return;
+    }
+    float t[16];
+    vstore16(v, 0, t);
+    for (int i = 0; i < n; ++i)
+        VOL_SET(p, i, t[i]);
 }
 
 #endif /* MCCNN_COMMON_H */

@@ -16,7 +16,7 @@
  * Ties go to the smallest d (strict '<' while d increases).  Invalid cells
  * (d > x) are never read.  One work-item per pixel, global size (W, H). */
 __kernel void disparity_wta_left(
-    __global const float *cost, /* C_L, D x H x W */
+    __global const vol_t *cost, /* C_L, D x H x W */
     __global int *disp,         /* out: D^L, H x W */
     const int D,                /* disparity levels */
     const int H,                /* rows */
@@ -28,9 +28,9 @@ __kernel void disparity_wta_left(
         return;
     const int dmax = min(D - 1, x);
     int best_d = 0;
-    float best = cost[VIDX(0, y, x, H, W)];
+    float best = VOL_GET(cost, VIDX(0, y, x, H, W));
     for (int d = 1; d <= dmax; d++) {
-        const float c = cost[VIDX(d, y, x, H, W)];
+        const float c = VOL_GET(cost, VIDX(d, y, x, H, W));
         if (c < best) {
             best = c;
             best_d = d;
@@ -44,7 +44,7 @@ __kernel void disparity_wta_left(
  * C_R(d, y, x) = C_L(d, y, x + d) (valid while x + d < W).
  * Ties go to the smallest d.  Global size (W, H). */
 __kernel void disparity_wta_right(
-    __global const float *cost, /* C_L, D x H x W */
+    __global const vol_t *cost, /* C_L, D x H x W */
     __global int *disp,         /* out: D^R, H x W */
     const int D,                /* disparity levels */
     const int H,                /* rows */
@@ -56,9 +56,9 @@ __kernel void disparity_wta_right(
         return;
     const int dmax = min(D - 1, W - 1 - x);
     int best_d = 0;
-    float best = cost[VIDX(0, y, x, H, W)];
+    float best = VOL_GET(cost, VIDX(0, y, x, H, W));
     for (int d = 1; d <= dmax; d++) {
-        const float c = cost[VIDX(d, y, x + d, H, W)];
+        const float c = VOL_GET(cost, VIDX(d, y, x + d, H, W));
         if (c < best) {
             best = c;
             best_d = d;
@@ -114,8 +114,8 @@ __kernel void disparity_lr_check(
  * mirrored images as (left, right) treats the right image as the reference;
  * disparity_mirror maps the resulting map back.  Global size (W, H, D). */
 __kernel void disparity_right_volume(
-    __global const float *cost, /* C_L, D x H x W */
-    __global float *out,        /* out: mirrored C_R, D x H x W */
+    __global const vol_t *cost, /* C_L, D x H x W */
+    __global vol_t *out,        /* out: mirrored C_R, D x H x W */
     const int D,                /* disparity levels */
     const int H,                /* rows */
     const int W)                /* columns */
@@ -125,7 +125,7 @@ __kernel void disparity_right_volume(
     const int d = get_global_id(2);
     if (x >= W || y >= H || d >= D)
         return;
-    out[VIDX(d, y, x, H, W)] = d <= x ? cost[VIDX(d, y, W - 1 - x + d, H, W)] : INVALID_COST;
+    VOL_SET(out, VIDX(d, y, x, H, W), d <= x ? VOL_GET(cost, VIDX(d, y, W - 1 - x + d, H, W)) : INVALID_COST);
 }
 
 /* out(y, x) = in(y, W-1-x) for an int32 map.  Global size (W, H). */

@@ -114,7 +114,7 @@ __kernel void network_head(
     __global const float *bh,   /* their biases, [NHID][HP] */
     __global const float *w8,   /* last layer, [2][HP] (row = logit) */
     __global const float *b8,   /* its bias, [2] */
-    __global float *cost,       /* cost volume, [D][H][W] */
+    __global vol_t *cost,       /* cost volume, [D][H][W] */
     int h,                      /* H: cropped height (volume rows) */
     int w,                      /* W: cropped width (volume columns) */
     int y0,                     /* first volume row of this band (fa, fb hold rows y0 ..) */
@@ -180,13 +180,13 @@ __kernel void network_head(
         const float z1 = vsum(s1) + b8[1];
         const int y = m / nx;
         const int x = d + (m - y * nx);
-        cost[VIDX(d, y0 + y, x, h, w)] = 1.0f / (1.0f + exp(z1 - z0));
+        VOL_SET(cost, VIDX(d, y0 + y, x, h, w), 1.0f / (1.0f + exp(z1 - z0)));
     }
 }
 
 /* NaN into the invalid cells (x < d) of disparities [d0, d0 + get_global_size(2)). */
 __kernel void network_mark_invalid(
-    __global float *cost,       /* cost volume, [D][H][W] */
+    __global vol_t *cost,       /* cost volume, [D][H][W] */
     int h,                      /* H */
     int w,                      /* W */
     int d0)                     /* first disparity of this launch */
@@ -195,5 +195,5 @@ __kernel void network_mark_invalid(
     const int y = get_global_id(1);
     const int d = d0 + (int)get_global_id(2);
     if (x < w && y < h && x < d)
-        cost[VIDX(d, y, x, h, w)] = INVALID_COST;
+        VOL_SET(cost, VIDX(d, y, x, h, w), INVALID_COST);
 }

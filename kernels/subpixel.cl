@@ -21,7 +21,7 @@
 
 /* Global size (W, H). */
 __kernel void subpixel_refine(
-    __global const float *cost, /* final cost volume, D x H x W */
+    __global const vol_t *cost, /* final cost volume, D x H x W */
     __global const int *disp,   /* D_INT, H x W */
     __global float *out,        /* out: D_SE, H x W */
     const int D,                /* disparity levels */
@@ -37,9 +37,9 @@ __kernel void subpixel_refine(
     const int d = disp[(size_t)y * W + x];
     float result = (float)d;
     if (d >= 1 && d + 1 <= D - 1 && d + 1 <= x) {
-        const float cm = cost[VIDX(d - 1, y, x, H, W)];
-        const float c0 = cost[VIDX(d, y, x, H, W)];
-        const float cp = cost[VIDX(d + 1, y, x, H, W)];
+        const float cm = VOL_GET(cost, VIDX(d - 1, y, x, H, W));
+        const float c0 = VOL_GET(cost, VIDX(d, y, x, H, W));
+        const float cp = VOL_GET(cost, VIDX(d + 1, y, x, H, W));
         const float denom = cp - 2.0f * c0 + cm;
         if (denom > min_denom) {
             float step = (cp - cm) / (2.0f * denom);

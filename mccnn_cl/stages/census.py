@@ -28,10 +28,11 @@ class CensusCost:
 
     margin = MARGIN
 
-    def __init__(self, ctx):
+    def __init__(self, ctx, half: bool = False):
         self.ctx = ctx
+        self.half = bool(half)
         self.k_transform = ctx.kernel("census.cl", "census_transform")
-        self.k_cost = ctx.kernel("census.cl", "census_cost")
+        self.k_cost = ctx.kernel("census.cl", "census_cost", VOL_HALF=int(half))
 
     def __call__(self, left, right, max_disparity, shape=None, out=None, progress=None):
         """Cost volume of ``left`` vs ``right`` (host arrays or device buffers).
@@ -62,7 +63,7 @@ class CensusCost:
             launch(self.ctx, "census transform", self.k_transform, (W, H), d_img, d_bits,
                    np.int32(H), np.int32(W))
         if out is None:
-            out = self.ctx.empty(D * H * W * 4, "census cost volume")
+            out = self.ctx.empty(D * H * W * (2 if self.half else 4), "census cost volume")
         launch(self.ctx, "census cost", self.k_cost, (W, H, D), d_bits_l, d_bits_r, out,
                np.int32(D), np.int32(H), np.int32(W))
         return out

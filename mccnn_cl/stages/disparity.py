@@ -29,6 +29,12 @@ _I32 = np.dtype(np.int32).itemsize
 _F32 = np.dtype(np.float32).itemsize
 
 
+def volume_bytes(half: bool) -> int:
+    """Bytes of one cost-volume element: 2 with half-precision storage
+    (``-D VOL_HALF=1``, see kernels/common.h), else 4."""
+    return 2 if half else 4
+
+
 def launch(ctx, stage: str, kernel, global_size, *args) -> None:
     """Set the arguments and enqueue ``kernel``; OpenCL errors name the stage."""
     try:
@@ -45,10 +51,10 @@ class WinnerTakeAll:
     from the same left-reference volume (the network is never rerun).
     """
 
-    def __init__(self, ctx):
+    def __init__(self, ctx, half: bool = False):
         self.ctx = ctx
-        self.k_left = ctx.kernel("disparity.cl", "disparity_wta_left")
-        self.k_right = ctx.kernel("disparity.cl", "disparity_wta_right")
+        self.k_left = ctx.kernel("disparity.cl", "disparity_wta_left", VOL_HALF=int(half))
+        self.k_right = ctx.kernel("disparity.cl", "disparity_wta_right", VOL_HALF=int(half))
 
     def _run(self, kernel, stage, d_cost, D, H, W, out):
         if out is None:
@@ -76,14 +82,15 @@ class RightReference:
     (left, right).  ``mirror(d_map, H, W)`` mirrors an int32 map back.
     """
 
-    def __init__(self, ctx):
+    def __init__(self, ctx, half: bool = False):
         self.ctx = ctx
-        self.k_volume = ctx.kernel("disparity.cl", "disparity_right_volume")
+        self.vbytes = volume_bytes(half)
+        self.k_volume = ctx.kernel("disparity.cl", "disparity_right_volume", VOL_HALF=int(half))
         self.k_mirror = ctx.kernel("disparity.cl", "disparity_mirror")
 
     def volume(self, d_cost, D, H, W, out=None):
         if out is None:
-            out = self.ctx.empty(D * H * W * _F32, "right-reference cost volume")
+            out = self.ctx.empty(D * H * W * self.vbytes, "right-reference cost volume")
         launch(self.ctx, "right-reference volume", self.k_volume, (W, H, D), d_cost, out,
                np.int32(D), np.int32(H), np.int32(W))
         return out
@@ -148,9 +155,9 @@ class Subpixel:
     to [-1, 1]).  d is kept at the range ends and where d+1 > x.
     """
 
-    def __init__(self, ctx):
+    def __init__(self, ctx, half: bool = False):
         self.ctx = ctx
-        self.kernel = ctx.kernel("subpixel.cl", "subpixel_refine")
+        self.kernel = ctx.kernel("subpixel.cl", "subpixel_refine", VOL_HALF=int(half))
 
     def __call__(self, d_cost, d_disp, D, H, W, min_denominator=0.0, clamp_step=False, out=None):
         if out is None:

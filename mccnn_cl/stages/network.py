@@ -123,9 +123,11 @@ class NetworkCost:
         local memory and work-group size fit the device.
     """
 
-    def __init__(self, ctx, weights: Weights, tiles: dict | None = None):
+    def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False):
         weights.validate()
         self.ctx = ctx
+        self.half = bool(half)
+        self.vdtype = np.dtype(np.float16 if half else np.float32)  # volume storage (kernels/common.h)
         self.weights = weights
         self.patch = weights.patch_size
         self.margin = weights.margin
@@ -191,7 +193,7 @@ class NetworkCost:
         while True:
             if 2 * tm * hp * 4 <= ctx.local_mem:
                 kern = ctx.kernel(HEAD_CL, "network_head", HP=hp, NHID=nhid, TM=tm, RM=rm, RN=rn,
-                                  ROWS_FASTEST=int(t["ROWS_FASTEST"]))
+                                  ROWS_FASTEST=int(t["ROWS_FASTEST"]), VOL_HALF=int(half))
                 max_wg = ctx.work_group_size(kern)
                 kl = int(kern.get_work_group_info(ctx.cl.kernel_work_group_info.LOCAL_MEM_SIZE,
                                                   ctx.device))
@@ -211,7 +213,7 @@ class NetworkCost:
         self.nwi = nrg * min(ncg, max_wg // nrg)  # work-items: all row groups x column groups
         self._head = kern
         self._mark = ctx.kernel(HEAD_CL, "network_mark_invalid", HP=hp, NHID=nhid, TM=tm, RM=rm,
-                                RN=rn, ROWS_FASTEST=int(t["ROWS_FASTEST"]))
+                                RN=rn, ROWS_FASTEST=int(t["ROWS_FASTEST"]), VOL_HALF=int(half))
         log.info("network: HP=%d NHID=%d TM=%d RM=%d RN=%d (%d work-items, %d B local)",
                  hp, nhid, tm, rm, rn, self.nwi, 2 * tm * hp * 4)
 
@@ -308,7 +310,7 @@ class NetworkCost:
         """
         ctx = self.ctx
         L, R, D, h, w = self._check(left, right, max_disparity)
-        nbytes = D * h * w * 4
+        nbytes = D * h * w * self.vdtype.itemsize
         ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
         rows = self.band_rows(h, w)
         if out is None:
@@ -346,15 +348,15 @@ class NetworkCost:
         identical to :meth:`__call__`'s (same kernels, same bands' seams)."""
         ctx = self.ctx
         L, R, D, h, w = self._check(left, right, max_disparity)
-        row = D * w * 4
+        row = D * w * self.vdtype.itemsize
         limit = ctx.max_alloc if max_bytes is None else min(int(max_bytes), ctx.max_alloc)
         if row > limit:
-            raise InputError(f"one row of the cost volume ({D} x {w} float32, {row / 2**20:.1f} MiB) does not "
+            raise InputError(f"one row of the cost volume ({D} x {w} {self.vdtype.name}, {row / 2**20:.1f} MiB) does not "
                              f"fit in {limit / 2**20:.1f} MiB of device memory; reduce the disparity range "
                              "or the image width")
         rows = min(self.band_rows(h, w), limit // row)
-        out = np.empty((D, h, w), np.float32)
-        d_band = ctx.empty(D * rows * w * 4, "cost volume band")
+        out = np.empty((D, h, w), self.vdtype)
+        d_band = ctx.empty(D * rows * w * self.vdtype.itemsize, "cost volume band")
         try:
             self._enqueue(L, R, D, h, w, rows, d_band, progress, host=out)
         except ctx.cl.Error as exc:
@@ -401,15 +403,16 @@ class NetworkCost:
             d_a.release()
             d_b.release()
             if host is not None:
-                band = np.empty((D, hb, w), np.float32)
+                band = np.empty((D, hb, w), self.vdtype)
                 self.ctx.cl.enqueue_copy(q, band, d_cost)
                 host[:, y0:y0 + hb, :] = band
 
     def compute(self, left, right, max_disparity) -> np.ndarray:
-        """Host copy of :meth:`__call__`: float32 array ``[D][H_img-8][W_img-8]``."""
+        """Host copy of :meth:`__call__`: array ``[D][H_img-8][W_img-8]`` (float32,
+        float16 with half storage)."""
         L = np.asarray(left)
         d = self(left, right, max_disparity)
         h, w = L.shape[0] - self.patch + 1, L.shape[1] - self.patch + 1
-        out = self.ctx.from_device(d, (int(max_disparity), h, w))
+        out = self.ctx.from_device(d, (int(max_disparity), h, w), self.vdtype)
         d.release()
         return out

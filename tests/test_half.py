@@ -1,0 +1,116 @@
+"""Half-precision volume storage (``-D VOL_HALF=1``, kernels/common.h): every
+kernel that reads or writes a cost volume, in its half variant, against the
+numpy reference evaluated on the same half-rounded values.
+
+Tolerances: storage rounds each stored value to the nearest half (relative
+error <= 2^-11 = 4.9e-4); arithmetic stays float.  So a kernel that only
+writes (network, census, right-reference volume) must equal the float
+result rounded to half (exactly where the float kernel equals the reference,
+within one half ulp otherwise); a kernel that only reads (WTA, subpixel)
+must give the reference's answer on the half values (float-exact).
+"""
+
+import numpy as np
+import pytest
+
+from mccnn_cl.reference import disparity as ref
+from mccnn_cl.reference import network as netref
+from mccnn_cl.stages.census import CensusCost
+from mccnn_cl.stages.disparity import RightReference, Subpixel, WinnerTakeAll
+from mccnn_cl.stages.network import NetworkCost
+from mccnn_cl.weights import Weights
+
+from conftest import POISON
+
+F16_POISON = np.float16(-65504.0)
+I32_POISON = np.int32(-123456789)
+
+
+def half_volume(rng, D, H, W, levels=None):
+    C = rng.random((D, H, W), dtype=np.float32)
+    if levels:
+        C = np.floor(C * levels) / levels
+    C = C.astype(np.float16)
+    for d in range(D):
+        C[d, :, :min(d, W)] = np.nan
+    return C
+
+
+def poisoned(ctx, nbytes, value, dtype):
+    buf = ctx.empty(nbytes, "poisoned output")
+    ctx.fill(buf, value, nbytes, dtype)
+    return buf
+
+
+def test_half_roundtrip_and_nan(ctx):
+    """The storage format is IEEE binary16 as numpy's float16: values rounded to
+    nearest even, NaN kept (the invalid cells)."""
+    rng = np.random.default_rng(0)
+    C = half_volume(rng, 5, 7, 11)
+    rr = RightReference(ctx, half=True)
+    d_in = ctx.to_device(C)
+    out = poisoned(ctx, C.nbytes, F16_POISON, np.float16)
+    rr.volume(d_in, 5, 7, 11, out=out)
+    got = ctx.from_device(out, C.shape, np.float16)
+    expected = ref.right_cost_volume(C.astype(np.float32))[:, :, ::-1].astype(np.float16)
+    np.testing.assert_array_equal(got, expected)  # NaN positions included
+
+
+@pytest.mark.parametrize("levels", [None, 8])
+def test_wta_half(ctx, levels):
+    rng = np.random.default_rng(1 + (levels or 0))
+    D, H, W = 13, 9, 40
+    C = half_volume(rng, D, H, W, levels)
+    wta = WinnerTakeAll(ctx, half=True)
+    d_c = ctx.to_device(C)
+    for fn, expected in ((wta.left, ref.wta_left(C.astype(np.float32))),
+                         (wta.right, ref.wta_right(C.astype(np.float32)))):
+        out = poisoned(ctx, H * W * 4, I32_POISON, np.int32)
+        fn(d_c, D, H, W, out=out)
+        np.testing.assert_array_equal(ctx.from_device(out, (H, W), np.int32), expected)
+
+
+def test_subpixel_half(ctx):
+    rng = np.random.default_rng(2)
+    D, H, W = 11, 8, 30
+    C = half_volume(rng, D, H, W)
+    C32 = C.astype(np.float32)
+    DINT = ref.wta_left(C32).astype(np.int32)
+    out = poisoned(ctx, H * W * 4, POISON, np.float32)
+    Subpixel(ctx, half=True)(ctx.to_device(C), ctx.to_device(DINT), D, H, W, out=out)
+    np.testing.assert_allclose(ctx.from_device(out, (H, W)), ref.subpixel(C32, DINT), rtol=1e-6, atol=1e-6)
+
+
+def test_census_half(ctx, shared_data):
+    import cv2
+    d = shared_data / "middlebury" / "Tsukuba"
+    left = cv2.imread(str(d / "im0.png"), cv2.IMREAD_GRAYSCALE)[100:160, 100:220].astype(np.float32)
+    right = cv2.imread(str(d / "im1.png"), cv2.IMREAD_GRAYSCALE)[100:160, 100:220].astype(np.float32)
+    D = 16
+    cost = CensusCost(ctx, half=True)
+    H, W = left.shape[0] - 8, left.shape[1] - 8
+    out = poisoned(ctx, D * H * W * 2, F16_POISON, np.float16)
+    cost(left, right, D, out=out)
+    got = ctx.from_device(out, (D, H, W), np.float16)
+    np.testing.assert_array_equal(got, ref.census_cost(left, right, D).astype(np.float16))
+
+
+def test_network_half(ctx):
+    w = Weights.random(seed=5)
+    rng = np.random.default_rng(6)
+    left = rng.random((21, 37)).astype(np.float32)
+    right = rng.random((21, 37)).astype(np.float32)
+    D = 9
+    net = NetworkCost(ctx, w, half=True)
+    h, wd = 21 - 8, 37 - 8
+    out = poisoned(ctx, D * h * wd * 2, F16_POISON, np.float16)
+    net(left, right, D, out=out)
+    got = ctx.from_device(out, (D, h, wd), np.float16).astype(np.float32)
+    expected = netref.cost_volume(w, left, right, D)
+    assert np.array_equal(np.isnan(got), np.isnan(expected))
+    ok = ~np.isnan(expected)
+    # float kernel within 1e-4 of the reference (tests/test_network.py), then rounded to half
+    np.testing.assert_allclose(got[ok], expected[ok], rtol=2 ** -11, atol=1e-4)
+    # and the host-resident path stores the same half values
+    np.testing.assert_array_equal(net.to_host(left, right, D, max_bytes=3 * D * wd * 2),
+                                  got.astype(np.float16))
