@@ -42,11 +42,11 @@ memory transposed to [x][d] (16 x 16 tiles transposed in registers) and
 running the recurrence on float16 lanes over d, C_r overwriting the costs
 in the block before it is transposed back and combined with the output;
 the right-image gradient decisions are taken once per chunk.
-``sgm_columns`` walks 16 adjacent columns per work-item on float16 lanes
-over x.
+``sgm_columns`` walks 32 adjacent columns per work-item (two groups on
+float16 lanes over x: 128 contiguous bytes of each plane per step).
 Private arrays are sized by ``-D MAX_DISP`` (D rounded up to a multiple of
 32): ``sgm_rows`` ~76 bytes per level (about 21 KB at MAX_DISP = 256, i.e.
-KITTI's D = 228), ``sgm_columns`` 64 bytes per level (16.4 KB).  The four
+KITTI's D = 228), ``sgm_columns`` 128 bytes per level (32.9 KB).  The four
 launches accumulate straight into the output (write, add, add,
 add-and-divide), so no per-direction volume is stored.  Each pass reads one
 64-byte line in each of D planes per step, which no hardware prefetcher
@@ -67,10 +67,10 @@ from .cross import check_size, launch, scan_local_size
 #: The paper's four directions r = (dx, dy), in the order accumulated.
 DIRECTIONS = ((1, 0), (-1, 0), (0, 1), (0, -1))
 _DISP_ROUND = 32
-#: Most disparity levels SGM accepts: the kernels keep up to ~76 bytes of
+#: Most disparity levels SGM accepts: the kernels keep up to ~128 bytes of
 #: private memory per level and work-item (2048 levels checked on PoCL).
 MAX_LEVELS = 2048
-_VW = 16  # lanes per work-item in sgm_columns (VW in sgm.cl)
+_COLS = 32  # columns per work-item in sgm_columns (two groups of VW = 16 lanes in sgm.cl)
 
 
 def penalty_table(pi1=1.0, pi2=32.0, q1=4.0, q2=10.0, v=2.0, vertical=False, variant="paper",
@@ -133,6 +133,6 @@ class SGM:
                 launch(self.ctx, "SGM (horizontal)", k_rows, (round_up(H, l_rows),), (l_rows,), *bufs, *dims,
                        np.int32(dx), *p1s, *p2s, np.float32(tau_so), np.int32(bool(outside_large)), mode)
             else:
-                launch(self.ctx, "SGM (vertical)", k_cols, (round_up(-(-W // _VW), l_cols),), (l_cols,), *bufs, *dims,
+                launch(self.ctx, "SGM (vertical)", k_cols, (round_up(-(-W // _COLS), l_cols),), (l_cols,), *bufs, *dims,
                        np.int32(dy), *p1s, *p2s, np.float32(tau_so), mode)
         return out
