@@ -67,8 +67,8 @@ static inline int2 row_extent(__global const uchar *arms_l, __global const uchar
 
 /* Pass 1: row sums.  dst(d, y, x) = sum of src(d, y, x') over the row extent
  * of x (not yet divided), NaN for invalid cells (x < d).  dst may be src. */
-__kernel void cbca_rows(__global const float *src,     /* D x H x W cost C^{i-1} */
-                        __global float *dst,           /* out: D x H x W row sums (may alias src) */
+__kernel void cbca_rows(__global const vol_t *src,     /* D x H x W cost C^{i-1} */
+                        __global vol_t *dst,           /* out: D x H x W row sums (may alias src) */
                         __global const uchar *arms_l,  /* 4 x H x W arms of the left image */
                         __global const uchar *arms_r,  /* 4 x H x W arms of the right image */
                         const int D,                   /* disparity levels */
@@ -82,7 +82,7 @@ __kernel void cbca_rows(__global const float *src,     /* D x H x W cost C^{i-1}
     const size_t row = VIDX(d, y, 0, H, W);
     const int x0 = min(d, W); /* first valid x */
     for (int x = 0; x < x0; ++x)
-        dst[row + x] = INVALID_COST;
+        VOL_SET(dst, row + x, INVALID_COST);
     const int n = W - x0; /* valid cells x0 .. W-1, position i = x - x0 */
     float rs[RING], re[RING];
     float s = 0.0f, e = 0.0f;
@@ -90,7 +90,7 @@ __kernel void cbca_rows(__global const float *src,     /* D x H x W cost C^{i-1}
     for (int t = 0; t < n + MAX_ARM; ++t) {
         head = head + 1 == RING ? 0 : head + 1;
         if (t < n) {
-            const float v = src[row + x0 + t];
+            const float v = VOL_GET(src, row + x0 + t);
             PREFIX_ADD(s, e, v);
         }
         rs[head] = s; /* past the end: P stays constant, never read beyond n - 1 */
@@ -105,7 +105,7 @@ __kernel void cbca_rows(__global const float *src,     /* D x H x W cost C^{i-1}
                 const int a = ring_slot(head, t, ext.x - x0 - 1);
                 sum = (rs[b] - rs[a]) + (re[b] - re[a]);
             }
-            dst[row + x] = sum;
+            VOL_SET(dst, row + x, sum);
         }
     }
 }
@@ -114,7 +114,7 @@ __kernel void cbca_rows(__global const float *src,     /* D x H x W cost C^{i-1}
  * valid cell (x >= d) it becomes the sum of the row sums over the rows of
  * U_d(p) divided by the number of cells |U_d(p)|.  Invalid cells (already
  * NaN from pass 1) are not touched. */
-__kernel void cbca_columns(__global float *buf,           /* D x H x W row sums in, C^i out */
+__kernel void cbca_columns(__global vol_t *buf,           /* D x H x W row sums in, C^i out */
                            __global const uchar *arms_l,  /* 4 x H x W arms of the left image */
                            __global const uchar *arms_r,  /* 4 x H x W arms of the right image */
                            const int D,                   /* disparity levels */
@@ -133,7 +133,7 @@ __kernel void cbca_columns(__global float *buf,           /* D x H x W row sums 
     for (int t = 0; t < H + MAX_ARM; ++t) {
         head = head + 1 == RING ? 0 : head + 1;
         if (t < H) {
-            const float v = buf[VIDX(d, t, x, H, W)];
+            const float v = VOL_GET(buf, VIDX(d, t, x, H, W));
             PREFIX_ADD(s, e, v);
             const int2 ext = row_extent(arms_l, arms_r, d, t, x, H, W);
             cnt += ext.y - ext.x + 1;
@@ -155,7 +155,7 @@ __kernel void cbca_columns(__global float *buf,           /* D x H x W row sums 
                 sum = (rs[b] - rs[a]) + (re[b] - re[a]);
                 num -= rn[a];
             }
-            buf[VIDX(d, y, x, H, W)] = sum / (float)num;
+            VOL_SET(buf, VIDX(d, y, x, H, W), sum / (float)num);
         }
     }
 }
@@ -191,8 +191,8 @@ static inline int16 cbca_arm16(__global const uchar *a, const int k, const int f
 
 /* Pass 1, short arms: dst(d, y, x) = row sum over the row extent of x
  * (NaN where x < d).  One work-item per row; dst may be src. */
-__kernel void cbca_rows_short(__global const float *src,     /* D x H x W cost C^{i-1} */
-                              __global float *dst,           /* out: row sums (may alias src) */
+__kernel void cbca_rows_short(__global const vol_t *src,     /* D x H x W cost C^{i-1} */
+                              __global vol_t *dst,           /* out: row sums (may alias src) */
                               __global const uchar *arms_l,  /* 4 x H x W arms of the left image */
                               __global const uchar *arms_r,  /* 4 x H x W arms of the right image */
                               const int D,                   /* disparity levels */
@@ -212,14 +212,14 @@ __kernel void cbca_rows_short(__global const float *src,     /* D x H x W cost C
     const int nch = (W + VW - 1) / VW;
     {
         const int n = min(VW, W);
-        vstore16(select((float16)(0.0f), load16_partial(src, row, n, 0.0f), LANES >= (int16)(d)), 0, win + VW);
+        vstore16(select((float16)(0.0f), vol_load16_partial(src, row, n, 0.0f), LANES >= (int16)(d)), 0, win + VW);
     }
     for (int c = 0; c < nch; ++c) {
         const int x0 = c * VW;
         const int n = min(VW, W - x0);
         if (c + 1 < nch) {
             const int x1 = x0 + VW;
-            const float16 nx = load16_partial(src, row + x1, min(VW, W - x1), 0.0f);
+            const float16 nx = vol_load16_partial(src, row + x1, min(VW, W - x1), 0.0f);
             vstore16(select((float16)(0.0f), nx, (int16)(x1) + LANES >= (int16)(d)), 0, win + 2 * VW);
         } else {
             vstore16((float16)(0.0f), 0, win + 2 * VW);
@@ -239,7 +239,7 @@ __kernel void cbca_rows_short(__global const float *src,     /* D x H x W cost C
                 s += select((float16)(0.0f), vload16(0, win + VW + k), take);
             }
         }
-        store16_partial(select((float16)(INVALID_COST), s, valid), dst + row + x0, n);
+        vol_store16_partial(select((float16)(INVALID_COST), s, valid), dst + row + x0, n);
         for (int i = 0; i < 2 * VW; ++i)
             win[i] = win[i + VW];
     }
@@ -253,7 +253,7 @@ __kernel void cbca_rows_short(__global const float *src,     /* D x H x W cost C
 #ifndef CBCA_GROUPS
 #define CBCA_GROUPS 8
 #endif
-__kernel void cbca_columns_short(__global float *buf,          /* row sums in, C^i out */
+__kernel void cbca_columns_short(__global vol_t *buf,          /* row sums in, C^i out */
                                  __global const uchar *arms_l, /* 4 x H x W arms of the left image */
                                  __global const uchar *arms_r, /* 4 x H x W arms of the right image */
                                  const int D,                  /* disparity levels */
@@ -287,7 +287,7 @@ __kernel void cbca_columns_short(__global float *buf,          /* row sums in, C
             const int16 xs = (int16)(x0) + LANES;
             const int16 valid = (xs >= (int16)(d)) & (LANES < (int16)(n));
             if (t < H) {
-                ring[head * CBCA_GROUPS + g] = select((float16)(0.0f), load16_partial(buf, VIDX(d, t, x0, H, W), n, 0.0f), valid);
+                ring[head * CBCA_GROUPS + g] = select((float16)(0.0f), vol_load16_partial(buf, VIDX(d, t, x0, H, W), n, 0.0f), valid);
                 const int it = t * W + x0;
                 const int16 l = min(min(cbca_arm16(arms_l, ARM_LEFT, it, n, H, W), cbca_arm16(arms_r, ARM_LEFT, it - d, n, H, W)),
                                     min((int16)(MAX_ARM), xs - (int16)(d)));
@@ -312,7 +312,7 @@ __kernel void cbca_columns_short(__global float *buf,          /* row sums in, C
                     cnt += select((int16)(0), cring[slot * CBCA_GROUPS + g], take);
                 }
                 const float16 res = s / convert_float16(max(cnt, (int16)(1)));
-                store16_partial(select((float16)(INVALID_COST), res, valid), buf + VIDX(d, y, x0, H, W), n);
+                vol_store16_partial(select((float16)(INVALID_COST), res, valid), buf + VIDX(d, y, x0, H, W), n);
             }
         }
     }
@@ -332,8 +332,8 @@ __kernel void cbca_columns_short(__global float *buf,          /* row sums in, C
  * src: row t - MAX_ARM is written only after row t was read, all by the same
  * work-item, and no work-item reads another plane. */
 #define RS (2 * MAX_ARM + 1)
-__kernel void cbca_fused_short(__global const float *src,     /* D x H x W cost C^{i-1} */
-                               __global float *dst,           /* out: C^i (may alias src) */
+__kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost C^{i-1} */
+                               __global vol_t *dst,           /* out: C^i (may alias src) */
                                __global float *ring,          /* scratch: D x RS x W row sums */
                                __global uchar *cring,         /* scratch: D x RS x W cell counts */
                                __global const uchar *arms_l,  /* 4 x H x W arms of the left image */
@@ -372,18 +372,18 @@ __kernel void cbca_fused_short(__global const float *src,     /* D x H x W cost 
                 if (x0 >= MAX_ARM && x0 + VW + MAX_ARM <= W) {
                     /* interior: the window lies in the row; invalid (NaN)
                      * cells are never selected (l <= x - d) */
-                    __global const float *p = src + row + x0;
+                    __global const vol_t *p = src + row + x0;
 #pragma unroll
                     for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {
                         const int16 take = ((int16)(k) >= -l) & ((int16)(k) <= r);
-                        s += select((float16)(0.0f), vload16(0, p + k), take);
+                        s += select((float16)(0.0f), VOL_LOAD16(p + k), take);
                     }
                 } else {
                     /* row ends: cells outside the row as 0 (never selected) */
                     float win[VW + 2 * MAX_ARM];
                     for (int i = 0; i < VW + 2 * MAX_ARM; ++i) {
                         const int xi = x0 - MAX_ARM + i;
-                        win[i] = (xi >= 0 && xi < W) ? src[row + xi] : 0.0f;
+                        win[i] = (xi >= 0 && xi < W) ? VOL_GET(src, row + xi) : 0.0f;
                     }
 #pragma unroll
                     for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {
@@ -412,7 +412,7 @@ __kernel void cbca_fused_short(__global const float *src,     /* D x H x W cost 
             const int x0 = c * VW;
             const int n = min(VW, W - x0);
             if (c < c0) {
-                store16_partial((float16)(INVALID_COST), dst + orow + x0, n);
+                vol_store16_partial((float16)(INVALID_COST), dst + orow + x0, n);
                 continue;
             }
             const int16 xs = (int16)(x0) + LANES;
@@ -449,7 +449,7 @@ __kernel void cbca_fused_short(__global const float *src,     /* D x H x W cost 
                 cnt += select((int16)(0), m, take);
             }
             const float16 res = s / convert_float16(max(cnt, (int16)(1)));
-            store16_partial(select((float16)(INVALID_COST), res, valid), dst + orow + x0, n);
+            vol_store16_partial(select((float16)(INVALID_COST), res, valid), dst + orow + x0, n);
         }
     }
 }

@@ -61,7 +61,7 @@ static inline void store16_partial(const float16 v, __global float *p, const int
 #define VOL_GET(p, i) vload_half((size_t)(i), (p))
 #define VOL_SET(p, i, v) vstore_half((v), (size_t)(i), (p))
 #define VOL_LOAD16(p) vload_half16(0, (p))
-#define VOL_STORE16(v, p) vstore_half16((v), 0, (p))
+#define VOL_STORE16(v, p) vol_store16_scalar((v), (p))
 #else
 #define vol_t float
 #define VOL_GET(p, i) ((p)[i])
@@ -70,6 +70,20 @@ static inline void store16_partial(const float16 v, __global float *p, const int
 #define VOL_STORE16(v, p) vstore16((v), 0, (p))
 #endif
 
+#if VOL_HALF
+/* 16 scalar vstore_half, not vstore_half16: PoCL 3.1 (LLVM 15) miscompiles
+ * vstore_half16 inside cbca_fused_short (a segfault at row strides that are
+ * not a multiple of 8 halves), though the same call is correct in a small
+ * kernel and on Intel's runtime and Oclgrind.  The scalar stores are exact
+ * (same rounding) and cost little next to the arithmetic. */
+static inline void vol_store16_scalar(const float16 v, __global half *p)
+{
+    float t[16];
+    vstore16(v, 0, t);
+    for (int i = 0; i < 16; ++i)
+        vstore_half(t[i], i, p);
+}
+#endif
 /* load16_partial / store16_partial for volumes (vol_t storage). */
 static inline float16 vol_load16_partial(__global const vol_t *p, const int first, const int n, const float fill)
 {

@@ -114,3 +114,44 @@ def test_network_half(ctx):
     # and the host-resident path stores the same half values
     np.testing.assert_array_equal(net.to_host(left, right, D, max_bytes=3 * D * wd * 2),
                                   got.astype(np.float16))
+
+
+def real_crop(shared_data, rows, cols):
+    import cv2
+    d = shared_data / "middlebury" / "Tsukuba"
+    L = cv2.imread(str(d / "im0.png"), cv2.IMREAD_GRAYSCALE)[rows, cols].astype(np.float32) / 255
+    R = cv2.imread(str(d / "im1.png"), cv2.IMREAD_GRAYSCALE)[rows, cols].astype(np.float32) / 255
+    return L, R
+
+
+@pytest.mark.parametrize("short,fused,bound", [(True, True, None), (True, False, None), (False, False, 255)])
+def test_cbca_half(ctx, shared_data, short, fused, bound):
+    """Half CBCA (every implementation) against the reference on the half input.
+    Each iteration stores its result as half (the two-pass kernels also their
+    row sums of up to 7 costs), so per iteration up to 2 roundings of
+    2^-11 relative: rtol = 2 x iterations x 2^-11."""
+    from mccnn_cl.reference.aggregation import cbca, cross_arms
+    from mccnn_cl.stages.cbca import CBCA
+    from mccnn_cl.stages.cross import arms_to_device
+
+    L, R = real_crop(shared_data, slice(120, 150), slice(100, 170))
+    D, (H, W) = 12, L.shape
+    rng = np.random.default_rng(8)
+    C = half_volume(rng, D, H, W)
+    arms_l, arms_r = cross_arms(L), cross_arms(R)
+    bound = int(max(arms_l.max(), arms_r.max())) if bound is None else bound
+    it = 4
+    out = poisoned(ctx, C.nbytes, F16_POISON, np.float16)
+    d_c = ctx.to_device(C)
+    CBCA(ctx, short=short, fused=fused, half=True)(d_c, arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r),
+                                                   D, H, W, iterations=it, max_arm=bound, out=out)
+    got = ctx.from_device(out, C.shape, np.float16).astype(np.float32)
+    want = cbca(C.astype(np.float32), arms_l, arms_r, it)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_allclose(got, want, rtol=2 * it * 2 ** -11, atol=1e-7)
+    # in place gives the same bits
+    d_in = ctx.empty(C.nbytes)
+    ctx.cl.enqueue_copy(ctx.queue, d_in, C)
+    CBCA(ctx, short=short, fused=fused, half=True)(d_in, arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r),
+                                                   D, H, W, iterations=it, max_arm=bound, out=d_in)
+    np.testing.assert_array_equal(ctx.from_device(d_in, C.shape, np.float16).astype(np.float32), got)

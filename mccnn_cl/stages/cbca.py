@@ -108,7 +108,11 @@ class CBCA:
     include_neighbor)`` (3 for the paper's eta = 4): it selects the fast
     short-arm kernels.  Arms longer than ``max_arm`` are truncated to it.
     ``short=False`` forces the running-sum kernels, ``fused=False`` the
-    two-pass short-arm kernels (for comparisons).
+    two-pass short-arm kernels (for comparisons); ``fused=None`` (default)
+    takes the fused kernel on CPU devices only (it runs D work-items, too few
+    for a GPU).  ``half=True``: volumes stored as half (``VOL_HALF``,
+    kernels/common.h); sums stay float (the two-pass kernels store their row
+    sums in the volume, so they round them to half too).
     ``__init__``'s ``max_arm`` only pre-builds that program.
     """
 
@@ -116,10 +120,14 @@ class CBCA:
     #: (for the memory planner): none, on every path, also when out is d_cost.
     scratch_volumes = 0
 
-    def __init__(self, ctx, max_arm: int = ARM_LIMIT, short: bool = True, fused: bool = True):
+    def __init__(self, ctx, max_arm: int = ARM_LIMIT, short: bool = True, fused: bool | None = None,
+                 half: bool = False):
         self.ctx = ctx
         self.short = bool(short)
+        if fused is None:
+            fused = bool(ctx.device.type & ctx.cl.device_type.CPU)
         self.fused = bool(fused)
+        self.half = bool(half)
         self._kernels = {}
         self._ring = None  # (nbytes, row-sum ring, count ring) of cbca_fused_short
         self._get(max_arm)
@@ -144,11 +152,13 @@ class CBCA:
         k = self._kernels.get((max_arm, short, fused))
         if k is None:
             if fused:
-                kern = self.ctx.kernel("cbca.cl", "cbca_fused_short", MAX_ARM=max_arm, CBCA_GROUPS=_GROUPS)
+                kern = self.ctx.kernel("cbca.cl", "cbca_fused_short", MAX_ARM=max_arm, CBCA_GROUPS=_GROUPS,
+                                       VOL_HALF=int(self.half))
                 k = [(kern, scan_local_size(self.ctx, kern))]
             else:
                 suffix = "_short" if short else ""
                 defs = dict(MAX_ARM=max_arm, CBCA_GROUPS=_GROUPS) if short else dict(MAX_ARM=max_arm)
+                defs["VOL_HALF"] = int(self.half)
                 k = [self.ctx.kernel("cbca.cl", "cbca_rows" + suffix, **defs),
                      self.ctx.kernel("cbca.cl", "cbca_columns" + suffix, **defs)]
                 k = [(kern, scan_local_size(self.ctx, kern)) for kern in k]
@@ -178,7 +188,7 @@ class CBCA:
             raise InputError(f"the cost volume needs at least one disparity level, got D = {D}")
         if iterations < 0:
             raise InputError(f"iterations must be >= 0, got {iterations}")
-        nbytes = 4 * D * H * W
+        nbytes = (2 if self.half else 4) * D * H * W
         if out is None:
             out = self.ctx.empty(nbytes, "CBCA output volume")
         kerns, short, fused = self._get(max_arm)
