@@ -43,7 +43,8 @@ def limit_for_rows(matcher, shape, rows):
     m, D = matcher.margin, matcher.max_disparity
     row = D * (Wi - 2 * m) * 4
     nvol = 3 if matcher.params.right_reference == "aggregated" else 2
-    extra = MAP_BUFFERS * Hi * Wi * 4
+    extra = MAP_BUFFERS * Hi * Wi * 4 + matcher.cbca.scratch_bytes(D, Wi - 2 * m, 3, matcher.cbca.short,
+                                                                   matcher.cbca.fused)
     if matcher.cost_name == "census":
         extra += 2 * 3 * (2 * matcher.tile_overlap + pipeline.MIN_TILE_ROWS) * (Wi - 2 * m) * 4
     return nvol * row * rows + extra
