@@ -171,7 +171,7 @@ class StereoResult:
 
     ``disparity``: D_BF (float32, the left image's size, pixels).
     ``intermediates``: name -> host array (C_CNN, C_CBCA, C_SGM, C: float32
-    [D][H-2m][W-2m]; C_R with ``right_reference="aggregated"``: the final
+    [D][H-2m][W-2m], float16 with ``volume_dtype="float16"``; C_R with ``right_reference="aggregated"``: the final
     right-reference volume, mirrored left to right (see
     :class:`mccnn_cl.stages.disparity.RightReference`); D_L, D_R, labels, D_INT: int32 on the cropped domain;
     D_SE: float32 cropped; D_median, D_BF: float32 image size).
@@ -243,6 +243,11 @@ class StereoMatcher:
         device's global memory).  When the whole image's cost volumes do not
         fit it, or one volume exceeds the device's max allocation, the
         volume stages run on row tiles (see :meth:`memory_plan`).
+    volume_dtype : "float32" or "float16"
+        Storage of the cost volumes on the device (arithmetic is float32
+        either way): "float16" halves their memory and traffic at the cost
+        of rounding every stored cost to 11 significant bits (docs/method.md,
+        "Half-precision volumes": accuracy and speed measured).
     tile_overlap : int
         Rows of context above and below each tile's core rows (default
         ``TILE_OVERLAP``).  The network and cross-based aggregation are exact
@@ -254,7 +259,7 @@ class StereoMatcher:
 
     def __init__(self, weights=None, max_disparity: int = 228, device=None, cost: str = "cnn",
                  progress: bool = False, memory_limit: int | None = None,
-                 tile_overlap: int = TILE_OVERLAP, **hyperparameters):
+                 tile_overlap: int = TILE_OVERLAP, volume_dtype: str = "float32", **hyperparameters):
         unknown = sorted(set(hyperparameters) - set(Hyperparameters.names()))
         if unknown:
             raise TypeError(f"unknown hyperparameter(s) {', '.join(unknown)}; valid names: "
@@ -269,6 +274,10 @@ class StereoMatcher:
             raise InputError(f"cost must be 'cnn' or 'census', not {cost!r}")
         self.cost_name = cost
         self.progress = bool(progress)
+        if volume_dtype not in ("float32", "float16"):
+            raise InputError(f"volume_dtype must be 'float32' or 'float16', not {volume_dtype!r}")
+        self.vdtype = np.dtype(volume_dtype)
+        self.half = volume_dtype == "float16"
         self.ctx = device if isinstance(device, ClContext) else ClContext(device)
         for name, value in (("memory_limit", memory_limit), ("tile_overlap", tile_overlap)):
             if value is not None and (isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer))):
@@ -292,11 +301,11 @@ class StereoMatcher:
             elif not isinstance(weights, Weights):
                 weights = Weights.load(weights)
             self.weights = weights
-            self.cost = NetworkCost(self.ctx, weights)
+            self.cost = NetworkCost(self.ctx, weights, half=self.half)
             self.margin = weights.margin
         else:
             self.weights = None
-            self.cost = CensusCost(self.ctx)
+            self.cost = CensusCost(self.ctx, half=self.half)
             self.margin = CensusCost.margin
 
         from .stages.cbca import CBCA
@@ -304,13 +313,13 @@ class StereoMatcher:
 
         ctx = self.ctx
         self.cross = CrossArms(ctx)
-        self.cbca = CBCA(ctx)
-        self.sgm = SGM(ctx)
-        self.wta = WinnerTakeAll(ctx)
-        self.right_ref = RightReference(ctx)
+        self.cbca = CBCA(ctx, half=self.half)
+        self.sgm = SGM(ctx, half=True) if self.half else SGM(ctx)  # TEMP until SGM has half
+        self.wta = WinnerTakeAll(ctx, half=self.half)
+        self.right_ref = RightReference(ctx, half=self.half)
         self.lr_check = LeftRightCheck(ctx)
         self.interpolate = Interpolate(ctx)
-        self.subpixel = Subpixel(ctx)
+        self.subpixel = Subpixel(ctx, half=self.half)
         self.enlarge = Enlarge(ctx)
         self.median = MedianFilter(ctx, self.params.median_size)
         self.bilateral = BilateralFilter(ctx)
@@ -355,7 +364,7 @@ class StereoMatcher:
         J_R = I_R[m:m + H, m:m + W]
         rec.start()
         if not plan.tiled:
-            C_CNN = rec("C_CNN", self._matching_cost(I_L, I_R, D), (D, H, W))
+            C_CNN = rec("C_CNN", self._matching_cost(I_L, I_R, D), (D, H, W), self.vdtype)
             D_SE = self._volume_stages(C_CNN, J_L, J_R, rec)
         else:
             D_SE = ctx.to_device(self._tiled_volume_stages(I_L, I_R, J_L, J_R, plan, rec))
@@ -379,7 +388,7 @@ class StereoMatcher:
             if host is None:
                 d_cost = rec("C_CNN", self.cost(I_L[e0:e1 + 2 * m], I_R[e0:e1 + 2 * m], D))
             else:
-                d_cost = ctx.empty(D * (e1 - e0) * W * 4, "cost volume tile")
+                d_cost = ctx.empty(D * (e1 - e0) * W * self.vdtype.itemsize, "cost volume tile")
                 ctx.cl.enqueue_copy(ctx.queue, d_cost, np.ascontiguousarray(host[:, e0:e1]))
                 rec("C_CNN_upload", d_cost)
             d_se = self._volume_stages(d_cost, J_L[e0:e1], J_R[e0:e1], rec)
@@ -404,12 +413,12 @@ class StereoMatcher:
             C_R = rec("right_volume", self.right_ref.volume(C_CNN, D, H, W))
         arms_L = self.cross(d_J_L, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
         arms_R = rec("cross", self.cross(d_J_R, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor))
-        C_CBCA = rec("C_CBCA", self.cbca(C_CNN, arms_L, arms_R, D, H, W, p.cbca_iterations, arm, out=C_CNN), vol)
+        C_CBCA = rec("C_CBCA", self.cbca(C_CNN, arms_L, arms_R, D, H, W, p.cbca_iterations, arm, out=C_CNN), vol, self.vdtype)
         C_SGM = rec("C_SGM", self.sgm(C_CBCA, d_J_L, d_J_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                       p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
-                                      p.sgm_outside_large), vol)
+                                      p.sgm_outside_large), vol, self.vdtype)
         C_CBCA.release()  # C_CNN's buffer, aggregated in place; no longer needed
-        C = rec("C", self.cbca(C_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm, out=C_SGM), vol)
+        C = rec("C", self.cbca(C_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm, out=C_SGM), vol, self.vdtype)
         D_L = rec("D_L", self.wta.left(C, D, H, W), crop, np.int32)
         if p.right_reference == "derived":
             D_R = rec("D_R", self.wta.right(C, D, H, W), crop, np.int32)
@@ -448,7 +457,7 @@ class StereoMatcher:
                                           p.sgm_outside_large))
         C_R.release()
         C_R = rec("C_R", self.cbca(C_R_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm, out=C_R_SGM),
-                  (D, H, W))
+                  (D, H, W), self.vdtype)
         return self.right_ref.mirror(self.wta.left(C_R, D, H, W), H, W)
 
     def _matching_cost(self, I_L, I_R, D, to_host=None):
@@ -479,9 +488,11 @@ class StereoMatcher:
         Hi, Wi = int(shape[0]), int(shape[1])
         m, D = self.margin, self.max_disparity
         H, W = Hi - 2 * m, Wi - 2 * m
-        row = D * W * 4                                    # one volume row, bytes
+        row = D * W * self.vdtype.itemsize                 # one volume row, bytes
         nvol = 3 if self.params.right_reference == "aggregated" else 2
         maps = MAP_BUFFERS * Hi * Wi * 4                    # images, arms, disparity maps
+        arm = max_arm(self.params.cbca_eta, self.params.cross_include_neighbor)
+        maps += self.cbca.scratch_bytes(D, W, arm, self.cbca.short, self.cbca.fused)  # CBCA's rings
         if self.cost_name == "cnn":
             from .stages import network
 
