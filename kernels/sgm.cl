@@ -36,8 +36,12 @@
 
 /* Prefetch hint for the line holding *p.  PoCL compiles OpenCL's prefetch()
  * to nothing; with -D SGM_CPU_PREFETCH=1 (set by the host for devices of type
- * CPU only) clang's __builtin_prefetch emits a real prefetch instruction. */
-#if defined(SGM_CPU_PREFETCH) && defined(__has_builtin)
+ * CPU) clang's __builtin_prefetch emits a real prefetch instruction - only
+ * where the kernel is compiled straight to a CPU instruction set (PoCL).
+ * Compilers going through SPIR / SPIR-V (Intel's CPU runtime, Oclgrind,
+ * Rusticl's llvmpipe, which aborts on the intrinsic) get prefetch(). */
+#if defined(SGM_CPU_PREFETCH) && defined(__has_builtin) && \
+    (defined(__x86_64__) || defined(__i386__) || defined(__aarch64__))
 #if SGM_CPU_PREFETCH && __has_builtin(__builtin_prefetch)
 #define SGM_PREFETCH(p) __builtin_prefetch(p)
 #endif

@@ -50,8 +50,9 @@ KITTI's D = 228), ``sgm_columns`` 128 bytes per level (32.9 KB).  The four
 launches accumulate straight into the output (write, add, add,
 add-and-divide), so no per-direction volume is stored.  Each pass reads one
 64-byte line in each of D planes per step, which no hardware prefetcher
-follows: on devices of type CPU the kernels prefetch the next step's lines
-(``prefetch``, below); elsewhere OpenCL's ``prefetch()`` hint.  Measured on
+follows: on CPU devices whose compiler targets the CPU's instruction set
+(PoCL) the kernels prefetch the next step's lines (``prefetch``, below);
+elsewhere they give OpenCL's ``prefetch()`` hint.  Measured on
 PoCL (2 cores) this is several times faster than one scalar work-item per
 scanline, which touched D pages per step.
 """
@@ -90,8 +91,10 @@ class SGM:
 
     ``prefetch``: use CPU prefetch instructions (clang's ``__builtin_prefetch``)
     in the kernels; None (default) does so on devices whose type is exactly
-    CPU (not Oclgrind, which reports CPU | GPU).  Hints only: the results are
-    the same either way."""
+    CPU (not Oclgrind, which reports CPU | GPU), and the kernel takes them only
+    where it is compiled straight to x86 / AArch64 (PoCL; not SPIR or SPIR-V
+    compilers such as Intel's CPU runtime or Rusticl).  Hints only: the
+    results are the same either way."""
 
     def __init__(self, ctx, prefetch=None):
         self.ctx = ctx
