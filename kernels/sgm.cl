@@ -47,7 +47,7 @@
 #endif
 #endif
 #ifndef SGM_PREFETCH
-#define SGM_PREFETCH(p) prefetch((p), 1)
+#define SGM_PREFETCH(p) prefetch((const __global uchar *)(p), 1)
 #endif
 
 
@@ -62,7 +62,7 @@
  * writes the output's line.  Also prefetches this plane's line of the next
  * row on the path. */
 static inline __attribute__((always_inline)) void col_cell(
-    __global const float *cost, __global const float *img_r, __global float *out,
+    __global const vol_t *cost, __global const float *img_r, __global vol_t *out,
     const int H, const int W, const int x0, const int n, const int d, const int y, const int py, const int j,
     const int dy, const int mode, const int16 big_l, const float16 m, float16 *prev, float16 *pm1, float16 *newm,
     const float p1_small, const float p1_one, const float p1_both,
@@ -76,7 +76,7 @@ static inline __attribute__((always_inline)) void col_cell(
         if (mode != 0)
             SGM_PREFETCH(out + VIDX(d, y + dy, x0, H, W));
     }
-    const float16 c = load16_partial(cost, i0, n, 0.0f);
+    const float16 c = vol_load16_partial(cost, i0, n, 0.0f);
     float16 val;
     if (j == 0) {
         val = c; /* first pixel of the path */
@@ -101,16 +101,16 @@ static inline __attribute__((always_inline)) void col_cell(
     if (mode == 0) {
         o = select((float16)(NAN), val, valid);
     } else {
-        const float16 old = load16_partial(out, i0, n, 0.0f);
+        const float16 old = vol_load16_partial(out, i0, n, 0.0f);
         o = select(old, SGM_COMBINE(old, val, mode), valid);
     }
-    store16_partial(o, out + i0, n);
+    vol_store16_partial(o, out + i0, n);
 }
 
-__kernel void sgm_columns(__global const float *cost,  /* D x H x W cost volume (NaN invalid) */
+__kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume (NaN invalid) */
                           __global const float *img_l, /* H x W left image, gray in [0, 1] */
                           __global const float *img_r, /* H x W right image, gray in [0, 1] */
-                          __global float *out,         /* D x H x W accumulated C_SGM */
+                          __global vol_t *out,         /* D x H x W accumulated C_SGM */
                           const int D,                 /* disparity levels, <= MAX_DISP */
                           const int H,                 /* height */
                           const int W,                 /* width */
@@ -162,9 +162,9 @@ __kernel void sgm_columns(__global const float *cost,  /* D x H x W cost volume 
         }
         if (mode == 0)
             for (int d = dmax + 1; d < D; ++d) {
-                store16_partial((float16)(NAN), out + VIDX(d, y, xa, H, W), na);
+                vol_store16_partial((float16)(NAN), out + VIDX(d, y, xa, H, W), na);
                 if (nb > 0)
-                    store16_partial((float16)(NAN), out + VIDX(d, y, xb, H, W), nb);
+                    vol_store16_partial((float16)(NAN), out + VIDX(d, y, xb, H, W), nb);
             }
         ma = newma;
         mb = newmb;
@@ -200,10 +200,10 @@ static inline __attribute__((always_inline)) void transpose16(float16 *r)
  * index d + 1 with +INFINITY at index 0 and beyond the valid range.  C_r
  * overwrites the costs in the block; the block is transposed back and
  * combined with the output row by row (vector loads of the output along x). */
-__kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (NaN invalid) */
+__kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (NaN invalid) */
                        __global const float *img_l, /* H x W left image, gray in [0, 1] */
                        __global const float *img_r, /* H x W right image, gray in [0, 1] */
-                       __global float *out,         /* D x H x W accumulated C_SGM */
+                       __global vol_t *out,         /* D x H x W accumulated C_SGM */
                        const int D,                 /* disparity levels, <= MAX_DISP */
                        const int H,                 /* height */
                        const int W,                 /* width */
@@ -246,7 +246,7 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
             const int d0 = g * VW;
             __attribute__((opencl_unroll_hint))
             for (int i = 0; i < VW; ++i)
-                r[i] = d0 + i <= dmaxc ? load16_partial(cost, VIDX(d0 + i, y, x0, H, W), n, 0.0f)
+                r[i] = d0 + i <= dmaxc ? vol_load16_partial(cost, VIDX(d0 + i, y, x0, H, W), n, 0.0f)
                                        : (float16)(0.0f);
             transpose16(r);
             for (int k = 0; k < VW; ++k)
@@ -349,14 +349,14 @@ __kernel void sgm_rows(__global const float *cost,  /* D x H x W cost volume (Na
                 if (mode == 0) {
                     o = select((float16)(INVALID_COST), r[i], valid);
                 } else {
-                    const float16 old = load16_partial(out, i0, n, 0.0f);
+                    const float16 old = vol_load16_partial(out, i0, n, 0.0f);
                     o = select(old, SGM_COMBINE(old, r[i], mode), valid);
                 }
-                store16_partial(o, out + i0, n);
+                vol_store16_partial(o, out + i0, n);
             }
         }
         if (mode == 0)
             for (int d = dmaxc + 1; d < D; ++d)
-                store16_partial((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
+                vol_store16_partial((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
     }
 }

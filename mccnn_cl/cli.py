@@ -55,6 +55,9 @@ def _matcher_options(p, default_disp_help):
     p.add_argument("--memory-limit", type=float, default=None, metavar="MiB",
                    help="device memory the method may use, in MiB (default: 3/4 of the device's); larger "
                         "images run in row tiles (docs/method.md, 'Large images')")
+    p.add_argument("--volume-dtype", choices=("float32", "float16"), default="float32",
+                   help="storage of the cost volumes on the device: float16 halves their memory "
+                        "(accuracy and speed: docs/method.md, 'Half-precision volumes')")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", dest="hyper",
                    help="stereo-method hyperparameter, e.g. --set sgm_pi2=64 --set interpolation=code "
                         "(names: mccnn_cl.pipeline.Hyperparameters); repeatable")
@@ -89,6 +92,7 @@ def _make_matcher(args, max_disparity, weights, progress=False, ctx=None):
                   cost=args.cost, progress=progress)
     if args.cost == "cnn":
         kwargs["weights"] = weights
+    kwargs["volume_dtype"] = getattr(args, "volume_dtype", "float32")
     limit = getattr(args, "memory_limit", None)
     if limit is not None:
         if not limit > 0:

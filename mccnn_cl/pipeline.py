@@ -314,7 +314,7 @@ class StereoMatcher:
         ctx = self.ctx
         self.cross = CrossArms(ctx)
         self.cbca = CBCA(ctx, half=self.half)
-        self.sgm = SGM(ctx, half=True) if self.half else SGM(ctx)  # TEMP until SGM has half
+        self.sgm = SGM(ctx, half=self.half)
         self.wta = WinnerTakeAll(ctx, half=self.half)
         self.right_ref = RightReference(ctx, half=self.half)
         self.lr_check = LeftRightCheck(ctx)

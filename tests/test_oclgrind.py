@@ -277,6 +277,38 @@ def case_sgm(ctx, rng, chk):
                   sgm(C, img_l, img_r, **kw), atol=2e-5 * (1.0 + 32.0))
 
 
+def case_half(ctx, rng, chk):
+    """Half-precision volume storage (VOL_HALF=1) in every kernel that reads or
+    writes a volume: the network head and its NaN marking, then the whole
+    method (census cost) with fused and with two-pass CBCA, against the same
+    runs in float32 (the storage rounds to 11 significant bits)."""
+    from mccnn_cl.pipeline import StereoMatcher
+    from mccnn_cl.stages.network import NetworkCost
+    from mccnn_cl.weights import Weights
+
+    w = Weights.random(conv_layers=[[4, 3], [4, 3], [4, 3], [4, 3]], fc_layers=[8, 8, 8, 2], seed=3)
+    left, right = _images(rng, 12, 20)
+    H, W, D = 12 - 2 * w.margin, 20 - 2 * w.margin, 5
+    full = NetworkCost(ctx, w).compute(left, right, D)
+    out = ctx.empty(D * H * W * 2, "half volume")
+    ctx.fill(out, -65504.0, D * H * W * 2, np.float16)
+    NetworkCost(ctx, w, half=True)(left, right, D, out=out)
+    chk.close("C_CNN half = float32 C_CNN rounded", ctx.from_device(out, (D, H, W), np.float16),
+              full.astype(np.float16))
+    left, right = _images(rng, 14, 24)
+    ref = StereoMatcher(cost="census", max_disparity=D, device=ctx).compute(left, right, return_intermediates=True)
+    for fused in (True, False):
+        m = StereoMatcher(cost="census", max_disparity=D, device=ctx, volume_dtype="float16")
+        m.cbca.fused = fused
+        got = m.compute(left, right, return_intermediates=True)
+        chk.close(f"half census volume (fused={fused})", got.intermediates["C_CNN"],
+                  ref.intermediates["C_CNN"].astype(np.float16))
+        for name in ("C_CBCA", "C_SGM", "C", "C_R"):  # a few half roundings per stage
+            chk.close(f"half {name} (fused={fused})", got.intermediates[name].astype(np.float32),
+                      ref.intermediates[name], atol=1e-3, rtol=4e-3)
+        chk.close(f"half D_BF (fused={fused})", got.disparity, ref.disparity, atol=0.5)
+
+
 def selftest_bad_kernel(ctx, rng, chk):
     """NOT a stage: a kernel with an out-of-bounds read and a local-memory race,
     to prove the harness fails when Oclgrind finds something."""
@@ -304,6 +336,7 @@ CASES = {
     "sgm": case_sgm,
     "disparity": case_disparity,
     "refine": case_refine,
+    "half": case_half,
 }
 # The kernels each case must have fetched (checked in the worker): together
 # they must cover every kernel the package uses (test_every_kernel_is_covered).
@@ -316,6 +349,9 @@ CASE_KERNELS = {
     "disparity": {"disparity_wta_left", "disparity_wta_right", "disparity_lr_check",
                   "disparity_right_volume", "disparity_mirror", "interpolate_fill", "subpixel_refine"},
     "refine": {"refine_enlarge", "refine_median", "refine_bilateral"},
+    "half": {"network_head", "network_mark_invalid", "census_cost", "cbca_fused_short", "cbca_rows_short",
+             "cbca_columns_short", "sgm_rows", "sgm_columns", "disparity_wta_left", "disparity_right_volume",
+             "subpixel_refine"},
 }
 SELFTESTS = {"selftest_bad_kernel": selftest_bad_kernel}
 # everything the worker can run by name (cases of stages not committed yet included)

@@ -94,10 +94,15 @@ class SGM:
     CPU (not Oclgrind, which reports CPU | GPU), and the kernel takes them only
     where it is compiled straight to x86 / AArch64 (PoCL; not SPIR or SPIR-V
     compilers such as Intel's CPU runtime or Rusticl).  Hints only: the
-    results are the same either way."""
+    results are the same either way.
 
-    def __init__(self, ctx, prefetch=None):
+    ``half=True``: volumes stored as half (``VOL_HALF``, kernels/common.h);
+    the recurrences run in float, and the output accumulates the four
+    directions in place, so the partial sums are rounded to half too."""
+
+    def __init__(self, ctx, prefetch=None, half: bool = False):
         self.ctx = ctx
+        self.half = bool(half)
         self._kernels = {}
         if prefetch is None:
             prefetch = int(ctx.device.type) == int(ctx.cl.device_type.CPU)
@@ -107,7 +112,8 @@ class SGM:
         max_disp = -(-int(D) // _DISP_ROUND) * _DISP_ROUND
         k = self._kernels.get(max_disp)
         if k is None:
-            k = [self.ctx.kernel("sgm.cl", name, MAX_DISP=max_disp, SGM_CPU_PREFETCH=int(self.prefetch))
+            k = [self.ctx.kernel("sgm.cl", name, MAX_DISP=max_disp, SGM_CPU_PREFETCH=int(self.prefetch),
+                                 VOL_HALF=int(self.half))
                  for name in ("sgm_rows", "sgm_columns")]
             k = [(kern, scan_local_size(self.ctx, kern)) for kern in k]
             self._kernels[max_disp] = k
@@ -125,7 +131,7 @@ class SGM:
         if out is not None and out is d_cost:
             raise InputError("SGM cannot work in place: out must differ from d_cost")
         if out is None:
-            out = self.ctx.empty(4 * D * H * W, "SGM output volume")
+            out = self.ctx.empty((2 if self.half else 4) * D * H * W, "SGM output volume")
         (k_rows, l_rows), (k_cols, l_cols) = self._kernel(D)
         dims = (np.int32(D), np.int32(H), np.int32(W))
         for i, (dx, dy) in enumerate(DIRECTIONS):
