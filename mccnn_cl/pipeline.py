@@ -182,8 +182,9 @@ class StereoResult:
     for the right reference).
     ``margin``: m, the offset of the cropped domain in the image.
     ``plan``: the :class:`MemoryPlan` followed; ``peak_device_bytes``: the
-    peak of the device buffers the run held (measured: every buffer made
-    through the context, freed when released or collected).  When the plan
+    peak of the device buffers the run held beyond those alive when it began
+    (measured: every buffer made through the context, freed when released or
+    collected).  When the plan
     is tiled, volumes are not kept (only maps, assembled from the tiles'
     cores) and a stage's time is the sum over tiles (``C_CNN_upload``: the
     host-to-device copies of the network's volume).
@@ -349,10 +350,11 @@ class StereoMatcher:
         I_L, I_R = self._inputs(left, right)
         rec = _Recorder(self.ctx, keep=return_intermediates, timed=return_intermediates or timings)
         self.ctx.memory.reset_peak()
+        base = self.ctx.memory.live  # buffers alive before the call (weights, other matchers' ...)
         out = self._run(I_L, I_R, rec)
         if not (return_intermediates or timings):
             return out
-        return StereoResult(out, rec.arrays, rec.times, self.margin, rec.plan, self.ctx.memory.peak)
+        return StereoResult(out, rec.arrays, rec.times, self.margin, rec.plan, self.ctx.memory.peak - base)
 
     def _run(self, I_L, I_R, rec):
         ctx, m, D = self.ctx, self.margin, self.max_disparity
