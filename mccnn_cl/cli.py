@@ -21,6 +21,7 @@ import os
 import sys
 import time
 import traceback
+import warnings
 from contextlib import ExitStack
 from importlib import resources
 
@@ -776,6 +777,11 @@ def main(argv=None) -> int:
     verbose = bool(getattr(args, "verbose", False))
     if verbose:
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    else:
+        # Some runtimes (Intel's CPU runtime) always return a build log, which
+        # PyOpenCL reports as a CompilerWarning per program: noise on a terminal.
+        # --verbose keeps them; build *failures* are errors either way.
+        warnings.filterwarnings("ignore", message="Non-empty compiler output encountered")
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -516,8 +516,8 @@ class StereoMatcher:
             need = nvol * row * (2 * overlap + MIN_TILE_ROWS) + maps + tile_scratch
             raise InputError(
                 f"{Wi}x{Hi} with {D} disparities does not fit: row tiles of {MIN_TILE_ROWS} rows plus "
-                f"{overlap} rows of overlap on each side need {need / 2**20:.0f} MiB of device memory "
-                f"(memory_limit {budget / 2**20:.0f} MiB, max allocation {max_alloc / 2**20:.0f} MiB on "
+                f"{overlap} rows of overlap on each side need {need / 2**20:.1f} MiB of device memory "
+                f"(memory_limit {budget / 2**20:.1f} MiB, max allocation {max_alloc / 2**20:.0f} MiB on "
                 f"{self.ctx.describe()}); reduce the disparity range or the image width, or raise memory_limit")
         n = -(-H // core)
         core = -(-H // n)
