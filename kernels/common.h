@@ -60,7 +60,7 @@ static inline void store16_partial(const float16 v, __global float *p, const int
 #define vol_t half
 #define VOL_GET(p, i) vload_half((size_t)(i), (p))
 #define VOL_SET(p, i, v) vstore_half((v), (size_t)(i), (p))
-#define VOL_LOAD16(p) vload_half16(0, (p))
+#define VOL_LOAD16(p) vol_load16_scalar(p)
 #define VOL_STORE16(v, p) vol_store16_scalar((v), (p))
 #else
 #define vol_t float
@@ -71,11 +71,22 @@ static inline void store16_partial(const float16 v, __global float *p, const int
 #endif
 
 #if VOL_HALF
-/* 16 scalar vstore_half, not vstore_half16: PoCL 3.1 (LLVM 15) miscompiles
- * vstore_half16 inside cbca_fused_short (a segfault at row strides that are
- * not a multiple of 8 halves), though the same call is correct in a small
- * kernel and on Intel's runtime and Oclgrind.  The scalar stores are exact
- * (same rounding) and cost little next to the arithmetic. */
+/* 16 scalar vload_half / vstore_half, not vload_half16 / vstore_half16: the
+ * vector forms are fragile across implementations.  PoCL 3.1 (LLVM 15)
+ * miscompiles vstore_half16 inside cbca_fused_short (a segfault at row
+ * strides that are not a multiple of 8 halves), and Rusticl/llvmpipe (Mesa
+ * 22.3) returned wrong values from the vector forms in the same kernel,
+ * though both are correct in a small kernel and on Intel's runtime and
+ * Oclgrind.  The scalar forms give the same values (round to nearest even
+ * on store) on every implementation tested. */
+static inline float16 vol_load16_scalar(__global const half *p)
+{
+    float t[16];
+    for (int i = 0; i < 16; ++i)
+        t[i] = vload_half(i, p);
+    return vload16(0, t);
+}
+
 static inline void vol_store16_scalar(const float16 v, __global half *p)
 {
     float t[16];

@@ -208,3 +208,26 @@ def test_pipeline_half_storage(ctx, shared_data):
     assert float(np.mean(diff <= 0.5)) >= 0.995, float(np.mean(diff <= 0.5))
     with pytest.raises(InputError, match="volume_dtype"):
         StereoMatcher(cost="census", max_disparity=48, device=ctx, volume_dtype="float64")
+
+
+def test_cbca_half_default_path_tall_image(ctx, shared_data):
+    """The CBCA path the pipeline takes by default (fused on CPU devices; the
+    two-pass kernels on Rusticl, whose fused half kernel computed wrong sums
+    beyond ~170 rows) on a 192 x 292 volume: within half rounding of the
+    reference on every implementation."""
+    from mccnn_cl.reference.aggregation import cbca, cross_arms
+    from mccnn_cl.stages.cbca import CBCA
+    from mccnn_cl.stages.cross import arms_to_device
+
+    L, R = real_crop(shared_data, slice(4, 196), slice(4, 296))
+    D, (H, W) = 2, L.shape
+    C = half_volume(np.random.default_rng(9), D, H, W)
+    arms_l, arms_r = cross_arms(L), cross_arms(R)
+    stage = CBCA(ctx, half=True)
+    out = poisoned(ctx, C.nbytes, F16_POISON, np.float16)
+    stage(ctx.to_device(C), arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r), D, H, W,
+          iterations=2, max_arm=3, out=out)
+    got = ctx.from_device(out, C.shape, np.float16).astype(np.float32)
+    want = cbca(C.astype(np.float32), arms_l, arms_r, 2)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_allclose(got, want, rtol=2 * 2 * 2 ** -11, atol=1e-7)
