@@ -189,6 +189,13 @@ static inline int16 cbca_arm16(__global const uchar *a, const int k, const int f
 
 #define LANES ((int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
 
+/* Combined arm of one direction k (ARM_LEFT, ...) for 16 pixels starting at
+ * index i of row-major H x W: the shorter of the left image's arm at i and the
+ * right image's at i - d (pixel x - d), capped by `cap`.  Uses the caller's
+ * arms_l, arms_r, n (lanes in the row), d, H and W. */
+#define CBCA_COMBINED16(k, i, cap) \
+    min(min(cbca_arm16(arms_l, (k), (i), n, H, W), cbca_arm16(arms_r, (k), (i) - d, n, H, W)), (cap))
+
 /* Pass 1, short arms: dst(d, y, x) = row sum over the row extent of x
  * (NaN where x < d).  One work-item per row; dst may be src. */
 __kernel void cbca_rows_short(__global const vol_t *src,     /* D x H x W cost C^{i-1} */
@@ -229,10 +236,8 @@ __kernel void cbca_rows_short(__global const vol_t *src,     /* D x H x W cost C
         float16 s = (float16)(0.0f);
         if (any(valid)) {
             const int il = y * W + x0;
-            const int16 l = min(min(cbca_arm16(arms_l, ARM_LEFT, il, n, H, W), cbca_arm16(arms_r, ARM_LEFT, il - d, n, H, W)),
-                                min((int16)(MAX_ARM), xs - (int16)(d)));
-            const int16 r = min(min(cbca_arm16(arms_l, ARM_RIGHT, il, n, H, W), cbca_arm16(arms_r, ARM_RIGHT, il - d, n, H, W)),
-                                min((int16)(MAX_ARM), (int16)(W - 1) - xs));
+            const int16 l = CBCA_COMBINED16(ARM_LEFT, il, min((int16)(MAX_ARM), xs - (int16)(d)));
+            const int16 r = CBCA_COMBINED16(ARM_RIGHT, il, min((int16)(MAX_ARM), (int16)(W - 1) - xs));
 #pragma unroll
             for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {
                 const int16 take = ((int16)(k) >= -l) & ((int16)(k) <= r);
@@ -289,18 +294,14 @@ __kernel void cbca_columns_short(__global vol_t *buf,          /* row sums in, C
             if (t < H) {
                 ring[head * CBCA_GROUPS + g] = select((float16)(0.0f), vol_load16_partial(buf, VIDX(d, t, x0, H, W), n, 0.0f), valid);
                 const int it = t * W + x0;
-                const int16 l = min(min(cbca_arm16(arms_l, ARM_LEFT, it, n, H, W), cbca_arm16(arms_r, ARM_LEFT, it - d, n, H, W)),
-                                    min((int16)(MAX_ARM), xs - (int16)(d)));
-                const int16 r = min(min(cbca_arm16(arms_l, ARM_RIGHT, it, n, H, W), cbca_arm16(arms_r, ARM_RIGHT, it - d, n, H, W)),
-                                    min((int16)(MAX_ARM), (int16)(W - 1) - xs));
+                const int16 l = CBCA_COMBINED16(ARM_LEFT, it, min((int16)(MAX_ARM), xs - (int16)(d)));
+                const int16 r = CBCA_COMBINED16(ARM_RIGHT, it, min((int16)(MAX_ARM), (int16)(W - 1) - xs));
                 cring[head * CBCA_GROUPS + g] = select((int16)(0), l + r + (int16)(1), valid);
             }
             if (y >= 0) {
                 const int iy = y * W + x0;
-                const int16 u = min(min(cbca_arm16(arms_l, ARM_UP, iy, n, H, W), cbca_arm16(arms_r, ARM_UP, iy - d, n, H, W)),
-                                    (int16)(min(MAX_ARM, y)));
-                const int16 w = min(min(cbca_arm16(arms_l, ARM_DOWN, iy, n, H, W), cbca_arm16(arms_r, ARM_DOWN, iy - d, n, H, W)),
-                                    (int16)(min(MAX_ARM, H - 1 - y)));
+                const int16 u = CBCA_COMBINED16(ARM_UP, iy, (int16)(min(MAX_ARM, y)));
+                const int16 w = CBCA_COMBINED16(ARM_DOWN, iy, (int16)(min(MAX_ARM, H - 1 - y)));
                 float16 s = (float16)(0.0f);
                 int16 cnt = (int16)(0);
 #pragma unroll
@@ -364,10 +365,8 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
                 const int16 xs = (int16)(x0) + LANES;
                 const int16 valid = (xs >= (int16)(d)) & (LANES < (int16)(n));
                 const int it = t * W + x0;
-                const int16 l = min(min(cbca_arm16(arms_l, ARM_LEFT, it, n, H, W), cbca_arm16(arms_r, ARM_LEFT, it - d, n, H, W)),
-                                    min((int16)(MAX_ARM), xs - (int16)(d)));
-                const int16 r = min(min(cbca_arm16(arms_l, ARM_RIGHT, it, n, H, W), cbca_arm16(arms_r, ARM_RIGHT, it - d, n, H, W)),
-                                    min((int16)(MAX_ARM), (int16)(W - 1) - xs));
+                const int16 l = CBCA_COMBINED16(ARM_LEFT, it, min((int16)(MAX_ARM), xs - (int16)(d)));
+                const int16 r = CBCA_COMBINED16(ARM_RIGHT, it, min((int16)(MAX_ARM), (int16)(W - 1) - xs));
                 float16 s = (float16)(0.0f);
                 if (x0 >= MAX_ARM && x0 + VW + MAX_ARM <= W) {
                     /* interior: the window lies in the row; invalid (NaN)
@@ -418,10 +417,8 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
             const int16 xs = (int16)(x0) + LANES;
             const int16 valid = (xs >= (int16)(d)) & (LANES < (int16)(n));
             const int iy = y * W + x0;
-            const int16 u = min(min(cbca_arm16(arms_l, ARM_UP, iy, n, H, W), cbca_arm16(arms_r, ARM_UP, iy - d, n, H, W)),
-                                (int16)(min(MAX_ARM, y)));
-            const int16 w = min(min(cbca_arm16(arms_l, ARM_DOWN, iy, n, H, W), cbca_arm16(arms_r, ARM_DOWN, iy - d, n, H, W)),
-                                (int16)(min(MAX_ARM, H - 1 - y)));
+            const int16 u = CBCA_COMBINED16(ARM_UP, iy, (int16)(min(MAX_ARM, y)));
+            const int16 w = CBCA_COMBINED16(ARM_DOWN, iy, (int16)(min(MAX_ARM, H - 1 - y)));
             float16 s = (float16)(0.0f);
             int16 cnt = (int16)(0);
 #pragma unroll
