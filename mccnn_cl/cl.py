@@ -72,17 +72,14 @@ class MemoryTracker:
     def __init__(self):
         self.live = 0
         self.peak = 0
-        self.count = 0
 
     def add(self, buf, nbytes: int):
         self.live += nbytes
-        self.count += 1
         self.peak = max(self.peak, self.live)
         buf._on_free = weakref.finalize(buf, self._free, nbytes)
 
     def _free(self, nbytes: int):
         self.live -= nbytes
-        self.count -= 1
 
     def reset_peak(self) -> None:
         self.peak = self.live

@@ -92,6 +92,7 @@ import numpy as np
 from ..errors import InputError
 from ..cl import round_up
 from .cross import ARM_LIMIT, check_size, launch, scan_local_size
+from .disparity import volume_bytes
 
 #: Largest max_arm served by the short-arm kernels (CBCA_SHORT_MAX in cbca.cl).
 SHORT_MAX = 8
@@ -194,7 +195,7 @@ class CBCA:
             raise InputError(f"the cost volume needs at least one disparity level, got D = {D}")
         if iterations < 0:
             raise InputError(f"iterations must be >= 0, got {iterations}")
-        nbytes = (2 if self.half else 4) * D * H * W
+        nbytes = volume_bytes(self.half) * D * H * W
         if out is None:
             out = self.ctx.empty(nbytes, "CBCA output volume")
         kerns, short, fused = self._get(max_arm)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from .disparity import launch
+from .disparity import launch, volume_bytes
 
 MARGIN = 4
 WINDOW = 2 * MARGIN + 1
@@ -63,7 +63,7 @@ class CensusCost:
             launch(self.ctx, "census transform", self.k_transform, (W, H), d_img, d_bits,
                    np.int32(H), np.int32(W))
         if out is None:
-            out = self.ctx.empty(D * H * W * (2 if self.half else 4), "census cost volume")
+            out = self.ctx.empty(D * H * W * volume_bytes(self.half), "census cost volume")
         launch(self.ctx, "census cost", self.k_cost, (W, H, D), d_bits_l, d_bits_r, out,
                np.int32(D), np.int32(H), np.int32(W))
         return out

@@ -64,6 +64,7 @@ import numpy as np
 from ..errors import InputError
 from ..cl import round_up
 from .cross import check_size, launch, scan_local_size
+from .disparity import volume_bytes
 
 #: The paper's four directions r = (dx, dy), in the order accumulated.
 DIRECTIONS = ((1, 0), (-1, 0), (0, 1), (0, -1))
@@ -131,7 +132,7 @@ class SGM:
         if out is not None and out is d_cost:
             raise InputError("SGM cannot work in place: out must differ from d_cost")
         if out is None:
-            out = self.ctx.empty((2 if self.half else 4) * D * H * W, "SGM output volume")
+            out = self.ctx.empty(volume_bytes(self.half) * D * H * W, "SGM output volume")
         (k_rows, l_rows), (k_cols, l_cols) = self._kernel(D)
         dims = (np.int32(D), np.int32(H), np.int32(W))
         for i, (dx, dy) in enumerate(DIRECTIONS):
