@@ -495,25 +495,19 @@ class StereoMatcher:
         maps = MAP_BUFFERS * Hi * Wi * 4                    # images, arms, disparity maps
         arm = max_arm(self.params.cbca_eta, self.params.cross_include_neighbor)
         maps += self.cbca.scratch_bytes(D, W, arm, self.cbca.short, self.cbca.fused)  # CBCA's rings
-        if self.cost_name == "cnn":
-            from .stages import network
-
-            net = self.cost
-            rows = min(H, max(1, network.BAND_BYTES // (W * net.hp * 4)))
-            widest = max([conv[4] for conv in net._conv] + [net.hp])   # channels of the widest map
-            scratch = 2 * rows * W * net.hp * 4 + 2 * (rows + net.patch) * Wi * widest * 4
-        else:
-            scratch = 2 * 3 * H * W * 4                     # census bit planes
+        scratch = self.cost.scratch_bytes(H, W)            # the cost's own buffers besides the volume
         budget, max_alloc = self.memory_limit, self.ctx.max_alloc
         whole = nvol * row * H + scratch + maps
         overlap = self.tile_overlap
         if row * H <= max_alloc and whole <= budget:
             return MemoryPlan(row * H, nvol, whole, budget, [(0, H, 0, H)], overlap, 0, budget, False)
-        tile_scratch = 0 if self.cost_name == "cnn" else 2 * 3 * (2 * overlap + MIN_TILE_ROWS) * W * 4
-        ext = min(max_alloc // row, max(0, budget - maps - tile_scratch) // (nvol * row))
+        # device bytes per tile row: the volumes, and census's bits (computed per
+        # tile; the network runs once, before the tiles, into host memory)
+        per_row = nvol * row + (0 if self.cost_name == "cnn" else self.cost.scratch_bytes(1, W))
+        ext = min(max_alloc // row, max(0, budget - maps) // per_row)
         core = H if ext >= H else ext - 2 * overlap
         if core < MIN_TILE_ROWS:
-            need = nvol * row * (2 * overlap + MIN_TILE_ROWS) + maps + tile_scratch
+            need = per_row * (2 * overlap + MIN_TILE_ROWS) + maps
             raise InputError(
                 f"{Wi}x{Hi} with {D} disparities does not fit: row tiles of {MIN_TILE_ROWS} rows plus "
                 f"{overlap} rows of overlap on each side need {need / 2**20:.1f} MiB of device memory "
@@ -524,7 +518,7 @@ class StereoMatcher:
         tiles = [(c0, min(H, c0 + core), max(0, c0 - overlap), min(H, c0 + core + overlap))
                  for c0 in range(0, H, core)]
         ext_max = max(e1 - e0 for _, _, e0, e1 in tiles)
-        peak = nvol * row * ext_max + maps + tile_scratch
+        peak = per_row * ext_max + maps
         host, band_budget = 0, 0
         if self.cost_name == "cnn":  # the network's phase: one band volume + its scratch, before the tiles
             host = row * H

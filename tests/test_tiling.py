@@ -15,7 +15,6 @@ import cv2
 import numpy as np
 import pytest
 
-import mccnn_cl.pipeline as pipeline
 from mccnn_cl.errors import InputError
 from mccnn_cl.pipeline import MAP_BUFFERS, StereoMatcher
 from mccnn_cl.reference import aggregation as ref
@@ -45,9 +44,8 @@ def limit_for_rows(matcher, shape, rows):
     nvol = 3 if matcher.params.right_reference == "aggregated" else 2
     extra = MAP_BUFFERS * Hi * Wi * 4 + matcher.cbca.scratch_bytes(D, Wi - 2 * m, 3, matcher.cbca.short,
                                                                    matcher.cbca.fused)
-    if matcher.cost_name == "census":
-        extra += 2 * 3 * (2 * matcher.tile_overlap + pipeline.MIN_TILE_ROWS) * (Wi - 2 * m) * 4
-    return nvol * row * rows + extra
+    per_row = nvol * row + (2 * 3 * (Wi - 2 * m) * 4 if matcher.cost_name == "census" else 0)  # census bits
+    return per_row * rows + extra
 
 
 def three_px(disp, gt):

@@ -34,6 +34,12 @@ class CensusCost:
         self.k_transform = ctx.kernel("census.cl", "census_transform")
         self.k_cost = ctx.kernel("census.cl", "census_cost", VOL_HALF=int(half))
 
+    @staticmethod
+    def scratch_bytes(H: int, W: int) -> int:
+        """Device bytes a call allocates besides the volume: the two images'
+        census bits (3 words per pixel) on the H x W cost-volume domain."""
+        return 2 * 3 * int(H) * int(W) * 4
+
     def __call__(self, left, right, max_disparity, shape=None, out=None, progress=None):
         """Cost volume of ``left`` vs ``right`` (host arrays or device buffers).
 

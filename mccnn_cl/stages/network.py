@@ -286,6 +286,15 @@ class NetworkCost:
         return {"features": feat, "head": valid * per_cell, "total": feat + valid * per_cell,
                 "valid_cells": valid}
 
+    def scratch_bytes(self, h: int, w: int) -> int:
+        """Upper bound of the device bytes a call allocates besides the volume,
+        for a volume of h x w pixels: one band's A and B, and two feature maps
+        of the widest layer over the band's image rows (input and output of a
+        convolution)."""
+        rows = self.band_rows(h, w)
+        widest = max([conv[4] for conv in self._conv] + [self.hp])
+        return 2 * rows * w * self.hp * 4 + 2 * (rows + self.patch) * (w + self.patch - 1) * widest * 4
+
     def band_rows(self, h: int, w: int) -> int:
         """Volume rows per band: A and B of one band take at most BAND_BYTES each."""
         row = w * self.hp * 4
@@ -341,7 +350,8 @@ class NetworkCost:
         return L, R, D, L.shape[0] - P + 1, L.shape[1] - P + 1
 
     def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
-        """C_CNN as a host array (float32 ``[D][H_img-8][W_img-8]``), for
+        """C_CNN as a host array (``[D][H_img-8][W_img-8]``, float32 or float16
+        with half storage), for
         volumes larger than the device can hold: each band of rows is
         computed into one band-sized device buffer of at most ``max_bytes``
         (default: the device's max allocation) and copied out.  Values are
