@@ -52,7 +52,10 @@ static inline void store16_partial(const float16 v, __global float *p, const int
         p[i] = t[i];
 }
 
-/* Volume element type and access (see the header comment). */
+/* Volume element type and access (see the header comment):
+ *   VOL_GET(p, i), VOL_SET(p, i, v)     one element, as float
+ *   VOL_LOAD16(p)                       16 consecutive elements
+ *   vol_load16_partial, vol_store16_partial   as load16_partial / store16_partial */
 #ifndef VOL_HALF
 #define VOL_HALF 0
 #endif
@@ -60,62 +63,36 @@ static inline void store16_partial(const float16 v, __global float *p, const int
 #define vol_t half
 #define VOL_GET(p, i) vload_half((size_t)(i), (p))
 #define VOL_SET(p, i, v) vstore_half((v), (size_t)(i), (p))
-#define VOL_LOAD16(p) vol_load16_scalar(p)
-#define VOL_STORE16(v, p) vol_store16_scalar((v), (p))
+/* Element by element with scalar vload_half / vstore_half, not the 16-wide
+ * forms: PoCL 3.1 (LLVM 15) miscompiles vstore_half16 inside
+ * cbca_fused_short (a segfault at row strides that are not a multiple of 8
+ * halves), though the same call is correct in a small kernel and on Intel's
+ * runtime and Oclgrind.  Loads use the scalar form too (the half-precision
+ * timings in docs/method.md were measured so).  The values are the same:
+ * round to nearest even on store. */
+static inline float16 vol_load16_partial(__global const half *p, const int first, const int n, const float fill)
+{
+    float t[16];
+    for (int i = 0; i < 16; ++i)
+        t[i] = (i < n && first + i >= 0) ? vload_half(first + i, p) : fill;
+    return vload16(0, t);
+}
+
+static inline void vol_store16_partial(const float16 v, __global half *p, const int n)
+{
+    float t[16];
+    vstore16(v, 0, t);
+    for (int i = 0; i < n; ++i)
+        vstore_half(t[i], i, p);
+}
+#define VOL_LOAD16(p) vol_load16_partial((p), 0, 16, 0.0f)
 #else
 #define vol_t float
 #define VOL_GET(p, i) ((p)[i])
 #define VOL_SET(p, i, v) ((p)[i] = (v))
 #define VOL_LOAD16(p) vload16(0, (p))
-#define VOL_STORE16(v, p) vstore16((v), 0, (p))
+#define vol_load16_partial load16_partial
+#define vol_store16_partial store16_partial
 #endif
-
-#if VOL_HALF
-/* 16 scalar vload_half / vstore_half, not vload_half16 / vstore_half16: the
- * vector forms are fragile across implementations.  PoCL 3.1 (LLVM 15)
- * miscompiles vstore_half16 inside cbca_fused_short (a segfault at row
- * strides that are not a multiple of 8 halves), and Rusticl/llvmpipe (Mesa
- * 22.3) returned wrong values from the vector forms in the same kernel,
- * though both are correct in a small kernel and on Intel's runtime and
- * Oclgrind.  The scalar forms give the same values (round to nearest even
- * on store) on every implementation tested. */
-static inline float16 vol_load16_scalar(__global const half *p)
-{
-    float t[16];
-    for (int i = 0; i < 16; ++i)
-        t[i] = vload_half(i, p);
-    return vload16(0, t);
-}
-
-static inline void vol_store16_scalar(const float16 v, __global half *p)
-{
-    float t[16];
-    vstore16(v, 0, t);
-    for (int i = 0; i < 16; ++i)
-        vstore_half(t[i], i, p);
-}
-#endif
-/* load16_partial / store16_partial for volumes (vol_t storage). */
-static inline float16 vol_load16_partial(__global const vol_t *p, const int first, const int n, const float fill)
-{
-    if (n == 16 && first >= 0)
-        return VOL_LOAD16(p + first);
-    float t[16];
-    for (int i = 0; i < 16; ++i)
-        t[i] = (i < n && first + i >= 0) ? VOL_GET(p, first + i) : fill;
-    return vload16(0, t);
-}
-
-static inline void vol_store16_partial(const float16 v, __global vol_t *p, const int n)
-{
-    if (n == 16) {
-        VOL_STORE16(v, p);
-        return;
-    }
-    float t[16];
-    vstore16(v, 0, t);
-    for (int i = 0; i < n; ++i)
-        VOL_SET(p, i, t[i]);
-}
 
 #endif /* MCCNN_COMMON_H */
