@@ -451,4 +451,204 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
     }
 }
 #undef RS
+
+/* ------------------------------------------------------------------------
+ * cbca_fused_multi_short: up to CBCA_K iterations in one launch ("temporal
+ * fusion"), bit-identical to `iters` launches of cbca_fused_short.
+ *
+ * One work-item per disparity plane walks down the rows once.  At step t
+ * iteration i (1 <= i <= iters) forms the row sums of its input row
+ * t - (i - 1) MAX_ARM and outputs row t - i MAX_ARM, which is at once the
+ * input row of iteration i + 1 at the same step; only the last iteration's
+ * rows go to dst.  The volume is thus read once and written once per launch.
+ *
+ * Everything that is the same in every iteration is computed once per plane
+ * and row and kept in small rings in per-plane scratch (cache-resident):
+ * the combined arms l, r, u, w (as bytes, already capped at the borders and 0
+ * in invalid lanes) and the cell count |U_d(p)| as a float.  Per iteration
+ * and 16-px chunk there remain 2 x (2 MAX_ARM + 1) masked adds and one
+ * division.
+ *
+ * Bit-identity with cbca_fused_short: the same float additions in the same
+ * order per element.  There `s += select(0, v, take)` for k = -MAX_ARM ..
+ * MAX_ARM; here `s = select(s, s + v, take)` (one masked add).  They agree
+ * because s starts at +0 and a round-to-nearest sum is -0 only if both terms
+ * are -0, so s is never -0 and s + 0 == s.  For a valid lane the term k = 0
+ * is always taken (p is in U_d(p)), k < 0 is taken iff k >= -l (r >= 0) and
+ * k > 0 iff k <= r.  The division is the same s / (float)count.  In the
+ * half-volume variant an iteration's output row is rounded to half before
+ * the next iteration reads it (the row buffer is a vol_t row), as the volume
+ * round trip of cbca_fused_short does.
+ *
+ * In place (dst == src): row t of src is read at step t; dst row
+ * t - iters MAX_ARM is written at step t, after it was read.
+ *
+ * Scratch, per plane, with WR = 16 ceil(W / 16) (see CBCA.scratch_bytes):
+ *   fscr: CBCA_K x CBCA_NRS rows of row sums, then CBCA_NCNT rows of counts
+ *   bscr: 4 x CBCA_NARM rows of arm bytes (l, r, u, w)
+ *   xscr: one vol_t row of WR + 2 MAX_ARM cells (the current iteration's
+ *         input row, MAX_ARM zero cells of padding on each side)
+ * Rows outside the image are never selected; their loads are clamped to
+ * rows that were written in this launch, so no scratch needs clearing.
+ * ------------------------------------------------------------------------ */
+#ifndef CBCA_K
+#define CBCA_K 4
+#endif
+#define CBCA_NRS (2 * MAX_ARM + 1)                          /* row sums of rows y - A .. y + A */
+#define CBCA_NARM ((CBCA_K > 2 ? CBCA_K : 2) * MAX_ARM + 1) /* arms of rows t - K A .. t (and t - 2 A) */
+#define CBCA_NCNT ((CBCA_K - 1) * MAX_ARM + 1)              /* counts of rows t - K A .. t - A */
+
+/* Masked running sum of the 2 MAX_ARM + 1 vectors LOAD(k), k = -MAX_ARM ..
+ * MAX_ARM in order: term k < 0 taken where NEG >= -k, k > 0 where POS >= k. */
+#define CBCA_MASKED_SUM(s, LOAD, NEG, POS)                                        \
+    do {                                                                          \
+        _Pragma("unroll") for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {             \
+            const float16 v_ = LOAD(k);                                           \
+            if (k < 0)                                                            \
+                (s) = select((s), (s) + v_, (NEG) >= (int16)(-k));                \
+            else if (k > 0)                                                       \
+                (s) = select((s), (s) + v_, (POS) >= (int16)(k));                 \
+            else                                                                  \
+                (s) = (s) + v_;                                                   \
+        }                                                                         \
+    } while (0)
+
+__kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W cost C^{i0} */
+                                     __global vol_t *dst,          /* out: C^{i0 + iters} (may alias src) */
+                                     __global float *fscr,         /* scratch: D x (K NRS + NCNT) x WR floats */
+                                     __global uchar *bscr,         /* scratch: D x 4 NARM x WR bytes */
+                                     __global vol_t *xscr,         /* scratch: D x (WR + 2 MAX_ARM) cells */
+                                     __global const uchar *arms_l, /* 4 x H x W arms of the left image */
+                                     __global const uchar *arms_r, /* 4 x H x W arms of the right image */
+                                     const int D,                  /* disparity levels */
+                                     const int H,                  /* height */
+                                     const int W,                  /* width */
+                                     const int iters)              /* iterations, 1 .. CBCA_K */
+{
+    const int d = get_global_id(0);
+    if (d >= D || iters < 1 || iters > CBCA_K)
+        return;
+    const int nch = (W + VW - 1) / VW;
+    const int WR = nch * VW;
+    const int WP = WR + 2 * MAX_ARM;
+    __global float *rsum = fscr + (size_t)d * (CBCA_K * CBCA_NRS + CBCA_NCNT) * (size_t)WR;
+    __global float *cnts = rsum + (size_t)CBCA_K * CBCA_NRS * WR;
+    __global uchar *arm = bscr + (size_t)d * 4 * CBCA_NARM * (size_t)WR; /* [l, r, u, w][NARM][WR] */
+    __global vol_t *xin = xscr + (size_t)d * WP;
+    __global vol_t *xc = xin + MAX_ARM; /* xc[x]: cell x of the current input row */
+    for (int i = 0; i < MAX_ARM; ++i)  /* padding: read under masks only, defined zeros */
+        VOL_SET(xin, i, 0.0f);
+    for (int i = MAX_ARM + W; i < WP; ++i)
+        VOL_SET(xin, i, 0.0f);
+    const int c0 = min(d, W) / VW; /* chunks before c0 hold no valid cell */
+    const size_t AP = (size_t)CBCA_NARM * WR; /* one arm direction's ring */
+    for (int t = 0; t < H + iters * MAX_ARM; ++t) {
+        if (t < H) {
+            /* src row t into the row buffer (iteration 1's input) */
+            const size_t row = VIDX(d, t, 0, H, W);
+#if VOL_HALF
+            __global const ushort *ps = (__global const ushort *)(src + row);
+            __global ushort *px = (__global ushort *)xc;
+            for (int x = 0; x < W; ++x)
+                px[x] = ps[x];
+#else
+            for (int c = 0; c < nch; ++c) {
+                const int x0 = c * VW;
+                store16_partial(load16_partial(src + row, x0, min(VW, W - x0), 0.0f), xc + x0, min(VW, W - x0));
+            }
+#endif
+            /* combined arms of row t, capped at the borders, 0 in invalid lanes */
+            const size_t o = (size_t)(t % CBCA_NARM) * WR;
+            for (int c = c0; c < nch; ++c) {
+                const int x0 = c * VW;
+                const int n = min(VW, W - x0);
+                const int16 xs = (int16)(x0) + LANES;
+                const int16 valid = (xs >= (int16)(d)) & (LANES < (int16)(n));
+                const int it = t * W + x0;
+                const int16 l = CBCA_COMBINED16(ARM_LEFT, it, min((int16)(MAX_ARM), xs - (int16)(d)));
+                const int16 r = CBCA_COMBINED16(ARM_RIGHT, it, min((int16)(MAX_ARM), (int16)(W - 1) - xs));
+                const int16 u = CBCA_COMBINED16(ARM_UP, it, (int16)(min(MAX_ARM, t)));
+                const int16 w = CBCA_COMBINED16(ARM_DOWN, it, (int16)(min(MAX_ARM, H - 1 - t)));
+                vstore16(convert_uchar16(select((int16)(0), l, valid)), 0, arm + o + x0);
+                vstore16(convert_uchar16(select((int16)(0), r, valid)), 0, arm + AP + o + x0);
+                vstore16(convert_uchar16(select((int16)(0), u, valid)), 0, arm + 2 * AP + o + x0);
+                vstore16(convert_uchar16(select((int16)(0), w, valid)), 0, arm + 3 * AP + o + x0);
+            }
+        }
+        const int yc = t - MAX_ARM;
+        if (yc >= 0 && yc < H) {
+            /* |U_d(p)| of row yc: row counts l + r + 1 of the rows of U_d(p) */
+            const size_t oc = (size_t)(yc % CBCA_NARM) * WR;
+            for (int c = c0; c < nch; ++c) {
+                const int x0 = c * VW;
+                const int16 u = convert_int16(vload16(0, arm + 2 * AP + oc + x0));
+                const int16 w = convert_int16(vload16(0, arm + 3 * AP + oc + x0));
+                int16 cnt = (int16)(0);
+#pragma unroll
+                for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {
+                    const size_t ok = (size_t)(clamp(yc + k, 0, H - 1) % CBCA_NARM) * WR + x0;
+                    const int16 rc = convert_int16(vload16(0, arm + ok)) + convert_int16(vload16(0, arm + AP + ok)) +
+                                     (int16)(1);
+                    const int16 take = ((int16)(k) >= -u) & ((int16)(k) <= w);
+                    cnt += select((int16)(0), rc, take);
+                }
+                vstore16(convert_float16(max(cnt, (int16)(1))), 0, cnts + (size_t)(yc % CBCA_NCNT) * WR + x0);
+            }
+        }
+        for (int i = 1; i <= iters; ++i) {
+            const int yin = t - (i - 1) * MAX_ARM; /* input row of iteration i */
+            const int yo = yin - MAX_ARM;          /* output row of iteration i */
+            if (yo >= H)
+                continue; /* iteration i is done */
+            if (yin < 0)
+                break; /* neither it nor the later ones have started */
+            __global float *rg = rsum + (size_t)(i - 1) * CBCA_NRS * WR;
+            if (yin < H) { /* row sums of row yin (in xc) into its ring slot */
+                __global float *rs = rg + (size_t)(yin % CBCA_NRS) * WR;
+                const size_t oa = (size_t)(yin % CBCA_NARM) * WR;
+                for (int c = c0; c < nch; ++c) {
+                    const int x0 = c * VW;
+                    const int16 l = convert_int16(vload16(0, arm + oa + x0));
+                    const int16 r = convert_int16(vload16(0, arm + AP + oa + x0));
+                    __global const vol_t *p = xc + x0;
+                    float16 s = (float16)(0.0f);
+#define CBCA_LOAD_X(k) VOL_LOAD16(p + (k))
+                    CBCA_MASKED_SUM(s, CBCA_LOAD_X, l, r);
+#undef CBCA_LOAD_X
+                    vstore16(s, 0, rs + x0);
+                }
+            }
+            if (yo < 0)
+                break; /* no output row yet: no input for iteration i + 1 */
+            /* output row yo: column sums of the row sums over the rows of U_d(p) */
+            const size_t oa = (size_t)(yo % CBCA_NARM) * WR;
+            __global const float *cn = cnts + (size_t)(yo % CBCA_NCNT) * WR;
+            const int last = i == iters;
+            const size_t orow = VIDX(d, yo, 0, H, W);
+            int rk[2 * MAX_ARM + 1]; /* ring offsets of rows yo - A .. yo + A (clamped into the image) */
+            for (int k = -MAX_ARM; k <= MAX_ARM; ++k)
+                rk[k + MAX_ARM] = (clamp(yo + k, 0, H - 1) % CBCA_NRS) * WR;
+            if (last)
+                for (int c = 0; c < c0; ++c)
+                    vol_store16_partial((float16)(INVALID_COST), dst + orow + c * VW, min(VW, W - c * VW));
+            for (int c = c0; c < nch; ++c) {
+                const int x0 = c * VW;
+                const int16 u = convert_int16(vload16(0, arm + 2 * AP + oa + x0));
+                const int16 w = convert_int16(vload16(0, arm + 3 * AP + oa + x0));
+                float16 s = (float16)(0.0f);
+#define CBCA_LOAD_R(k) vload16(0, rg + rk[(k) + MAX_ARM] + x0)
+                CBCA_MASKED_SUM(s, CBCA_LOAD_R, u, w);
+#undef CBCA_LOAD_R
+                float16 res = s / vload16(0, cn + x0);
+                if (x0 < d)
+                    res = select((float16)(INVALID_COST), res, (int16)(x0) + LANES >= (int16)(d));
+                if (last)
+                    vol_store16_partial(res, dst + orow + x0, min(VW, W - x0));
+                else
+                    vol_store16_partial(res, xc + x0, VW);
+            }
+        }
+    }
+}
+#undef CBCA_MASKED_SUM
 #endif /* MAX_ARM <= CBCA_SHORT_MAX */

@@ -98,6 +98,8 @@ from .disparity import volume_bytes
 SHORT_MAX = 8
 _VW = 16  # float16 lanes
 _GROUPS = 8  # 16-column groups per work-item of cbca_columns_short (CBCA_GROUPS)
+#: Iterations per launch of cbca_fused_multi_short (CBCA_K; its scratch grows with it).
+MULTI_K = 4
 
 
 class CBCA:
@@ -122,7 +124,7 @@ class CBCA:
     scratch_volumes = 0
 
     def __init__(self, ctx, max_arm: int = ARM_LIMIT, short: bool = True, fused: bool | None = None,
-                 half: bool = False):
+                 half: bool = False, multi: bool | None = None):
         self.ctx = ctx
         self.short = bool(short)
         if fused is None:
@@ -134,13 +136,17 @@ class CBCA:
                 # the reference: the two-pass kernels there (tests/test_half.py)
                 fused = False
         self.fused = bool(fused)
+        if multi is None:
+            multi = bool(ctx.device.type & ctx.cl.device_type.CPU)
+        self.multi = bool(multi)
         self.half = bool(half)
         self._kernels = {}
         self._ring = None  # (nbytes, row-sum ring, count ring) of cbca_fused_short
+        self._multi = None  # (sizes, [float, byte, row scratch]) of cbca_fused_multi_short
         self._get(max_arm)
 
     @staticmethod
-    def scratch_bytes(D, W, max_arm=ARM_LIMIT, short=True, fused=True) -> int:
+    def scratch_bytes(D, W, max_arm=ARM_LIMIT, short=True, fused=True, multi=True) -> int:
         """Device bytes of the scratch a call allocates (and keeps for the next
         calls): the fused short-arm path's rings, D x (2 max_arm + 1) x W
         float32 row sums + as many byte counts (9.8 MB for D = 228, W = 1232,
@@ -148,6 +154,8 @@ class CBCA:
         max_arm = int(max_arm)
         if not (short and fused and max_arm <= SHORT_MAX):
             return 0
+        if multi:
+            return sum(_multi_scratch(D, W, max_arm))
         return 5 * int(D) * (2 * max_arm + 1) * int(W)
 
     def _get(self, max_arm):
@@ -156,9 +164,14 @@ class CBCA:
             raise InputError(f"max_arm must be in [0, {ARM_LIMIT}], got {max_arm}")
         short = max_arm <= SHORT_MAX and self.short
         fused = short and self.fused
-        k = self._kernels.get((max_arm, short, fused))
+        multi = fused and self.multi
+        k = self._kernels.get((max_arm, short, fused, multi))
         if k is None:
-            if fused:
+            if multi:
+                kern = self.ctx.kernel("cbca.cl", "cbca_fused_multi_short", MAX_ARM=max_arm, CBCA_K=MULTI_K,
+                                       VOL_HALF=int(self.half))
+                k = [(kern, scan_local_size(self.ctx, kern))]
+            elif fused:
                 kern = self.ctx.kernel("cbca.cl", "cbca_fused_short", MAX_ARM=max_arm, CBCA_GROUPS=_GROUPS,
                                        VOL_HALF=int(self.half))
                 k = [(kern, scan_local_size(self.ctx, kern))]
@@ -169,8 +182,8 @@ class CBCA:
                 k = [self.ctx.kernel("cbca.cl", "cbca_rows" + suffix, **defs),
                      self.ctx.kernel("cbca.cl", "cbca_columns" + suffix, **defs)]
                 k = [(kern, scan_local_size(self.ctx, kern)) for kern in k]
-            k = (k, short, fused)
-            self._kernels[(max_arm, short, fused)] = k
+            k = (k, short, fused, multi)
+            self._kernels[(max_arm, short, fused, multi)] = k
         return k
 
     def _rings(self, D, W, max_arm):
@@ -182,6 +195,14 @@ class CBCA:
             cring = self.ctx.empty(nbytes // 5, "CBCA count ring")
             self._ring = (nbytes, ring, cring)
         return self._ring[1], self._ring[2]
+
+    def _multi_scratch(self, D, W, max_arm):
+        """cbca_fused_multi_short's scratch buffers (kept and reused while large enough)."""
+        sizes = _multi_scratch(D, W, max_arm)
+        if self._multi is None or any(a < b for a, b in zip(self._multi[0], sizes)):
+            self._multi = None
+            self._multi = (sizes, [self.ctx.empty(n, f"CBCA multi scratch {i}") for i, n in enumerate(sizes)])
+        return self._multi[1]
 
     def __call__(self, d_cost, d_arms_left, d_arms_right, D, H, W, iterations=4, max_arm=ARM_LIMIT,
                  out=None):
@@ -198,13 +219,24 @@ class CBCA:
         nbytes = volume_bytes(self.half) * D * H * W
         if out is None:
             out = self.ctx.empty(nbytes, "CBCA output volume")
-        kerns, short, fused = self._get(max_arm)
+        kerns, short, fused, multi = self._get(max_arm)
         if iterations == 0:
             if out is not d_cost:
                 self.ctx.cl.enqueue_copy(self.ctx.queue, out, d_cost, byte_count=nbytes)
             return out
         dims = (np.int32(D), np.int32(H), np.int32(W))
         src = d_cost
+        if multi:
+            (k_multi, l_multi), = kerns
+            scratch = self._multi_scratch(D, W, max_arm)
+            done = 0
+            while done < iterations:
+                n = min(MULTI_K, iterations - done)
+                launch(self.ctx, "CBCA", k_multi, (round_up(D, l_multi),), (l_multi,),
+                       src, out, *scratch, d_arms_left, d_arms_right, *dims, np.int32(n))
+                src = out
+                done += n
+            return out
         if fused:
             (k_fused, l_fused), = kerns
             ring, cring = self._rings(D, W, max_arm)
@@ -222,3 +254,16 @@ class CBCA:
                    out, d_arms_left, d_arms_right, *dims)
             src = out
         return out
+
+
+def _multi_scratch(D, W, max_arm, k=MULTI_K):
+    """Bytes of cbca_fused_multi_short's three scratch buffers (kernels/cbca.cl):
+    per plane, with WR = W rounded up to 16 and A = max_arm,
+    k (2A + 1) + (k - 1) A + 1 float rows (row sums, counts),
+    4 (max(k, 2) A + 1) byte rows (arms) and one row of WR + 2A cells (float32
+    size, an upper bound for half volumes)."""
+    D, A = int(D), int(max_arm)
+    WR = -(-int(W) // _VW) * _VW
+    nf = k * (2 * A + 1) + (k - 1) * A + 1
+    nb = 4 * (max(k, 2) * A + 1)
+    return (4 * D * nf * WR, D * nb * WR, 4 * D * (WR + 2 * A))
