@@ -191,7 +191,7 @@ def case_refine(ctx, rng, chk):
     from mccnn_cl.reference import disparity as ref
     from mccnn_cl.stages.refine import BilateralFilter, Enlarge, MedianFilter
 
-    H, W, m = 4, 13, 4
+    H, W, m = 4, 29, 4  # 37 columns: the bilateral kernel has an interior 16-px chunk at radius 3
     Ho, Wo = H + 2 * m, W + 2 * m
     Dm = (rng.random((H, W)) * 5).astype(np.float32)
     d_D = ctx.to_device(Dm)

@@ -87,6 +87,6 @@ class BilateralFilter:
             self._taps[key] = self.ctx.to_device(gaussian_taps(sigma, radius))
         if out is None:
             out = self.ctx.empty(H * W * _F32, "D_BF")
-        launch(self.ctx, "bilateral filter", self.kernel, (W, H), d_disp, d_guide, self._taps[key], out,
+        launch(self.ctx, "bilateral filter", self.kernel, (-(-W // 16), H), d_disp, d_guide, self._taps[key], out,
                np.int32(H), np.int32(W), np.int32(radius), np.float32(tau))
         return out
