@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .cl import ClContext
+from .cl import BufferPool, ClContext
 from .errors import InputError, WeightsError
 from .stages.census import CensusCost
 from .stages.cross import CrossArms, max_arm
@@ -79,6 +79,12 @@ class MemoryPlan:
     host_bytes: int
     tile_budget: int
     tiled: bool
+
+    @property
+    def largest_volume(self) -> int:
+        """Bytes of the largest volume buffer a call makes (one tile's when tiled)."""
+        rows = max(c1 for _, c1, _, _ in self.tiles)
+        return self.volume_bytes // rows * max(e1 - e0 for _, _, e0, e1 in self.tiles)
 
     def describe(self) -> str:
         mib = 2 ** 20
@@ -324,6 +330,17 @@ class StereoMatcher:
         self.enlarge = Enlarge(ctx)
         self.median = MedianFilter(ctx, self.params.median_size)
         self.bilateral = BilateralFilter(ctx)
+        # cost volumes are reused between stages and calls (see release_buffers)
+        self._pool = BufferPool(ctx)
+
+    def release_buffers(self) -> None:
+        """Free the device volumes kept from the last :meth:`compute` (up to
+        three, ``memory_plan(shape).peak_bytes`` at most).  They are kept so
+        that the next call of the same size reuses them: on CPU devices a fresh
+        volume's first write costs several times a pass over it (first-touch
+        page mapping; ~0.6 s per call on the KITTI pair on PoCL).  Calls of
+        another size free them on their own."""
+        self._pool.clear()
 
     # -- input checks ------------------------------------------------------
     def _inputs(self, left, right):
@@ -349,24 +366,29 @@ class StereoMatcher:
         """
         I_L, I_R = self._inputs(left, right)
         rec = _Recorder(self.ctx, keep=return_intermediates, timed=return_intermediates or timings)
+        plan = self.memory_plan(I_L.shape)
+        self._pool.trim(plan.largest_volume)  # kept volumes of another size are freed
         self.ctx.memory.reset_peak()
-        base = self.ctx.memory.live  # buffers alive before the call (weights, other matchers' ...)
-        out = self._run(I_L, I_R, rec)
+        # buffers alive before the call (weights, other matchers' ...), less the
+        # kept volumes this call reuses (they count in its peak)
+        base = self.ctx.memory.live - self._pool.free_bytes
+        out = self._run(I_L, I_R, rec, plan)
         if not (return_intermediates or timings):
             return out
         return StereoResult(out, rec.arrays, rec.times, self.margin, rec.plan, self.ctx.memory.peak - base)
 
-    def _run(self, I_L, I_R, rec):
+    def _run(self, I_L, I_R, rec, plan):
         ctx, m, D = self.ctx, self.margin, self.max_disparity
         Hi, Wi = I_L.shape
         H, W = Hi - 2 * m, Wi - 2 * m
-        plan = rec.plan = self.memory_plan(I_L.shape)
+        rec.plan = plan
         d_I_L = ctx.to_device(I_L)                    # I^L, image size (bilateral)
         J_L = I_L[m:m + H, m:m + W]                   # I^L, I^R on the cost volume's domain
         J_R = I_R[m:m + H, m:m + W]
         rec.start()
         if not plan.tiled:
-            C_CNN = rec("C_CNN", self._matching_cost(I_L, I_R, D), (D, H, W), self.vdtype)
+            C_CNN = rec("C_CNN", self._matching_cost(I_L, I_R, D, out=self._take_volume(D, H, W)), (D, H, W),
+                        self.vdtype)
             D_SE = self._volume_stages(C_CNN, J_L, J_R, rec)
         else:
             D_SE = ctx.to_device(self._tiled_volume_stages(I_L, I_R, J_L, J_R, plan, rec))
@@ -388,21 +410,27 @@ class StereoMatcher:
             log.info("tile %d/%d: volume rows %d..%d (core %d..%d)", i + 1, len(plan.tiles), e0, e1, c0, c1)
             rec.tile(c0 - e0, c1 - e0, c0, (H, W))
             if host is None:
-                d_cost = rec("C_CNN", self.cost(I_L[e0:e1 + 2 * m], I_R[e0:e1 + 2 * m], D))
+                d_cost = rec("C_CNN", self.cost(I_L[e0:e1 + 2 * m], I_R[e0:e1 + 2 * m], D,
+                                                out=self._take_volume(D, e1 - e0, W)))
             else:
-                d_cost = ctx.empty(D * (e1 - e0) * W * self.vdtype.itemsize, "cost volume tile")
+                d_cost = self._take_volume(D, e1 - e0, W)
                 ctx.cl.enqueue_copy(ctx.queue, d_cost, np.ascontiguousarray(host[:, e0:e1]))
                 rec("C_CNN_upload", d_cost)
-            d_se = self._volume_stages(d_cost, J_L[e0:e1], J_R[e0:e1], rec)
+            d_se = self._volume_stages(d_cost, J_L[e0:e1], J_R[e0:e1], rec)  # gives d_cost back
             del d_cost
             D_SE[c0:c1] = ctx.from_device(d_se, (e1 - e0, W))[c0 - e0:c1 - e0]
         rec.tile(None)
         return D_SE
 
+    def _take_volume(self, D, H, W):
+        """A D x H x W volume buffer (a kept one when one is free)."""
+        return self._pool.take(D * H * W * self.vdtype.itemsize, "cost volume")
+
     def _volume_stages(self, C_CNN, J_L, J_R, rec):
         """C_CNN (device, D x h x W) through CBCA, SGM, CBCA, WTA, the left-right
         check, interpolation and subpixel enhancement; returns D_SE (device).
-        ``J_L``, ``J_R``: the images on the volume's domain (host, h x W)."""
+        ``J_L``, ``J_R``: the images on the volume's domain (host, h x W).
+        C_CNN's buffer and every volume made here go back to the pool."""
         p, ctx, D = self.params, self.ctx, self.max_disparity
         H, W = J_L.shape
         vol, crop = (D, H, W), (H, W)
@@ -412,14 +440,14 @@ class StereoMatcher:
         # to the host before the next stage overwrites it.
         arm = max_arm(p.cbca_eta, p.cross_include_neighbor)
         if p.right_reference == "aggregated":  # taken before CBCA overwrites C_CNN
-            C_R = rec("right_volume", self.right_ref.volume(C_CNN, D, H, W))
+            C_R = rec("right_volume", self.right_ref.volume(C_CNN, D, H, W, out=self._take_volume(D, H, W)))
         arms_L = self.cross(d_J_L, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
         arms_R = rec("cross", self.cross(d_J_R, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor))
         C_CBCA = rec("C_CBCA", self.cbca(C_CNN, arms_L, arms_R, D, H, W, p.cbca_iterations, arm, out=C_CNN), vol, self.vdtype)
         C_SGM = rec("C_SGM", self.sgm(C_CBCA, d_J_L, d_J_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                       p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
-                                      p.sgm_outside_large), vol, self.vdtype)
-        C_CBCA.release()  # C_CNN's buffer, aggregated in place; no longer needed
+                                      p.sgm_outside_large, out=self._take_volume(D, H, W)), vol, self.vdtype)
+        self._pool.give(C_CBCA)  # C_CNN's buffer, aggregated in place; free for the right SGM
         C = rec("C", self.cbca(C_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm, out=C_SGM), vol, self.vdtype)
         D_L = rec("D_L", self.wta.left(C, D, H, W), crop, np.int32)
         if p.right_reference == "derived":
@@ -428,7 +456,9 @@ class StereoMatcher:
             D_R = rec("D_R", self._right_reference(C_R, J_L, J_R, rec), crop, np.int32)
         labels = rec("labels", self.lr_check(D_L, D_R, D, H, W, p.lr_threshold), crop, np.int32)
         D_INT = rec("D_INT", self.interpolate(D_L, labels, H, W, p.interpolation), crop, np.int32)
-        return rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp), crop)
+        D_SE = rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp), crop)
+        self._pool.give(C)  # the in-order queue runs any later user after subpixel
+        return D_SE
 
     def _map_stages(self, D_SE, d_I_L, Hi, Wi, rec):
         """D_SE (device, cropped domain) -> enlarged, median, bilateral: D_BF (host)."""
@@ -456,19 +486,22 @@ class StereoMatcher:
         C_R = rec("C_R_CBCA", self.cbca(C_R, arms_L, arms_R, D, H, W, p.cbca_iterations, arm, out=C_R))
         C_R_SGM = rec("C_R_SGM", self.sgm(C_R, d_K_L, d_K_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                           p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
-                                          p.sgm_outside_large))
-        C_R.release()
+                                          p.sgm_outside_large, out=self._take_volume(D, H, W)))
+        self._pool.give(C_R)
         C_R = rec("C_R", self.cbca(C_R_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm, out=C_R_SGM),
                   (D, H, W), self.vdtype)
-        return self.right_ref.mirror(self.wta.left(C_R, D, H, W), H, W)
+        D_R = self.right_ref.mirror(self.wta.left(C_R, D, H, W), H, W)
+        self._pool.give(C_R)
+        return D_R
 
-    def _matching_cost(self, I_L, I_R, D, to_host=None):
-        """C_CNN on the device, or with ``to_host`` (bytes of device memory the
-        bands may use; network only) as a host array computed band by band."""
+    def _matching_cost(self, I_L, I_R, D, to_host=None, out=None):
+        """C_CNN on the device (into ``out`` when given), or with ``to_host``
+        (bytes of device memory the bands may use; network only) as a host
+        array computed band by band."""
         def run(progress=None):
             if to_host is not None:
                 return self.cost.to_host(I_L, I_R, D, max_bytes=to_host, progress=progress)
-            return self.cost(I_L, I_R, D, progress=progress)
+            return self.cost(I_L, I_R, D, progress=progress, out=out)
 
         if not self.progress:
             return run()
