@@ -498,6 +498,18 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
 #define CBCA_NARM ((CBCA_K > 2 ? CBCA_K : 2) * MAX_ARM + 1) /* arms of rows t - K A .. t (and t - 2 A) */
 #define CBCA_NCNT ((CBCA_K - 1) * MAX_ARM + 1)              /* counts of rows t - K A .. t - A */
 
+/* Aligned 16-lane access to the scratch rows (every scratch row and chunk
+ * starts at a multiple of 16 elements from a buffer's base, which OpenCL
+ * aligns to at least 128 bytes): one vector load/store, where vstore16 on an
+ * unaligned pointer is split up (bytes one by one on PoCL). */
+#define SCR_F16(p) (*(__global float16 *)(p))
+#define SCR_U16(p) (*(__global uchar16 *)(p))
+#if VOL_HALF
+#define XROW_STORE16(p, v) vol_store16_partial((v), (p), VW)
+#else
+#define XROW_STORE16(p, v) (SCR_F16(p) = (v))
+#endif
+
 /* Masked running sum of the 2 MAX_ARM + 1 vectors LOAD(k), k = -MAX_ARM ..
  * MAX_ARM in order: term k < 0 taken where NEG >= -k, k > 0 where POS >= k. */
 #define CBCA_MASKED_SUM(s, LOAD, NEG, POS)                                        \
@@ -530,15 +542,15 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
         return;
     const int nch = (W + VW - 1) / VW;
     const int WR = nch * VW;
-    const int WP = WR + 2 * MAX_ARM;
+    const int WP = WR + 2 * VW;
     __global float *rsum = fscr + (size_t)d * (CBCA_K * CBCA_NRS + CBCA_NCNT) * (size_t)WR;
     __global float *cnts = rsum + (size_t)CBCA_K * CBCA_NRS * WR;
     __global uchar *arm = bscr + (size_t)d * 4 * CBCA_NARM * (size_t)WR; /* [l, r, u, w][NARM][WR] */
     __global vol_t *xin = xscr + (size_t)d * WP;
-    __global vol_t *xc = xin + MAX_ARM; /* xc[x]: cell x of the current input row */
-    for (int i = 0; i < MAX_ARM; ++i)  /* padding: read under masks only, defined zeros */
+    __global vol_t *xc = xin + VW; /* xc[x]: cell x of the current input row (aligned) */
+    for (int i = 0; i < VW; ++i)  /* padding: read under masks only, defined zeros */
         VOL_SET(xin, i, 0.0f);
-    for (int i = MAX_ARM + W; i < WP; ++i)
+    for (int i = VW + W; i < WP; ++i)
         VOL_SET(xin, i, 0.0f);
     const int c0 = min(d, W) / VW; /* chunks before c0 hold no valid cell */
     const size_t AP = (size_t)CBCA_NARM * WR; /* one arm direction's ring */
@@ -554,7 +566,11 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
 #else
             for (int c = 0; c < nch; ++c) {
                 const int x0 = c * VW;
-                store16_partial(load16_partial(src + row, x0, min(VW, W - x0), 0.0f), xc + x0, min(VW, W - x0));
+                const int n = min(VW, W - x0);
+                if (n == VW)
+                    XROW_STORE16(xc + x0, vload16(0, src + row + x0));
+                else
+                    store16_partial(load16_partial(src + row, x0, n, 0.0f), xc + x0, n);
             }
 #endif
             /* combined arms of row t, capped at the borders, 0 in invalid lanes */
@@ -569,10 +585,10 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                 const int16 r = CBCA_COMBINED16(ARM_RIGHT, it, min((int16)(MAX_ARM), (int16)(W - 1) - xs));
                 const int16 u = CBCA_COMBINED16(ARM_UP, it, (int16)(min(MAX_ARM, t)));
                 const int16 w = CBCA_COMBINED16(ARM_DOWN, it, (int16)(min(MAX_ARM, H - 1 - t)));
-                vstore16(convert_uchar16(select((int16)(0), l, valid)), 0, arm + o + x0);
-                vstore16(convert_uchar16(select((int16)(0), r, valid)), 0, arm + AP + o + x0);
-                vstore16(convert_uchar16(select((int16)(0), u, valid)), 0, arm + 2 * AP + o + x0);
-                vstore16(convert_uchar16(select((int16)(0), w, valid)), 0, arm + 3 * AP + o + x0);
+                SCR_U16(arm + o + x0) = convert_uchar16(select((int16)(0), l, valid));
+                SCR_U16(arm + AP + o + x0) = convert_uchar16(select((int16)(0), r, valid));
+                SCR_U16(arm + 2 * AP + o + x0) = convert_uchar16(select((int16)(0), u, valid));
+                SCR_U16(arm + 3 * AP + o + x0) = convert_uchar16(select((int16)(0), w, valid));
             }
         }
         const int yc = t - MAX_ARM;
@@ -581,18 +597,17 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
             const size_t oc = (size_t)(yc % CBCA_NARM) * WR;
             for (int c = c0; c < nch; ++c) {
                 const int x0 = c * VW;
-                const int16 u = convert_int16(vload16(0, arm + 2 * AP + oc + x0));
-                const int16 w = convert_int16(vload16(0, arm + 3 * AP + oc + x0));
+                const int16 u = convert_int16(SCR_U16(arm + 2 * AP + oc + x0));
+                const int16 w = convert_int16(SCR_U16(arm + 3 * AP + oc + x0));
                 int16 cnt = (int16)(0);
 #pragma unroll
                 for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {
                     const size_t ok = (size_t)(clamp(yc + k, 0, H - 1) % CBCA_NARM) * WR + x0;
-                    const int16 rc = convert_int16(vload16(0, arm + ok)) + convert_int16(vload16(0, arm + AP + ok)) +
-                                     (int16)(1);
+                    const int16 rc = convert_int16(SCR_U16(arm + ok)) + convert_int16(SCR_U16(arm + AP + ok)) + (int16)(1);
                     const int16 take = ((int16)(k) >= -u) & ((int16)(k) <= w);
                     cnt += select((int16)(0), rc, take);
                 }
-                vstore16(convert_float16(max(cnt, (int16)(1))), 0, cnts + (size_t)(yc % CBCA_NCNT) * WR + x0);
+                SCR_F16(cnts + (size_t)(yc % CBCA_NCNT) * WR + x0) = convert_float16(max(cnt, (int16)(1)));
             }
         }
         for (int i = 1; i <= iters; ++i) {
@@ -608,14 +623,14 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                 const size_t oa = (size_t)(yin % CBCA_NARM) * WR;
                 for (int c = c0; c < nch; ++c) {
                     const int x0 = c * VW;
-                    const int16 l = convert_int16(vload16(0, arm + oa + x0));
-                    const int16 r = convert_int16(vload16(0, arm + AP + oa + x0));
+                    const int16 l = convert_int16(SCR_U16(arm + oa + x0));
+                    const int16 r = convert_int16(SCR_U16(arm + AP + oa + x0));
                     __global const vol_t *p = xc + x0;
                     float16 s = (float16)(0.0f);
 #define CBCA_LOAD_X(k) VOL_LOAD16(p + (k))
                     CBCA_MASKED_SUM(s, CBCA_LOAD_X, l, r);
 #undef CBCA_LOAD_X
-                    vstore16(s, 0, rs + x0);
+                    SCR_F16(rs + x0) = s;
                 }
             }
             if (yo < 0)
@@ -633,19 +648,19 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                     vol_store16_partial((float16)(INVALID_COST), dst + orow + c * VW, min(VW, W - c * VW));
             for (int c = c0; c < nch; ++c) {
                 const int x0 = c * VW;
-                const int16 u = convert_int16(vload16(0, arm + 2 * AP + oa + x0));
-                const int16 w = convert_int16(vload16(0, arm + 3 * AP + oa + x0));
+                const int16 u = convert_int16(SCR_U16(arm + 2 * AP + oa + x0));
+                const int16 w = convert_int16(SCR_U16(arm + 3 * AP + oa + x0));
                 float16 s = (float16)(0.0f);
-#define CBCA_LOAD_R(k) vload16(0, rg + rk[(k) + MAX_ARM] + x0)
+#define CBCA_LOAD_R(k) SCR_F16(rg + rk[(k) + MAX_ARM] + x0)
                 CBCA_MASKED_SUM(s, CBCA_LOAD_R, u, w);
 #undef CBCA_LOAD_R
-                float16 res = s / vload16(0, cn + x0);
+                float16 res = s / SCR_F16(cn + x0);
                 if (x0 < d)
                     res = select((float16)(INVALID_COST), res, (int16)(x0) + LANES >= (int16)(d));
                 if (last)
                     vol_store16_partial(res, dst + orow + x0, min(VW, W - x0));
                 else
-                    vol_store16_partial(res, xc + x0, VW);
+                    XROW_STORE16(xc + x0, res);
             }
         }
     }
