@@ -3,7 +3,10 @@
  * numpy twins in mccnn_cl/reference/disparity.py.
  *
  * Required define: MEDIAN_SIZE (odd side of the median window; sizes the
- * private array of the median kernel).
+ * private array of the median kernel).  Optional: MEDIAN_NET, a selection
+ * network for MEDIAN_SIZE^2 values as a list of MEDIAN_CE(i, j) steps
+ * (mccnn_cl/stages/refine.py, median_network), which the vector median
+ * kernel requires.
  */
 #include "common.h"
 
@@ -66,6 +69,55 @@ __kernel void refine_median(
     }
     out[(size_t)y * W + x] = v[MEDIAN_COUNT / 2];
 }
+
+/* The same median, 16 consecutive pixels of a row per work-item on float16
+ * lanes, through a selection network (MEDIAN_NET: compare-exchange steps
+ * MEDIAN_CE(i, j) leaving the middle value of v[0 .. MEDIAN_COUNT - 1] in
+ * v[MEDIAN_COUNT / 2]; generated and checked by mccnn_cl/stages/refine.py).
+ * Min and max move values without arithmetic, so the result is the same
+ * value the sorting kernel above picks.  Global size (ceil(W / 16), H). */
+#ifdef MEDIAN_NET
+#define MEDIAN_CE(i, j)                  \
+    {                                    \
+        const float16 a_ = v[i];         \
+        v[i] = fmin(a_, v[j]);           \
+        v[j] = fmax(a_, v[j]);           \
+    }
+__kernel void refine_median16(
+    __global const float *in, /* H x W */
+    __global float *out,      /* out: H x W */
+    const int H,              /* rows */
+    const int W)              /* columns */
+{
+    const int xc = get_global_id(0) * 16;
+    const int y = get_global_id(1);
+    if (xc >= W || y >= H)
+        return;
+    const int16 xs = (int16)(xc) + (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const bool interior = xc - MEDIAN_RADIUS >= 0 && xc + 16 + MEDIAN_RADIUS <= W;
+    float16 v[MEDIAN_COUNT];
+    int n = 0;
+#pragma unroll
+    for (int dy = -MEDIAN_RADIUS; dy <= MEDIAN_RADIUS; dy++) {
+        __global const float *row = in + (size_t)clamp(y + dy, 0, H - 1) * W;
+#pragma unroll
+        for (int dx = -MEDIAN_RADIUS; dx <= MEDIAN_RADIUS; dx++) {
+            if (interior) {
+                v[n++] = vload16(0, row + xc + dx);
+            } else { /* clamp to the border per lane */
+                int xx[16];
+                vstore16(clamp(xs + (int16)(dx), (int16)(0), (int16)(W - 1)), 0, xx);
+                float t[16];
+                for (int i = 0; i < 16; ++i)
+                    t[i] = row[xx[i]];
+                v[n++] = vload16(0, t);
+            }
+        }
+    }
+    MEDIAN_NET
+    store16_partial(v[MEDIAN_COUNT / 2], out + (size_t)y * W + xc, min(16, W - xc));
+}
+#endif
 
 /* Bilateral filter (paper):
  *   D_BF(p) = sum_q D(q) g(|p - q|) 1{|G(p) - G(q)| < tau} / W(p)

@@ -203,6 +203,9 @@ def case_refine(ctx, rng, chk):
     MedianFilter(ctx, 5)(d_big, Ho, Wo, out=d_med)
     med = ref.median_filter(big, 5)
     chk.close("median 5", ctx.from_device(d_med, (Ho, Wo)), med)
+    d_med3 = _poisoned(ctx, Ho * Wo * 4)
+    MedianFilter(ctx, 3, vector=False)(d_big, Ho, Wo, out=d_med3)  # the sorting kernel
+    chk.close("median 3 (sorting)", ctx.from_device(d_med3, (Ho, Wo)), ref.median_filter(big, 3))
     guide = rng.random((Ho, Wo)).astype(np.float32)
     d_bf = _poisoned(ctx, Ho * Wo * 4)
     BilateralFilter(ctx)(d_med, ctx.to_device(guide), Ho, Wo, sigma=2.0, tau=0.3, radius=3, out=d_bf)
@@ -348,7 +351,7 @@ CASE_KERNELS = {
     "sgm": {"sgm_rows", "sgm_columns"},
     "disparity": {"disparity_wta_left", "disparity_wta_right", "disparity_lr_check",
                   "disparity_right_volume", "disparity_mirror", "interpolate_fill", "subpixel_refine"},
-    "refine": {"refine_enlarge", "refine_median", "refine_bilateral"},
+    "refine": {"refine_enlarge", "refine_median", "refine_median16", "refine_bilateral"},
     "half": {"network_head", "network_mark_invalid", "census_cost", "cbca_fused_short", "cbca_rows_short",
              "cbca_columns_short", "sgm_rows", "sgm_columns", "disparity_wta_left", "disparity_right_volume",
              "subpixel_refine"},

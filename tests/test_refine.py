@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from mccnn_cl.reference import disparity as ref
-from mccnn_cl.stages.refine import BilateralFilter, Enlarge, MedianFilter, bilateral_radius
+from mccnn_cl.stages.refine import BilateralFilter, Enlarge, MedianFilter, bilateral_radius, median_network
 
 from conftest import POISON
 
@@ -34,10 +34,39 @@ def run_enlarge(ctx, D, margin, shape):
     return ctx.from_device(out, shape)
 
 
-def run_median(ctx, D, size=5):
+def run_median(ctx, D, size=5, vector=None):
     H, W = D.shape
-    out = MedianFilter(ctx, size)(ctx.to_device(D), H, W, out=poisoned(ctx, H * W * 4))
+    out = MedianFilter(ctx, size, vector)(ctx.to_device(D), H, W, out=poisoned(ctx, H * W * 4))
     return ctx.from_device(out, (H, W))
+
+
+def _wire(w: int, n: int) -> np.ndarray:
+    """Bit w of every n-bit input 0 .. 2^n - 1, packed: bit k of the result is (k >> w) & 1."""
+    if w >= 6:  # runs of whole 64-bit words
+        run = 1 << (w - 6)
+        return np.tile(np.repeat(np.array([0, ~np.uint64(0)], np.uint64), run), (1 << n) // (128 * run))
+    word = np.uint64(sum(1 << k for k in range(64) if (k >> w) & 1))
+    return np.full((1 << n) // 64, word, np.uint64)
+
+
+@pytest.mark.parametrize("count", [9, 25])
+def test_median_network_selects_the_middle_of_every_01_input(count):
+    """0-1 principle: a comparator network puts the k-th smallest value at
+    output k for every input iff it does so for every input of 0s and 1s.
+    All 2^count 0/1 inputs at once, one bit per input: output count // 2 must
+    be 1 exactly when the input has more than count // 2 ones."""
+    v = [_wire(w, count) for w in range(count)]
+    for i, j in median_network(count):
+        v[i], v[j] = v[i] & v[j], v[i] | v[j]
+    idx = np.arange(1 << count, dtype=np.uint32)
+    ones = np.zeros(idx.size, np.uint8)
+    table = np.array([bin(b).count("1") for b in range(256)], np.uint8)
+    for b in idx.view(np.uint8).reshape(-1, 4).T:
+        ones += table[b]
+    want = np.packbits(ones > count // 2, bitorder="little").view(np.uint64)
+    np.testing.assert_array_equal(v[count // 2], want)
+    # and it is not a trivially short network
+    assert len(median_network(count)) > count
 
 
 def run_bilateral(ctx, D, guide, sigma, tau, radius=None):
@@ -70,20 +99,33 @@ def test_enlarge(ctx, H, W, margin, shape):
     np.testing.assert_array_equal(out[margin:margin + H, margin:margin + W], D)
 
 
-@pytest.mark.parametrize("H,W,size", [(37, 53, 5), (1, 17, 5), (4, 3, 5), (21, 19, 3), (9, 9, 1)])
-def test_median_random(ctx, H, W, size):
+@pytest.mark.parametrize("vector", [True, False])
+@pytest.mark.parametrize("H,W,size", [(37, 53, 5), (1, 17, 5), (4, 3, 5), (21, 19, 3), (9, 9, 1), (6, 70, 5)])
+def test_median_random(ctx, H, W, size, vector):
+    """Both kernels; 53 and 70 columns give the vector kernel interior 16-px
+    chunks beside its clamped border ones.  Values rounded to 0.1, so ties occur."""
     D = (np.random.default_rng(W).random((H, W), dtype=np.float32) * 50).round(1)
-    out = run_median(ctx, D, size)
+    out = run_median(ctx, D, size, vector)
     np.testing.assert_array_equal(out, ref.median_filter(D, size))
     if size == 5 and H >= 5 and W >= 5:  # same as OpenCV's replicate-border median
         np.testing.assert_array_equal(out, cv2.medianBlur(D, 5))
 
 
-def test_median_real_and_constant(ctx, kitti):
+def test_median_large_window_uses_sorting_kernel(ctx):
+    D = np.random.default_rng(7).random((12, 40), dtype=np.float32)
+    m = MedianFilter(ctx, 7)
+    assert not m.vector
+    np.testing.assert_array_equal(run_median(ctx, D, 7), ref.median_filter(D, 7))
+    with pytest.raises(ValueError):
+        MedianFilter(ctx, 7, vector=True)
+
+
+@pytest.mark.parametrize("vector", [True, False])
+def test_median_real_and_constant(ctx, kitti, vector):
     _, gt = kitti
-    np.testing.assert_array_equal(run_median(ctx, gt), ref.median_filter(gt))
+    np.testing.assert_array_equal(run_median(ctx, gt, 5, vector), ref.median_filter(gt))
     c = np.full((6, 11), 7.25, np.float32)
-    np.testing.assert_array_equal(run_median(ctx, c), c)
+    np.testing.assert_array_equal(run_median(ctx, c, 5, vector), c)
 
 
 def test_median_even_size_rejected(ctx):
