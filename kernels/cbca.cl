@@ -525,11 +525,28 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
         }                                                                         \
     } while (0)
 
+/* One chunk (n <= 16 cells) of a volume row into an aligned row buffer. */
+#if VOL_HALF
+#define CBCA_COPY_CHUNK(to, from, n)                                                   \
+    do {                                                                               \
+        for (int i_ = 0; i_ < (n); ++i_)                                               \
+            ((__global ushort *)(to))[i_] = ((__global const ushort *)(from))[i_];     \
+    } while (0)
+#else
+#define CBCA_COPY_CHUNK(to, from, n)                                                   \
+    do {                                                                               \
+        if ((n) == VW)                                                                 \
+            SCR_F16(to) = vload16(0, (from));                                          \
+        else                                                                           \
+            store16_partial(load16_partial((from), 0, (n), 0.0f), (to), (n));          \
+    } while (0)
+#endif
+
 __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W cost C^{i0} */
                                      __global vol_t *dst,          /* out: C^{i0 + iters} (may alias src) */
                                      __global float *fscr,         /* scratch: D x (K NRS + NCNT) x WR floats */
-                                     __global uchar *bscr,         /* scratch: D x 4 NARM x WR bytes */
-                                     __global vol_t *xscr,         /* scratch: D x (WR + 2 MAX_ARM) cells */
+                                     __global uchar *bscr,         /* scratch: D x 5 NARM x WR bytes */
+                                     __global vol_t *xscr,         /* scratch: D x 3 x (WR + 32) cells */
                                      __global const uchar *arms_l, /* 4 x H x W arms of the left image */
                                      __global const uchar *arms_r, /* 4 x H x W arms of the right image */
                                      const int D,                  /* disparity levels */
@@ -545,35 +562,23 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
     const int WP = WR + 2 * VW;
     __global float *rsum = fscr + (size_t)d * (CBCA_K * CBCA_NRS + CBCA_NCNT) * (size_t)WR;
     __global float *cnts = rsum + (size_t)CBCA_K * CBCA_NRS * WR;
-    __global uchar *arm = bscr + (size_t)d * 4 * CBCA_NARM * (size_t)WR; /* [l, r, u, w][NARM][WR] */
-    __global vol_t *xin = xscr + (size_t)d * WP;
-    __global vol_t *xc = xin + VW; /* xc[x]: cell x of the current input row (aligned) */
-    for (int i = 0; i < VW; ++i)  /* padding: read under masks only, defined zeros */
-        VOL_SET(xin, i, 0.0f);
-    for (int i = VW + W; i < WP; ++i)
-        VOL_SET(xin, i, 0.0f);
+    /* arm rings [l, r, u, w, row count l + r + 1][NARM][WR] */
+    __global uchar *arm = bscr + (size_t)d * 5 * CBCA_NARM * (size_t)WR;
+    const size_t AP = (size_t)CBCA_NARM * WR; /* one plane of arm rings */
+    /* row buffers (cell x at offset VW + x, aligned; VW cells of padding on
+     * each side, read under masks only): two for src rows (row t is summed
+     * while row t + 1 is fetched), one for the later iterations' input */
+    __global vol_t *xb = xscr + (size_t)d * 3 * WP;
+    for (int i = 0; i < 3 * WP; ++i)
+        VOL_SET(xb, i, 0.0f);
+    __global vol_t *xs0 = xb + VW;
+    __global vol_t *xs1 = xb + WP + VW;
+    __global vol_t *xy = xb + 2 * WP + VW;
     const int c0 = min(d, W) / VW; /* chunks before c0 hold no valid cell */
-    const size_t AP = (size_t)CBCA_NARM * WR; /* one arm direction's ring */
+    for (int c = c0; c < nch; ++c)
+        CBCA_COPY_CHUNK(xs0 + c * VW, src + VIDX(d, 0, c * VW, H, W), min(VW, W - c * VW));
     for (int t = 0; t < H + iters * MAX_ARM; ++t) {
-        if (t < H) {
-            /* src row t into the row buffer (iteration 1's input) */
-            const size_t row = VIDX(d, t, 0, H, W);
-#if VOL_HALF
-            __global const ushort *ps = (__global const ushort *)(src + row);
-            __global ushort *px = (__global ushort *)xc;
-            for (int x = 0; x < W; ++x)
-                px[x] = ps[x];
-#else
-            for (int c = 0; c < nch; ++c) {
-                const int x0 = c * VW;
-                const int n = min(VW, W - x0);
-                if (n == VW)
-                    XROW_STORE16(xc + x0, vload16(0, src + row + x0));
-                else
-                    store16_partial(load16_partial(src + row, x0, n, 0.0f), xc + x0, n);
-            }
-#endif
-            /* combined arms of row t, capped at the borders, 0 in invalid lanes */
+        if (t < H) { /* combined arms of row t, capped at the borders, 0 in invalid lanes */
             const size_t o = (size_t)(t % CBCA_NARM) * WR;
             for (int c = c0; c < nch; ++c) {
                 const int x0 = c * VW;
@@ -581,20 +586,23 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                 const int16 xs = (int16)(x0) + LANES;
                 const int16 valid = (xs >= (int16)(d)) & (LANES < (int16)(n));
                 const int it = t * W + x0;
-                const int16 l = CBCA_COMBINED16(ARM_LEFT, it, min((int16)(MAX_ARM), xs - (int16)(d)));
-                const int16 r = CBCA_COMBINED16(ARM_RIGHT, it, min((int16)(MAX_ARM), (int16)(W - 1) - xs));
+                const int16 l = select((int16)(0), CBCA_COMBINED16(ARM_LEFT, it, min((int16)(MAX_ARM), xs - (int16)(d))), valid);
+                const int16 r = select((int16)(0), CBCA_COMBINED16(ARM_RIGHT, it, min((int16)(MAX_ARM), (int16)(W - 1) - xs)), valid);
                 const int16 u = CBCA_COMBINED16(ARM_UP, it, (int16)(min(MAX_ARM, t)));
                 const int16 w = CBCA_COMBINED16(ARM_DOWN, it, (int16)(min(MAX_ARM, H - 1 - t)));
-                SCR_U16(arm + o + x0) = convert_uchar16(select((int16)(0), l, valid));
-                SCR_U16(arm + AP + o + x0) = convert_uchar16(select((int16)(0), r, valid));
+                SCR_U16(arm + o + x0) = convert_uchar16(l);
+                SCR_U16(arm + AP + o + x0) = convert_uchar16(r);
                 SCR_U16(arm + 2 * AP + o + x0) = convert_uchar16(select((int16)(0), u, valid));
                 SCR_U16(arm + 3 * AP + o + x0) = convert_uchar16(select((int16)(0), w, valid));
+                SCR_U16(arm + 4 * AP + o + x0) = convert_uchar16(select((int16)(0), l + r + (int16)(1), valid));
             }
         }
         const int yc = t - MAX_ARM;
-        if (yc >= 0 && yc < H) {
-            /* |U_d(p)| of row yc: row counts l + r + 1 of the rows of U_d(p) */
+        if (yc >= 0 && yc < H) { /* |U_d(p)| of row yc: the row counts of the rows of U_d(p) */
             const size_t oc = (size_t)(yc % CBCA_NARM) * WR;
+            size_t ok[CBCA_NRS]; /* ring offsets of rows yc - A .. yc + A (clamped into the image) */
+            for (int k = -MAX_ARM; k <= MAX_ARM; ++k)
+                ok[k + MAX_ARM] = 4 * AP + (size_t)(clamp(yc + k, 0, H - 1) % CBCA_NARM) * WR;
             for (int c = c0; c < nch; ++c) {
                 const int x0 = c * VW;
                 const int16 u = convert_int16(SCR_U16(arm + 2 * AP + oc + x0));
@@ -602,10 +610,13 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                 int16 cnt = (int16)(0);
 #pragma unroll
                 for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {
-                    const size_t ok = (size_t)(clamp(yc + k, 0, H - 1) % CBCA_NARM) * WR + x0;
-                    const int16 rc = convert_int16(SCR_U16(arm + ok)) + convert_int16(SCR_U16(arm + AP + ok)) + (int16)(1);
-                    const int16 take = ((int16)(k) >= -u) & ((int16)(k) <= w);
-                    cnt += select((int16)(0), rc, take);
+                    const int16 rc = convert_int16(SCR_U16(arm + ok[k + MAX_ARM] + x0));
+                    if (k < 0)
+                        cnt = select(cnt, cnt + rc, u >= (int16)(-k));
+                    else if (k > 0)
+                        cnt = select(cnt, cnt + rc, w >= (int16)(k));
+                    else
+                        cnt += rc;
                 }
                 SCR_F16(cnts + (size_t)(yc % CBCA_NCNT) * WR + x0) = convert_float16(max(cnt, (int16)(1)));
             }
@@ -618,14 +629,22 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
             if (yin < 0)
                 break; /* neither it nor the later ones have started */
             __global float *rg = rsum + (size_t)(i - 1) * CBCA_NRS * WR;
-            if (yin < H) { /* row sums of row yin (in xc) into its ring slot */
+            if (yin < H) { /* row sums of row yin into its ring slot */
                 __global float *rs = rg + (size_t)(yin % CBCA_NRS) * WR;
                 const size_t oa = (size_t)(yin % CBCA_NARM) * WR;
+                __global const vol_t *xi = i > 1 ? xy : (t & 1) ? xs1 : xs0;
+                /* iteration 1 fetches src row t + 1 meanwhile (its cache
+                 * misses overlap with the sums) */
+                const int fetch = i == 1 && t + 1 < H;
+                __global vol_t *xn = (t & 1) ? xs0 : xs1;
+                __global const vol_t *nrow = src + VIDX(d, fetch ? t + 1 : t, 0, H, W);
                 for (int c = c0; c < nch; ++c) {
                     const int x0 = c * VW;
+                    if (fetch)
+                        CBCA_COPY_CHUNK(xn + x0, nrow + x0, min(VW, W - x0));
                     const int16 l = convert_int16(SCR_U16(arm + oa + x0));
                     const int16 r = convert_int16(SCR_U16(arm + AP + oa + x0));
-                    __global const vol_t *p = xc + x0;
+                    __global const vol_t *p = xi + x0;
                     float16 s = (float16)(0.0f);
 #define CBCA_LOAD_X(k) VOL_LOAD16(p + (k))
                     CBCA_MASKED_SUM(s, CBCA_LOAD_X, l, r);
@@ -640,9 +659,9 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
             __global const float *cn = cnts + (size_t)(yo % CBCA_NCNT) * WR;
             const int last = i == iters;
             const size_t orow = VIDX(d, yo, 0, H, W);
-            int rk[2 * MAX_ARM + 1]; /* ring offsets of rows yo - A .. yo + A (clamped into the image) */
+            size_t rk[CBCA_NRS]; /* ring offsets of rows yo - A .. yo + A (clamped into the image) */
             for (int k = -MAX_ARM; k <= MAX_ARM; ++k)
-                rk[k + MAX_ARM] = (clamp(yo + k, 0, H - 1) % CBCA_NRS) * WR;
+                rk[k + MAX_ARM] = (size_t)(clamp(yo + k, 0, H - 1) % CBCA_NRS) * WR;
             if (last)
                 for (int c = 0; c < c0; ++c)
                     vol_store16_partial((float16)(INVALID_COST), dst + orow + c * VW, min(VW, W - c * VW));
@@ -660,10 +679,11 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                 if (last)
                     vol_store16_partial(res, dst + orow + x0, min(VW, W - x0));
                 else
-                    XROW_STORE16(xc + x0, res);
+                    XROW_STORE16(xy + x0, res);
             }
         }
     }
 }
+#undef CBCA_COPY_CHUNK
 #undef CBCA_MASKED_SUM
 #endif /* MAX_ARM <= CBCA_SHORT_MAX */

@@ -260,10 +260,10 @@ def _multi_scratch(D, W, max_arm, k=MULTI_K):
     """Bytes of cbca_fused_multi_short's three scratch buffers (kernels/cbca.cl):
     per plane, with WR = W rounded up to 16 and A = max_arm,
     k (2A + 1) + (k - 1) A + 1 float rows (row sums, counts),
-    4 (max(k, 2) A + 1) byte rows (arms) and one row of WR + 32 cells (float32
+    5 (max(k, 2) A + 1) byte rows (arms, row counts) and three rows of WR + 32 cells (float32
     size, an upper bound for half volumes)."""
     D, A = int(D), int(max_arm)
     WR = -(-int(W) // _VW) * _VW
     nf = k * (2 * A + 1) + (k - 1) * A + 1
-    nb = 4 * (max(k, 2) * A + 1)
-    return (4 * D * nf * WR, D * nb * WR, 4 * D * (WR + 2 * _VW))
+    nb = 5 * (max(k, 2) * A + 1)
+    return (4 * D * nf * WR, D * nb * WR, 4 * D * 3 * (WR + 2 * _VW))
