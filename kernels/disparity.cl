@@ -14,7 +14,10 @@
 
 /* D^L(x, y) = argmin_{0 <= d <= min(D-1, x)} C(d, y, x).
  * Ties go to the smallest d (strict '<' while d increases).  Invalid cells
- * (d > x) are never read.  One work-item per pixel, global size (W, H). */
+ * (d > x) never take part.  One work-item per 16 consecutive pixels of a row
+ * (float16 lanes: one contiguous line per plane and step), global size
+ * (ceil(W / 16), H); a lane's invalid cells are read (they hold NaN, never
+ * uninitialised memory) but masked out. */
 __kernel void disparity_wta_left(
     __global const vol_t *cost, /* C_L, D x H x W */
     __global int *disp,         /* out: D^L, H x W */
@@ -22,21 +25,29 @@ __kernel void disparity_wta_left(
     const int H,                /* rows */
     const int W)                /* columns */
 {
-    const int x = get_global_id(0);
+    const int x0 = get_global_id(0) * 16;
     const int y = get_global_id(1);
-    if (x >= W || y >= H)
+    if (x0 >= W || y >= H)
         return;
-    const int dmax = min(D - 1, x);
-    int best_d = 0;
-    float best = VOL_GET(cost, VIDX(0, y, x, H, W));
+    const int n = min(16, W - x0);
+    const int16 xs = (int16)(x0) + (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const int dmax = min(D - 1, x0 + n - 1);
+    float16 best = vol_load16_partial(cost + VIDX(0, y, x0, H, W), 0, n, 0.0f);
+    int16 best_d = (int16)(0);
     for (int d = 1; d <= dmax; d++) {
-        const float c = VOL_GET(cost, VIDX(d, y, x, H, W));
-        if (c < best) {
-            best = c;
-            best_d = d;
-        }
+        const float16 c = vol_load16_partial(cost + VIDX(d, y, x0, H, W), 0, n, 0.0f);
+        const int16 take = (c < best) & ((int16)(d) <= xs);
+        best = select(best, c, take);
+        best_d = select(best_d, (int16)(d), take);
     }
-    disp[(size_t)y * W + x] = best_d;
+    if (n == 16) {
+        vstore16(best_d, 0, disp + (size_t)y * W + x0);
+    } else {
+        int t[16];
+        vstore16(best_d, 0, t);
+        for (int i = 0; i < n; ++i)
+            disp[(size_t)y * W + x0 + i] = t[i];
+    }
 }
 
 /* D^R(x, y) = argmin_{0 <= d <= min(D-1, W-1-x)} C_R(d, y, x), with the

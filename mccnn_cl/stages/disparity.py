@@ -56,19 +56,19 @@ class WinnerTakeAll:
         self.k_left = ctx.kernel("disparity.cl", "disparity_wta_left", VOL_HALF=int(half))
         self.k_right = ctx.kernel("disparity.cl", "disparity_wta_right", VOL_HALF=int(half))
 
-    def _run(self, kernel, stage, d_cost, D, H, W, out):
+    def _run(self, kernel, stage, grid, d_cost, D, H, W, out):
         if out is None:
             out = self.ctx.empty(H * W * _I32, stage)
-        launch(self.ctx, stage, kernel, (W, H), d_cost, out, np.int32(D), np.int32(H), np.int32(W))
+        launch(self.ctx, stage, kernel, grid, d_cost, out, np.int32(D), np.int32(H), np.int32(W))
         return out
 
     def left(self, d_cost, D, H, W, out=None):
-        """D^L (int32 H x W buffer)."""
-        return self._run(self.k_left, "WTA (left)", d_cost, D, H, W, out)
+        """D^L (int32 H x W buffer); 16 pixels per work-item."""
+        return self._run(self.k_left, "WTA (left)", (-(-W // 16), H), d_cost, D, H, W, out)
 
     def right(self, d_cost, D, H, W, out=None):
         """D^R (int32 H x W buffer), from the left-reference volume."""
-        return self._run(self.k_right, "WTA (right)", d_cost, D, H, W, out)
+        return self._run(self.k_right, "WTA (right)", (W, H), d_cost, D, H, W, out)
 
 
 class RightReference:
