@@ -506,15 +506,17 @@ def _bench_rates(matcher, shape, groups, total, sgbm_time, vol):
     measured in this run, and its time over the floor that baseline implies.
 
     Network: FLOP (NetworkCost.flops) / numpy's float32 GEMM rate on the
-    head's shape.  CBCA, SGM, the rest: the volume traffic any
-    implementation of this pass structure needs at least (one read and one
-    write of the D x H x W volume per CBCA iteration and per SGM call, per
-    reference; the right-reference volume, read + write; each WTA, one
-    read) over the device's buffer-copy bandwidth."""
+    head's shape.  CBCA, SGM, the rest: the volume traffic the method needs
+    at least, over the device's buffer-copy bandwidth: one read and one
+    write of the D x H x W volume per CBCA round (its iterations can run in
+    one pass, as the fused kernel does; a round of 0 iterations moves
+    nothing) and per SGM call, per reference; the right-reference volume,
+    read + write; each WTA, one read."""
     p = matcher.params
     nref = 2 if p.right_reference == "aggregated" else 1
     copy_bw = _copy_bandwidth(matcher.ctx)
-    traffic = {"CBCA": nref * (p.cbca_iterations + p.cbca_iterations_after) * 2 * vol,
+    rounds = int(p.cbca_iterations > 0) + int(p.cbca_iterations_after > 0)
+    traffic = {"CBCA": nref * rounds * 2 * vol,
                "SGM": nref * 2 * vol,
                "rest": (2 * vol if nref == 2 else 0) + 2 * vol}
     rows, floor = [], 0.0
@@ -526,18 +528,18 @@ def _bench_rates(matcher, shape, groups, total, sgbm_time, vol):
                      t / (flop / gemm)))
         floor += flop / gemm
     stereo_t = stereo_b = 0.0
-    for name, title in (("CBCA", "CBCA (arms + 2 passes)"), ("SGM", "SGM"), ("rest", "the rest (WTA ... bilateral)")):
+    for name, title in (("CBCA", "CBCA (arms + aggregation)"), ("SGM", "SGM"), ("rest", "the rest (WTA ... bilateral)")):
         t, b = groups[name], traffic[name]
         stereo_t, stereo_b = stereo_t + t, stereo_b + b
         rows.append((title, f"{b / t / 1e9:.2f} GB/s ({b / vol:.0f} V)", f"copy {copy_bw / 1e9:.2f} GB/s",
-                     t / (b / copy_bw)))
+                     t / (b / copy_bw) if b > 0 else None))
     rows.append(("stereo method (after cost)", f"{stereo_b / stereo_t / 1e9:.2f} GB/s ({stereo_b / vol:.0f} V)",
                  f"copy {copy_bw / 1e9:.2f} GB/s", stereo_t / (stereo_b / copy_bw)))
     floor += stereo_b / copy_bw
     _say(f"rates beside baselines measured in this run (V = one volume read or written; ratio = time / floor):")
     _say(f"{'stage':<28} {'achieved':>24} {'baseline':>26} {'ratio':>8}")
     for title, got, base, ratio in rows:
-        _say(f"{title:<28} {got:>24} {base:>26} {ratio:>7.2f}x")
+        _say(f"{title:<28} {got:>24} {base:>26} " + (f"{ratio:>7.2f}x" if ratio is not None else f"{'-':>8}"))
     what = "network FLOP / GEMM + volume traffic / copy" if matcher.cost_name == "cnn" else "volume traffic / copy"
     _say(f"{'whole pipeline':<28} {f'floor {floor:.3f} s':>24} {what:>26} {total / floor:>7.2f}x")
     _say(f"{'whole pipeline vs SGBM':<28} {f'{total:.3f} s':>24} {f'OpenCV SGBM {sgbm_time:.3f} s':>26} "
@@ -586,7 +588,7 @@ def cmd_bench(args):
     rest = total - sum(groups.values())
     _say(f"{'stage':<28} {'seconds':>9} {'share':>7}")
     titles = {"network": "matching cost (" + ("network" if args.cost == "cnn" else "census") + ")",
-              "CBCA": "CBCA (arms + 2 passes)", "SGM": "SGM", "rest": "the rest (WTA ... bilateral)"}
+              "CBCA": "CBCA (arms + aggregation)", "SGM": "SGM", "rest": "the rest (WTA ... bilateral)"}
     for name, sec in groups.items():
         _say(f"{titles[name]:<28} {sec:>9.3f} {sec / total:>7.1%}")
     _say(f"{'(host, copies, untimed)':<28} {max(rest, 0.0):>9.3f} {max(rest, 0.0) / total:>7.1%}")
