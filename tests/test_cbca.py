@@ -15,7 +15,7 @@ import pytest
 
 from conftest import POISON
 from mccnn_cl.reference.aggregation import cbca, cross_arms
-from mccnn_cl.stages.cbca import CBCA, SHORT_MAX
+from mccnn_cl.stages.cbca import CBCA, MULTI_K, SHORT_MAX
 from mccnn_cl.stages.cross import CrossArms, arms_to_device, max_arm
 
 
@@ -46,22 +46,25 @@ def ad_volume(img_l, img_r, D):
 
 
 #: The implementations: (short-arm vector kernels allowed, fused short-arm
-#: kernel allowed, max_arm); None = the tight bound of the arms at hand.
-#: Short + fused + tight is the fast path (one launch per iteration), short +
-#: tight the two-pass short-arm kernels; generic with 255 and with the tight
-#: bound (ring wrap-around) is the running-sum path.
-IMPLS = [(True, True, None), (True, False, None), (False, False, None), (False, False, 255)]
+#: kernel allowed, multi-iteration fused kernel allowed, max_arm); None = the
+#: tight bound of the arms at hand.  Short + fused + multi + tight is the CPU
+#: default (up to MULTI_K iterations per launch), short + fused + tight the
+#: one-iteration fused kernel, short + tight the two-pass short-arm kernels;
+#: generic with 255 and with the tight bound (ring wrap-around) is the
+#: running-sum path.
+IMPLS = [(True, True, True, None), (True, True, False, None), (True, False, False, None),
+         (False, False, False, None), (False, False, False, 255)]
 
 
-def run_cbca(ctx, cost, arms_l, arms_r, iterations=4, short=True, max_arm=None, fused=True):
+def run_cbca(ctx, cost, arms_l, arms_r, iterations=4, short=True, max_arm=None, fused=True, multi=True):
     D, H, W = cost.shape
     if max_arm is None:
         max_arm = int(max(arms_l.max(), arms_r.max()))
     d_out = ctx.empty(cost.nbytes)
     ctx.fill(d_out, POISON, cost.nbytes)
     d_cost = ctx.to_device(cost)
-    CBCA(ctx, short=short, fused=fused)(d_cost, arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r), D, H, W,
-                           iterations=iterations, max_arm=max_arm, out=d_out)
+    CBCA(ctx, short=short, fused=fused, multi=multi)(d_cost, arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r),
+                                                     D, H, W, iterations=iterations, max_arm=max_arm, out=d_out)
     got = ctx.from_device(d_out, cost.shape)
     np.testing.assert_array_equal(ctx.from_device(d_cost, cost.shape), cost)  # input untouched
     return got
@@ -80,14 +83,15 @@ def check(ctx, cost, img_l, img_r, iterations=4, eta=4, include_neighbor=False):
     arms_r = cross_arms(img_r, eta=eta, include_neighbor=include_neighbor)
     want = cbca(cost, arms_l, arms_r, iterations)
     results = []
-    for short, fused, bound in IMPLS:
-        got = run_cbca(ctx, cost, arms_l, arms_r, iterations, short, bound, fused)
+    for short, fused, multi, bound in IMPLS:
+        got = run_cbca(ctx, cost, arms_l, arms_r, iterations, short, bound, fused, multi)
         compare(got, want, cost)
         results.append(got)
     if max(arms_l.max(), arms_r.max()) <= SHORT_MAX:
-        # the fused kernel does the two short passes' float operations in the
+        # both fused kernels do the two short passes' float operations in the
         # same order: bit-identical (NaN payloads included)
-        np.testing.assert_array_equal(results[0].view(np.uint32), results[1].view(np.uint32))
+        np.testing.assert_array_equal(results[0].view(np.uint32), results[2].view(np.uint32))
+        np.testing.assert_array_equal(results[1].view(np.uint32), results[2].view(np.uint32))
     return results[0], want
 
 
@@ -162,15 +166,15 @@ def test_constant_volume_stays_constant_and_zero_iterations(ctx):
     img_l, img_r = blocky_image(rng, H, W), blocky_image(rng, H, W)
     arms_l, arms_r = cross_arms(img_l), cross_arms(img_r)
     valid = ~invalid_mask(D, H, W)
-    for short, fused, bound in IMPLS:
-        got = run_cbca(ctx, cost, arms_l, arms_r, 4, short, bound, fused)
+    for short, fused, multi, bound in IMPLS:
+        got = run_cbca(ctx, cost, arms_l, arms_r, 4, short, bound, fused, multi)
         np.testing.assert_allclose(got[valid], 0.7, rtol=1e-6)
         assert np.isnan(got[~valid]).all()
-        np.testing.assert_array_equal(run_cbca(ctx, cost, arms_l, arms_r, 0, short, bound, fused), cost)
+        np.testing.assert_array_equal(run_cbca(ctx, cost, arms_l, arms_r, 0, short, bound, fused, multi), cost)
 
 
-@pytest.mark.parametrize("fused", [True, False])
-def test_in_place(ctx, fused):
+@pytest.mark.parametrize("fused,multi", [(True, True), (True, False), (False, False)])
+def test_in_place(ctx, fused, multi):
     rng = np.random.default_rng(6)
     D, H, W = 7, 13, 37
     cost = random_volume(rng, D, H, W)
@@ -181,19 +185,25 @@ def test_in_place(ctx, fused):
     # arms straight from the CrossArms stage this time
     d_al = CrossArms(ctx)(ctx.to_device(img_l), H, W)
     d_ar = CrossArms(ctx)(ctx.to_device(img_r), H, W)
-    stage = CBCA(ctx, fused=fused)
+    stage = CBCA(ctx, fused=fused, multi=multi)
     out = stage(d_cost, d_al, d_ar, D, H, W, max_arm=max_arm(4), out=d_cost)
     assert out is d_cost
     compare(ctx.from_device(d_cost, cost.shape), cbca(cost, arms_l, arms_r, 4), cost)
     assert CBCA.scratch_volumes == 0
 
 
-def test_scratch_reused_across_sizes(ctx):
-    """The fused path's scratch rings grow for a wider/deeper volume and are
+@pytest.mark.parametrize("multi", [True, False])
+def test_scratch_reused_across_sizes(ctx, multi):
+    """The fused paths' scratch rings grow for a wider/deeper volume and are
     reused for a smaller one (stale ring contents must not leak into sums)."""
     rng = np.random.default_rng(7)
-    stage = CBCA(ctx)
-    assert CBCA.scratch_bytes(228, 1232, max_arm(4)) == 5 * 228 * 7 * 1232
+    stage = CBCA(ctx, multi=multi)
+    # one-iteration kernel: D x (2A + 1) x W float row sums + byte counts
+    assert CBCA.scratch_bytes(228, 1232, max_arm(4), multi=False) == 5 * 228 * 7 * 1232
+    # multi-iteration kernel (MULTI_K = 4, A = 3, W rounded up to 16 = 1232):
+    # per plane 4 x 7 + 3 x 3 + 1 float rows, 5 x (4 x 3 + 1) byte rows, 3 rows of 1232 + 32 floats
+    assert MULTI_K == 4
+    assert CBCA.scratch_bytes(228, 1232, max_arm(4)) == 228 * (4 * 38 * 1232 + 65 * 1232 + 4 * 3 * 1264)
     assert CBCA.scratch_bytes(228, 1232, 255) == 0
     assert CBCA.scratch_bytes(228, 1232, max_arm(4), fused=False) == 0
     for D, H, W in [(6, 9, 40), (11, 12, 70), (5, 8, 33)]:
@@ -205,6 +215,69 @@ def test_scratch_reused_across_sizes(ctx):
         stage(ctx.to_device(cost), arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r), D, H, W,
               iterations=2, max_arm=max_arm(4), out=d_out)
         compare(ctx.from_device(d_out, cost.shape), cbca(cost, arms_l, arms_r, 2), cost)
+    sizes = (stage._multi or stage._ring)[0]  # what the stage really allocated, for the largest volume
+    allocated = sum(sizes) if multi else sizes
+    assert allocated == CBCA.scratch_bytes(11, 70, max_arm(4), multi=multi)
+
+
+def multi_vs_single(ctx, cost, arms_l, arms_r, iterations, in_place):
+    """The multi-iteration kernel's result (out of place into a poisoned
+    buffer, or in place) and the one-iteration fused kernel's, iterated."""
+    D, H, W = cost.shape
+    A = int(max(arms_l.max(), arms_r.max()))
+    d_l, d_r = arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r)
+    res = []
+    for multi, inp in ((True, in_place), (False, False)):
+        d_cost = ctx.to_device(cost)
+        if inp:
+            out = d_cost
+        else:
+            out = ctx.empty(cost.nbytes)
+            ctx.fill(out, POISON, cost.nbytes)
+        stage = CBCA(ctx, multi=multi)
+        assert stage.fused and stage.multi == multi
+        assert stage(d_cost, d_l, d_r, D, H, W, iterations=iterations, max_arm=A, out=out) is out
+        res.append(ctx.from_device(out, cost.shape))
+    return res
+
+
+@pytest.mark.parametrize("in_place", [False, True])
+def test_multi_iteration_counts_random(ctx, in_place):
+    """cbca_fused_multi_short (MULTI_K iterations per launch, then a shorter
+    launch) is bit-identical to iterating cbca_fused_short, for iteration
+    counts below, at and above MULTI_K, arms up to SHORT_MAX and 0, D >= W,
+    one row, W not a multiple of 16; and within the reference tolerance."""
+    rng = np.random.default_rng(11)
+    for (D, H, W), eta, nb, block, its in [((9, 29, 45), 4, False, 3, (1, 2, 3, 4, 5, 9)),
+                                           ((7, 19, 37), 9, True, 6, (3, 6)),
+                                           ((12, 5, 10), 4, False, 3, (4,)),
+                                           ((3, 1, 70), 4, False, 3, (2,)),
+                                           ((4, 11, 21), 1, False, 3, (5,))]:
+        cost = random_volume(rng, D, H, W)
+        img_l, img_r = blocky_image(rng, H, W, block, 0.01), blocky_image(rng, H, W, block, 0.01)
+        arms_l = cross_arms(img_l, eta=eta, include_neighbor=nb)
+        arms_r = cross_arms(img_r, eta=eta, include_neighbor=nb)
+        if H * W > 100:  # the longest arms the bound allows occur (0 for eta = 1)
+            assert max(arms_l.max(), arms_r.max()) == max_arm(eta, nb)
+        for it in its:
+            got, single = multi_vs_single(ctx, cost, arms_l, arms_r, it, in_place)
+            np.testing.assert_array_equal(got.view(np.uint32), single.view(np.uint32))
+            compare(got, cbca(cost, arms_l, arms_r, it), cost)
+
+
+def test_multi_iteration_counts_kitti_crop(ctx, shared_data):
+    """The same on a real KITTI crop (AD volume, arms from the images)."""
+    H, W, D = 40, 75, 20
+    imgs = []
+    for side in ("image_2", "image_3"):
+        img = cv2.imread(str(shared_data / "kitti2015/training" / side / "000000_10.png"), cv2.IMREAD_GRAYSCALE)
+        imgs.append(img[180:180 + H, 600:600 + W].astype(np.float32) / 255.0)
+    cost = ad_volume(imgs[0], imgs[1], D)
+    arms_l, arms_r = cross_arms(imgs[0]), cross_arms(imgs[1])
+    for it, in_place in ((4, True), (4, False), (5, True), (2, False), (8, True)):
+        got, single = multi_vs_single(ctx, cost, arms_l, arms_r, it, in_place)
+        np.testing.assert_array_equal(got.view(np.uint32), single.view(np.uint32))
+        compare(got, cbca(cost, arms_l, arms_r, it), cost)
 
 
 def test_bad_input(ctx):

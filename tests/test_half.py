@@ -124,8 +124,9 @@ def real_crop(shared_data, rows, cols):
     return L, R
 
 
-@pytest.mark.parametrize("short,fused,bound", [(True, True, None), (True, False, None), (False, False, 255)])
-def test_cbca_half(ctx, shared_data, short, fused, bound):
+@pytest.mark.parametrize("short,fused,multi,bound", [(True, True, True, None), (True, True, False, None),
+                                                     (True, False, False, None), (False, False, False, 255)])
+def test_cbca_half(ctx, shared_data, short, fused, multi, bound):
     """Half CBCA (every implementation) against the reference on the half input.
     Each iteration stores its result as half (the two-pass kernels also their
     row sums of up to 7 costs), so per iteration up to 2 roundings of
@@ -143,8 +144,9 @@ def test_cbca_half(ctx, shared_data, short, fused, bound):
     it = 4
     out = poisoned(ctx, C.nbytes, F16_POISON, np.float16)
     d_c = ctx.to_device(C)
-    CBCA(ctx, short=short, fused=fused, half=True)(d_c, arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r),
-                                                   D, H, W, iterations=it, max_arm=bound, out=out)
+    CBCA(ctx, short=short, fused=fused, half=True, multi=multi)(d_c, arms_to_device(ctx, arms_l),
+                                                                arms_to_device(ctx, arms_r),
+                                                                D, H, W, iterations=it, max_arm=bound, out=out)
     got = ctx.from_device(out, C.shape, np.float16).astype(np.float32)
     want = cbca(C.astype(np.float32), arms_l, arms_r, it)
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
@@ -152,9 +154,34 @@ def test_cbca_half(ctx, shared_data, short, fused, bound):
     # in place gives the same bits
     d_in = ctx.empty(C.nbytes)
     ctx.cl.enqueue_copy(ctx.queue, d_in, C)
-    CBCA(ctx, short=short, fused=fused, half=True)(d_in, arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r),
-                                                   D, H, W, iterations=it, max_arm=bound, out=d_in)
+    CBCA(ctx, short=short, fused=fused, half=True, multi=multi)(d_in, arms_to_device(ctx, arms_l),
+                                                                arms_to_device(ctx, arms_r),
+                                                                D, H, W, iterations=it, max_arm=bound, out=d_in)
     np.testing.assert_array_equal(ctx.from_device(d_in, C.shape, np.float16).astype(np.float32), got)
+
+
+def test_cbca_half_multi_matches_single(ctx, shared_data):
+    """Half volumes: the multi-iteration fused kernel (each iteration's output
+    row rounded to half before the next reads it) gives the same half bits as
+    iterating the one-iteration fused kernel, for iteration counts below, at
+    and above MULTI_K, in place and out of place."""
+    from mccnn_cl.stages.cbca import CBCA
+    from mccnn_cl.reference.aggregation import cross_arms
+    from mccnn_cl.stages.cross import arms_to_device
+
+    L, R = real_crop(shared_data, slice(100, 131), slice(80, 133))
+    D, (H, W) = 10, L.shape
+    C = half_volume(np.random.default_rng(12), D, H, W)
+    arms_l, arms_r = arms_to_device(ctx, cross_arms(L)), arms_to_device(ctx, cross_arms(R))
+    for it, in_place in ((1, False), (3, True), (4, False), (6, True)):
+        res = []
+        for multi in (True, False):
+            d_c = ctx.to_device(C)
+            out = d_c if (in_place and multi) else poisoned(ctx, C.nbytes, F16_POISON, np.float16)
+            CBCA(ctx, half=True, multi=multi)(d_c, arms_l, arms_r, D, H, W, iterations=it, max_arm=3, out=out)
+            res.append(ctx.from_device(out, C.shape, np.float16))
+        np.testing.assert_array_equal(res[0].view(np.uint16), res[1].view(np.uint16))
+        assert not np.array_equal(res[0], C)  # it aggregated
 
 
 @pytest.mark.parametrize("W", [45, 100])

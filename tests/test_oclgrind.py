@@ -235,16 +235,21 @@ def case_cross(ctx, rng, chk):
 
 
 def case_cbca(ctx, rng, chk):
-    """cbca.cl: fused short-arm kernel (out of place and in place), rows +
-    columns passes, 2 iterations, arms from the CrossArms stage."""
+    """cbca.cl: multi-iteration fused kernel (several iterations per launch
+    and a shorter last launch, out of place and in place), one-iteration fused
+    kernel (out of place and in place), rows + columns passes; arms from the
+    CrossArms stage."""
     from mccnn_cl.reference.aggregation import cbca, cross_arms
     from mccnn_cl.stages.cbca import CBCA
     from mccnn_cl.stages.cross import CrossArms, max_arm
 
-    for (D, H, W), eta, bound, fused, in_place in (((5, 4, 13), 4, max_arm(4), False, False),
-                                                   ((7, 5, 5), 9, 255, False, False),
-                                                   ((4, 3, 40), 4, max_arm(4), True, False),
-                                                   ((3, 5, 21), 4, max_arm(4), True, True)):
+    for (D, H, W), eta, bound, fused, multi, it, in_place in (
+            ((5, 4, 13), 4, max_arm(4), False, False, 2, False),
+            ((7, 5, 5), 9, 255, False, False, 2, False),
+            ((4, 3, 40), 4, max_arm(4), True, False, 2, False),
+            ((3, 5, 21), 4, max_arm(4), True, False, 2, True),
+            ((4, 9, 35), 4, max_arm(4), True, True, 5, False),
+            ((19, 6, 21), 9, max_arm(9), True, True, 2, True)):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
         C = _volume(rng, D, H, W)
         d_al = CrossArms(ctx)(ctx.to_device(img_l), H, W, eta=eta)
@@ -256,11 +261,13 @@ def case_cbca(ctx, rng, chk):
         else:
             out = _poisoned(ctx, 4 * D * H * W)
             src = ctx.to_device(C)
-        CBCA(ctx, max_arm=bound, fused=fused)(src, d_al, d_ar, D, H, W, iterations=2, max_arm=bound, out=out)
-        want = cbca(C, cross_arms(img_l, eta=eta), cross_arms(img_r, eta=eta), 2)
+        CBCA(ctx, max_arm=bound, fused=fused, multi=multi)(src, d_al, d_ar, D, H, W, iterations=it, max_arm=bound,
+                                                            out=out)
+        want = cbca(C, cross_arms(img_l, eta=eta), cross_arms(img_r, eta=eta), it)
         # means of <= 81 float32 costs in [0, 1] with compensated sums: the
         # stage's own tests use 1e-5 of the cost range
-        chk.close(f"CBCA D={D} {H}x{W} eta={eta} fused={fused} in_place={in_place}", ctx.from_device(out, (D, H, W)), want, atol=1e-5)
+        chk.close(f"CBCA D={D} {H}x{W} eta={eta} fused={fused} multi={multi} iterations={it} in_place={in_place}",
+                  ctx.from_device(out, (D, H, W)), want, atol=1e-5)
 
 
 def case_sgm(ctx, rng, chk):
@@ -300,16 +307,17 @@ def case_half(ctx, rng, chk):
               full.astype(np.float16))
     left, right = _images(rng, 14, 24)
     ref = StereoMatcher(cost="census", max_disparity=D, device=ctx).compute(left, right, return_intermediates=True)
-    for fused in (True, False):
+    for fused, multi in ((True, True), (True, False), (False, False)):
         m = StereoMatcher(cost="census", max_disparity=D, device=ctx, volume_dtype="float16")
-        m.cbca.fused = fused
+        m.cbca.fused, m.cbca.multi = fused, multi
+        label = f"fused={fused}, multi={multi}"
         got = m.compute(left, right, return_intermediates=True)
-        chk.close(f"half census volume (fused={fused})", got.intermediates["C_CNN"],
+        chk.close(f"half census volume ({label})", got.intermediates["C_CNN"],
                   ref.intermediates["C_CNN"].astype(np.float16))
         for name in ("C_CBCA", "C_SGM", "C", "C_R"):  # a few half roundings per stage
-            chk.close(f"half {name} (fused={fused})", got.intermediates[name].astype(np.float32),
+            chk.close(f"half {name} ({label})", got.intermediates[name].astype(np.float32),
                       ref.intermediates[name], atol=1e-3, rtol=4e-3)
-        chk.close(f"half D_BF (fused={fused})", got.disparity, ref.disparity, atol=0.5)
+        chk.close(f"half D_BF ({label})", got.disparity, ref.disparity, atol=0.5)
 
 
 def selftest_bad_kernel(ctx, rng, chk):
@@ -347,12 +355,14 @@ CASE_KERNELS = {
     "network": {"network_conv", "network_head", "network_mark_invalid"},
     "census": {"census_transform", "census_cost"},
     "cross": {"cross_build"},
-    "cbca": {"cbca_rows", "cbca_columns", "cbca_rows_short", "cbca_columns_short", "cbca_fused_short"},
+    "cbca": {"cbca_rows", "cbca_columns", "cbca_rows_short", "cbca_columns_short", "cbca_fused_short",
+             "cbca_fused_multi_short"},
     "sgm": {"sgm_rows", "sgm_columns"},
     "disparity": {"disparity_wta_left", "disparity_wta_right", "disparity_lr_check",
                   "disparity_right_volume", "disparity_mirror", "interpolate_fill", "subpixel_refine"},
     "refine": {"refine_enlarge", "refine_median", "refine_median16", "refine_bilateral"},
-    "half": {"network_head", "network_mark_invalid", "census_cost", "cbca_fused_short", "cbca_rows_short",
+    "half": {"network_head", "network_mark_invalid", "census_cost", "cbca_fused_multi_short", "cbca_fused_short",
+             "cbca_rows_short",
              "cbca_columns_short", "sgm_rows", "sgm_columns", "disparity_wta_left", "disparity_right_volume",
              "subpixel_refine"},
 }

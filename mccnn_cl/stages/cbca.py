@@ -188,7 +188,7 @@ class CBCA:
 
     def _rings(self, D, W, max_arm):
         """The fused path's scratch rings (kept and reused while large enough)."""
-        nbytes = self.scratch_bytes(D, W, max_arm)
+        nbytes = self.scratch_bytes(D, W, max_arm, multi=False)
         if self._ring is None or self._ring[0] < nbytes:
             self._ring = None
             ring = self.ctx.empty(4 * nbytes // 5, "CBCA row-sum ring")
