@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 from mccnn_cl.cl import ClContext
-from mccnn_cl.stages.cbca import CBCA, SHORT_MAX
+from mccnn_cl.stages.cbca import CBCA, MULTI_K, SHORT_MAX
 from mccnn_cl.stages.cross import CrossArms, max_arm
 from mccnn_cl.stages.sgm import SGM
 
@@ -93,14 +93,20 @@ def main(argv=None):
         print(f"cross arms (x2)  {t * 1e3:8.1f} ms, cpu {CPU['last'] * 1e3:.0f} ms")
 
     cbca = CBCA(ctx)
-    for bound in (max_arm(4), 255) if "cbca" in args.stages else ():
-        t = timed(ctx, lambda: cbca(d_cost, d_al, d_ar, D, H, W, iterations=4, max_arm=bound, out=d_out),
+    runs = [(max_arm(4), cbca), (255, cbca)]
+    if cbca.fused and cbca.multi:  # the default's one-iteration-per-launch alternative, for comparison
+        runs.insert(1, (max_arm(4), CBCA(ctx, multi=False)))
+    for bound, st in runs if "cbca" in args.stages else ():
+        t = timed(ctx, lambda: st(d_cost, d_al, d_ar, D, H, W, iterations=4, max_arm=bound, out=d_out),
                   args.repeat)
-        # per iteration: the fused short-arm kernel reads and writes the volume once;
-        # the two-pass kernels (rows, then columns) twice
-        passes = 2 if (cbca.fused and bound <= SHORT_MAX and cbca.short) else 4
-        moved = passes * 4 * V
-        print(f"CBCA 4 it (max_arm={bound:3d}) {t * 1e3:8.1f} ms  {moved / t / 1e9:6.2f} GB/s "
+        # volume passes (a read + a write each) per round of 4 iterations: the
+        # multi-iteration fused kernel 1 (MULTI_K = 4 iterations per launch),
+        # the one-iteration fused kernel 4, the two-pass kernels 8
+        short = st.short and bound <= SHORT_MAX
+        passes = (-(-4 // MULTI_K) if st.multi else 4) if (short and st.fused) else 8
+        kind = ("multi" if st.multi else "fused") if (short and st.fused) else "2-pass"
+        moved = passes * 2 * V
+        print(f"CBCA 4 it (max_arm={bound:3d}, {kind:6s}) {t * 1e3:8.1f} ms  {moved / t / 1e9:6.2f} GB/s "
               f"({t / 4 * 1e3:.1f} ms per iteration), cpu {CPU['last'] * 1e3:.0f} ms")
 
     sgm = SGM(ctx)
