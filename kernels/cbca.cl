@@ -484,7 +484,8 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
  * t - iters MAX_ARM is written at step t, after it was read.
  *
  * Scratch, per plane, with WR = 16 ceil(W / 16) (see CBCA.scratch_bytes):
- *   fscr: CBCA_K x CBCA_NRS rows of row sums, then CBCA_NCNT rows of counts
+ *   fscr: CBCA_K x CBCA_NRS float rows of row sums, then CBCA_NCNT ushort
+ *         rows of counts (CBCA_FROWS float rows in all)
  *   bscr: 4 x CBCA_NARM rows of arm bytes (l, r, u, w)
  *   xscr: one vol_t row of WR + 2 MAX_ARM cells (the current iteration's
  *         input row, MAX_ARM zero cells of padding on each side)
@@ -497,6 +498,7 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
 #define CBCA_NRS (2 * MAX_ARM + 1)                          /* row sums of rows y - A .. y + A */
 #define CBCA_NARM ((CBCA_K > 2 ? CBCA_K : 2) * MAX_ARM + 1) /* arms of rows t - K A .. t (and t - 2 A) */
 #define CBCA_NCNT ((CBCA_K - 1) * MAX_ARM + 1)              /* counts of rows t - K A .. t - A */
+#define CBCA_FROWS (CBCA_K * CBCA_NRS + (CBCA_NCNT + 1) / 2)  /* float rows per plane (2 count rows per float row) */
 
 /* Aligned 16-lane access to the scratch rows (every scratch row and chunk
  * starts at a multiple of 16 elements from a buffer's base, which OpenCL
@@ -560,8 +562,8 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
     const int nch = (W + VW - 1) / VW;
     const int WR = nch * VW;
     const int WP = WR + 2 * VW;
-    __global float *rsum = fscr + (size_t)d * (CBCA_K * CBCA_NRS + CBCA_NCNT) * (size_t)WR;
-    __global float *cnts = rsum + (size_t)CBCA_K * CBCA_NRS * WR;
+    __global float *rsum = fscr + (size_t)d * CBCA_FROWS * (size_t)WR;
+    __global ushort *cnts = (__global ushort *)(rsum + (size_t)CBCA_K * CBCA_NRS * WR); /* 64-byte aligned */
     /* arm rings [l, r, u, w, row count l + r + 1][NARM][WR] */
     __global uchar *arm = bscr + (size_t)d * 5 * CBCA_NARM * (size_t)WR;
     const size_t AP = (size_t)CBCA_NARM * WR; /* one plane of arm rings */
@@ -618,7 +620,7 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                     else
                         cnt += rc;
                 }
-                SCR_F16(cnts + (size_t)(yc % CBCA_NCNT) * WR + x0) = convert_float16(max(cnt, (int16)(1)));
+                *(__global ushort16 *)(cnts + (size_t)(yc % CBCA_NCNT) * WR + x0) = convert_ushort16(max(cnt, (int16)(1)));
             }
         }
         for (int i = 1; i <= iters; ++i) {
@@ -656,7 +658,7 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                 break; /* no output row yet: no input for iteration i + 1 */
             /* output row yo: column sums of the row sums over the rows of U_d(p) */
             const size_t oa = (size_t)(yo % CBCA_NARM) * WR;
-            __global const float *cn = cnts + (size_t)(yo % CBCA_NCNT) * WR;
+            __global const ushort *cn = cnts + (size_t)(yo % CBCA_NCNT) * WR;
             const int last = i == iters;
             const size_t orow = VIDX(d, yo, 0, H, W);
             size_t rk[CBCA_NRS]; /* ring offsets of rows yo - A .. yo + A (clamped into the image) */
@@ -673,7 +675,7 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
 #define CBCA_LOAD_R(k) SCR_F16(rg + rk[(k) + MAX_ARM] + x0)
                 CBCA_MASKED_SUM(s, CBCA_LOAD_R, u, w);
 #undef CBCA_LOAD_R
-                float16 res = s / SCR_F16(cn + x0);
+                float16 res = s / convert_float16(*(__global const ushort16 *)(cn + x0));
                 if (x0 < d)
                     res = select((float16)(INVALID_COST), res, (int16)(x0) + LANES >= (int16)(d));
                 if (last)
