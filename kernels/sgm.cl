@@ -33,6 +33,9 @@
 #error "sgm.cl needs -D MAX_DISP=<upper bound of the disparity levels D>"
 #endif
 #define VW 16
+#ifndef SGM_COLS
+#define SGM_COLS 32 /* columns per work-item of sgm_columns, a multiple of VW */
+#endif
 
 /* Prefetch hint for the line holding *p.  PoCL compiles OpenCL's prefetch()
  * to nothing; with -D SGM_CPU_PREFETCH=1 (set by the host for devices of type
@@ -55,65 +58,121 @@
 #define SGM_COMBINE(old, val, mode) \
     ((mode) == 1 ? (old) + (val) : ((old) + (val)) * 0.25f)
 
-/* Vertical paths.  One step of the recurrence at level d for the 16 columns
- * x0 .. x0 + n - 1 (n <= 16) of row y, on float16 lanes over x: reads C and
- * the output's line, updates prev[d] = C_r(p, d), *pm1 = C_r(p - r, d) (the
- * next level's C_r(p - r, d - 1)) and *newm = running min_d C_r(p, d), and
- * writes the output's line.  Also prefetches this plane's line of the next
- * row on the path. */
-static inline __attribute__((always_inline)) void col_cell(
-    __global const vol_t *cost, __global const float *img_r, __global vol_t *out,
-    const int H, const int W, const int x0, const int n, const int d, const int y, const int py, const int j,
-    const int dy, const int mode, const int16 big_l, const float16 m, float16 *prev, float16 *pm1, float16 *newm,
-    const float p1_small, const float p1_one, const float p1_both,
-    const float p2_small, const float p2_one, const float p2_both, const float tau_so)
+#define SGM_G (SGM_COLS / VW) /* groups of VW columns per work-item of sgm_columns */
+
+/* fmin(a, b) for b that is never NaN: a unless b < a or a is NaN, i.e. one
+ * comparison (not a <= b) instead of fmin's NaN test and comparison; the
+ * same value as fmin in every such case, ties included (a). */
+static inline __attribute__((always_inline)) float16 fmin_b(const float16 a, const float16 b)
 {
-    const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-    const int16 valid = ((int16)(x0) + lane >= (int16)(d)) & (lane < (int16)(n));
-    const size_t i0 = VIDX(d, y, x0, H, W);
-    if (j + 1 < H) { /* this plane's line of the next row on the path */
-        SGM_PREFETCH(cost + VIDX(d, y + dy, x0, H, W));
-        if (mode != 0)
-            SGM_PREFETCH(out + VIDX(d, y + dy, x0, H, W));
-    }
-    const float16 c = vol_load16_partial(cost, i0, n, 0.0f);
-    float16 val;
-    if (j == 0) {
-        val = c; /* first pixel of the path */
-    } else {
-        /* pd = (x - d, y), pd - r = (x - d, py): inside whenever x - d >= 0 */
-        const float16 a = load16_partial(img_r, y * W + x0 - d, n, 0.0f);
-        const float16 b = load16_partial(img_r, py * W + x0 - d, n, 0.0f);
-        const int16 big_r = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
-        const int16 one = big_l ^ big_r; /* masks: -1 (true) or 0 */
-        const int16 both = big_l & big_r;
-        const float16 p1 = select(select((float16)(p1_small), (float16)(p1_one), one), (float16)(p1_both), both);
-        const float16 p2 = select(select((float16)(p2_small), (float16)(p2_one), one), (float16)(p2_both), both);
-        const float16 pd = prev[d];
-        const float16 best = fmin(fmin(pd, m + p2), fmin(*pm1, prev[d + 1]) + p1);
-        val = c - m + best;
-        *pm1 = pd;
-    }
-    val = select((float16)(INFINITY), val, valid);
-    prev[d] = val;
-    *newm = fmin(*newm, val);
-    float16 o;
-    if (mode == 0) {
-        o = select((float16)(NAN), val, valid);
-    } else {
-        const float16 old = vol_load16_partial(out, i0, n, 0.0f);
-        o = select(old, SGM_COMBINE(old, val, mode), valid);
-    }
-    vol_store16_partial(o, out + i0, n);
+    return select(a, b, !(a <= b));
 }
 
+/* Vertical paths: one row y of the path for the columns xw .. xw + SGM_COLS - 1
+ * (groups g of VW columns on float16 lanes over x; groups past the image are
+ * skipped), levels d = 0 .. dmax.  C_r(p - r, d) is read from the state row d
+ * (st + d * ws) and overwritten by C_r(p, d); the level d + 1 read at step d
+ * is carried to step d + 1 in registers (pd), the old level d - 1 too (pm1).
+ * bigr[MAX_DISP + x' - xw] says whether D2 at right pixel x' is large (-1).
+ * p1a/p1b (p2a/p2b) are P1 (P2) for a small / large D2, given the lanes'
+ * D1.  m: min_k C_r(p - r, k), replaced by min_k C_r(p, k).  `first` and
+ * `mode` are constants at each call, so each use compiles to its own loop;
+ * so is `full` (1: all SGM_COLS columns inside the image). */
+static inline __attribute__((always_inline)) void col_row(
+    __global const vol_t *cost, __global vol_t *out, __global float *st, const int ws, const int H,
+    const int W, const int xw, const int dmax, const int y, const int dy, const int last, const int first,
+    const int mode, const int full, const int *bigr, const float16 *p1a, const float16 *p1b,
+    const float16 *p2a, const float16 *p2b, float16 *m)
+{
+    const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const size_t plane = (size_t)H * (size_t)W;
+    const int next = dy * W; /* offset of the next row on the path */
+    float16 newm[SGM_G], pm1[SGM_G], pd[SGM_G];
+    int ng[SGM_G];
+    __attribute__((opencl_unroll_hint))
+    for (int g = 0; g < SGM_G; ++g) {
+        ng[g] = full ? VW : clamp(W - xw - g * VW, 0, VW);
+        newm[g] = (float16)(INFINITY);
+        pm1[g] = (float16)(INFINITY);
+        pd[g] = first || ng[g] == 0 ? (float16)(INFINITY) : vload16(0, st + xw + g * VW);
+    }
+    __global const vol_t *cp = cost + (size_t)y * W + xw;
+    __global vol_t *op = out + (size_t)y * W + xw;
+    __global float *sp = st + xw;
+    for (int d = 0; d <= dmax; ++d, cp += plane, op += plane, sp += ws) {
+        __attribute__((opencl_unroll_hint))
+        for (int g = 0; g < SGM_G; ++g) {
+            const int n = ng[g];
+            if (n == 0)
+                continue;
+            if (!last) { /* this plane's line of the next row on the path */
+                SGM_PREFETCH(cp + g * VW + next);
+                SGM_PREFETCH(op + g * VW + next);
+            }
+            const int16 valid = ((int16)(xw + g * VW) + lane >= (int16)(d)) & (lane < (int16)(n));
+            const float16 c = vol_load16_partial(cp, g * VW, n, 0.0f);
+            float16 val;
+            if (first) {
+                val = c; /* first pixel of the path */
+            } else {
+                const int16 big_r = vload16(0, bigr + MAX_DISP + g * VW - d);
+                const float16 p1 = select(p1a[g], p1b[g], big_r);
+                const float16 p2 = select(p2a[g], p2b[g], big_r);
+                const float16 pn = vload16(0, sp + ws + g * VW); /* C_r(p - r, d + 1) */
+                const float16 best = fmin(fmin_b(pd[g], m[g] + p2), fmin(pm1[g], pn) + p1);
+                val = c - m[g] + best;
+                pm1[g] = pd[g];
+                pd[g] = pn;
+            }
+            val = select((float16)(INFINITY), val, valid);
+            vstore16(val, 0, sp + g * VW);
+            newm[g] = fmin(newm[g], val);
+            float16 o;
+            if (mode == 0) {
+                o = select((float16)(NAN), val, valid);
+            } else {
+                const float16 old = vol_load16_partial(op, g * VW, n, 0.0f);
+                o = select(old, SGM_COMBINE(old, val, mode), valid);
+            }
+            vol_store16_partial(o, op + g * VW, n);
+        }
+    }
+    __attribute__((opencl_unroll_hint))
+    for (int g = 0; g < SGM_G; ++g)
+        m[g] = newm[g];
+}
+
+/* col_row with constant first (f), mode and full arguments */
+#define COL_ROW(f, md, fl) col_row(cost, out, state, ws, H, W, xw, dmax, y, dy, last, (f), (md), (fl), bigr, \
+                                   p1a, p1b, p2a, p2b, m)
+#define COL_ROW_MODES(f)                                                                        \
+    do {                                                                                        \
+        if (full) {                                                                             \
+            if (mode == 0) COL_ROW(f, 0, 1); else if (mode == 1) COL_ROW(f, 1, 1); else COL_ROW(f, 2, 1); \
+        } else {                                                                                \
+            if (mode == 0) COL_ROW(f, 0, 0); else if (mode == 1) COL_ROW(f, 1, 0); else COL_ROW(f, 2, 0); \
+        }                                                                                       \
+    } while (0)
+
+/* Vertical paths, rows j0 .. j0 + nj - 1 of the path (row y = j on
+ * top->bottom paths, H - 1 - j on bottom->top ones): one work-item walks
+ * SGM_COLS adjacent columns (SGM_G groups of VW on float16 lanes over x, so
+ * each step touches SGM_COLS contiguous elements of each plane).  The path's
+ * state between rows, C_r(p - r, d) for d = 0 .. D (level D and levels beyond
+ * the valid range hold +INFINITY) and min_k C_r(p - r, k) as level D + 1,
+ * lives in `state` ([D + 2][ws] floats, ws >= W a multiple of SGM_COLS), so
+ * a path can be walked in several launches (bands of rows). */
 __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume (NaN invalid) */
                           __global const float *img_l, /* H x W left image, gray in [0, 1] */
                           __global const float *img_r, /* H x W right image, gray in [0, 1] */
                           __global vol_t *out,         /* D x H x W accumulated C_SGM */
+                          __global float *state,       /* (D + 2) x ws path state (above) */
+                          const int ws,                /* row stride of state */
                           const int D,                 /* disparity levels, <= MAX_DISP */
                           const int H,                 /* height */
                           const int W,                 /* width */
+                          const int j0,                /* first row of the path walked here */
+                          const int nj,                /* rows walked here */
                           const int dy,                /* r = (0, dy): +1 top->bottom, -1 bottom->top */
                           const float p1_small,        /* P1 when 0, 1, 2 gradients are large */
                           const float p1_one,
@@ -124,51 +183,76 @@ __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume 
                           const float tau_so,          /* gradient threshold (paper 0.0625) */
                           const int mode)              /* 0 write, 1 add, 2 add and divide by 4 */
 {
-    /* Two adjacent groups of 16 columns per work-item, a: xa .. and b: xa + 16 ..
-     * (empty, nb = 0, past the image): each step then touches 128 contiguous
-     * bytes of each plane, half the pages per byte of one group (measured
-     * ~1.45x faster on PoCL; the pages, not the arithmetic, are the cost). */
-    const int xa = get_global_id(0) * 2 * VW;
-    if (xa >= W)
+    const int xw = get_global_id(0) * SGM_COLS;
+    if (xw >= W)
         return;
-    const int xb = xa + VW;
-    const int na = min(VW, W - xa), nb = clamp(W - xb, 0, VW);
-    const int dmax = min(D - 1, xa + na + nb - 1);
-    float16 prev_a[MAX_DISP + 1], prev_b[MAX_DISP + 1]; /* C_r(p - r, d) of each group */
-    for (int d = 0; d <= MAX_DISP; ++d) {
-        prev_a[d] = (float16)(INFINITY);
-        prev_b[d] = (float16)(INFINITY);
-    }
-    float16 ma = (float16)(INFINITY), mb = (float16)(INFINITY);
-    for (int j = 0; j < H; ++j) {
+    const int dmax = min(D - 1, min(W, xw + SGM_COLS) - 1);
+    const int full = xw + SGM_COLS <= W;
+    __global float *st_m = state + (size_t)(D + 1) * ws + xw;
+    float16 m[SGM_G];
+    __attribute__((opencl_unroll_hint))
+    for (int g = 0; g < SGM_G; ++g)
+        m[g] = j0 == 0 ? (float16)(INFINITY) : vload16(0, st_m + g * VW);
+    if (j0 == 0) /* levels beyond the valid range (at least level D) */
+        for (int d = dmax + 1; d <= D; ++d)
+            __attribute__((opencl_unroll_hint))
+            for (int g = 0; g < SGM_G; ++g)
+                vstore16((float16)(INFINITY), 0, state + (size_t)d * ws + xw + g * VW);
+    /* D2 large (-1) or not (0) at right pixel x' = xw - MAX_DISP + t, for
+     * t >= MAX_DISP - dmax (x' < 0 or >= W: never used, set to 0) */
+    int bigr[MAX_DISP + SGM_COLS];
+    const int t_lo = (MAX_DISP - dmax) / VW * VW;
+    for (int j = j0; j < j0 + nj; ++j) {
         const int y = dy > 0 ? j : H - 1 - j;
-        const int py = y - dy;
-        int16 big_la = (int16)(0), big_lb = (int16)(0);
-        if (j > 0) {
-            big_la = isless(fabs(load16_partial(img_l, y * W + xa, na, 0.0f) - load16_partial(img_l, py * W + xa, na, 0.0f)),
-                            (float16)(tau_so)) == (int16)(0);
-            if (nb > 0)
-                big_lb = isless(fabs(load16_partial(img_l, y * W + xb, nb, 0.0f) - load16_partial(img_l, py * W + xb, nb, 0.0f)),
-                                (float16)(tau_so)) == (int16)(0);
-        }
-        float16 newma = (float16)(INFINITY), newmb = (float16)(INFINITY);
-        float16 pm1a = (float16)(INFINITY), pm1b = (float16)(INFINITY);
-        for (int d = 0; d <= dmax; ++d) {
-            col_cell(cost, img_r, out, H, W, xa, na, d, y, py, j, dy, mode, big_la, ma, prev_a, &pm1a, &newma,
-                     p1_small, p1_one, p1_both, p2_small, p2_one, p2_both, tau_so);
-            if (nb > 0)
-                col_cell(cost, img_r, out, H, W, xb, nb, d, y, py, j, dy, mode, big_lb, mb, prev_b, &pm1b, &newmb,
-                         p1_small, p1_one, p1_both, p2_small, p2_one, p2_both, tau_so);
+        const int last = j + 1 >= H;
+        float16 p1a[SGM_G], p1b[SGM_G], p2a[SGM_G], p2b[SGM_G];
+        if (j == 0) {
+            COL_ROW_MODES(1);
+        } else {
+            const int py = y - dy;
+            __attribute__((opencl_unroll_hint))
+            for (int g = 0; g < SGM_G; ++g) {
+                const int x0 = xw + g * VW, n = clamp(W - x0, 0, VW);
+                int16 big_l = (int16)(0);
+                if (n > 0)
+                    big_l = isless(fabs(load16_partial(img_l, y * W + x0, n, 0.0f) - load16_partial(img_l, py * W + x0, n, 0.0f)),
+                                   (float16)(tau_so)) == (int16)(0);
+                p1a[g] = select((float16)(p1_small), (float16)(p1_one), big_l); /* D2 small */
+                p1b[g] = select((float16)(p1_one), (float16)(p1_both), big_l);  /* D2 large */
+                p2a[g] = select((float16)(p2_small), (float16)(p2_one), big_l);
+                p2b[g] = select((float16)(p2_one), (float16)(p2_both), big_l);
+            }
+            for (int t0 = t_lo; t0 < MAX_DISP + SGM_COLS; t0 += VW) {
+                const int x1 = xw - MAX_DISP + t0;
+                float16 a, b;
+                if (x1 >= 0 && x1 + VW <= W) {
+                    a = vload16(0, img_r + y * W + x1);
+                    b = vload16(0, img_r + py * W + x1);
+                } else {
+                    float ta[VW], tb[VW];
+                    for (int i = 0; i < VW; ++i) {
+                        const int in = x1 + i >= 0 && x1 + i < W;
+                        ta[i] = in ? img_r[y * W + x1 + i] : 0.0f;
+                        tb[i] = in ? img_r[py * W + x1 + i] : 0.0f;
+                    }
+                    a = vload16(0, ta);
+                    b = vload16(0, tb);
+                }
+                vstore16(isless(fabs(a - b), (float16)(tau_so)) == (int16)(0), 0, bigr + t0);
+            }
+            COL_ROW_MODES(0);
         }
         if (mode == 0)
-            for (int d = dmax + 1; d < D; ++d) {
-                vol_store16_partial((float16)(NAN), out + VIDX(d, y, xa, H, W), na);
-                if (nb > 0)
-                    vol_store16_partial((float16)(NAN), out + VIDX(d, y, xb, H, W), nb);
-            }
-        ma = newma;
-        mb = newmb;
+            for (int d = dmax + 1; d < D; ++d)
+                for (int g = 0; g < SGM_G; ++g) {
+                    const int x0 = xw + g * VW, n = clamp(W - x0, 0, VW);
+                    if (n > 0)
+                        vol_store16_partial((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
+                }
     }
+    __attribute__((opencl_unroll_hint))
+    for (int g = 0; g < SGM_G; ++g)
+        vstore16(m[g], 0, st_m + g * VW);
 }
 
 /* Transpose of a 16 x 16 block held as 16 float16 rows: afterwards r[i].sj
@@ -216,11 +300,13 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
                        const float p2_both,
                        const float tau_so,          /* gradient threshold (paper 0.0625) */
                        const int outside_large,     /* 1: pd - r outside the right image = large D2 */
-                       const int mode)              /* 0 write, 1 add, 2 add and divide by 4 */
+                       const int mode,              /* 0 write, 1 add, 2 add and divide by 4 */
+                       const int y0,                /* first row walked by this launch */
+                       const int ny)                /* rows walked by this launch */
 {
-    const int y = get_global_id(0);
-    if (y >= H)
+    if (get_global_id(0) >= ny)
         return;
+    const int y = y0 + get_global_id(0);
     __global const float *il = img_l + y * W;
     __global const float *ir = img_r + y * W;
     float blk[VW * MAX_DISP]; /* one chunk, [k][d]: costs, overwritten by C_r */
@@ -235,7 +321,7 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
     const uint16 reverse = (uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
     float m = INFINITY; /* min_k C_r(p - r, k) */
     float16 r[VW];
-    int big_r_row[MAX_DISP + VW]; /* D2 large, per right pixel of the chunk (below) */
+    int big_r_rev[MAX_DISP + VW]; /* D2 large, per right pixel of the chunk, reversed (below) */
     const int nchunks = (W + VW - 1) / VW;
     for (int ci = 0; ci < nchunks; ++ci) {
         const int x0 = (dx > 0 ? ci : nchunks - 1 - ci) * VW;
@@ -253,8 +339,10 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
                 vstore16(r[k], 0, blk + k * MAX_DISP + d0);
         }
         /* D2 >= tau_so (-1) or not (0) for the right pixels xr = base + t this chunk
-         * names (x0 - dmaxc <= xr < x0 + n); entries with xr < 0 are never used */
-        const int base = x0 - ntiles * VW;
+         * names (x0 - dmaxc <= xr < x0 + n), stored reversed at big_r_rev[rt - t]
+         * so that lanes d0 .. d0 + 15 of pixel x (xr = x - d) are one vector
+         * load; entries with xr < 0 are never used */
+        const int base = x0 - ntiles * VW, rt = (ntiles + 1) * VW - 1;
         for (int t0 = 0; t0 < (ntiles + 1) * VW; t0 += VW) {
             const int xa = base + t0, xb = xa - dx;
             float16 a, b;
@@ -274,7 +362,7 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
             const int16 outside = (xrp < (int16)(0)) | (xrp >= (int16)(W));
             int16 big = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
             big = select(big, (int16)(outside_large ? -1 : 0), outside);
-            vstore16(big, 0, big_r_row + t0);
+            vstore16(as_int16(shuffle(as_uint16(big), reverse)), 0, big_r_rev + ntiles * VW - t0);
         }
         /* the next chunk's lines of every plane, spread over this chunk's pixels */
         const int cin = ci + 1 < nchunks ? ci + 1 : ci;
@@ -286,8 +374,7 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
             const int x = x0 + k;
             for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
                 SGM_PREFETCH(cost + VIDX(d, y, x0n, H, W));
-                if (mode != 0)
-                    SGM_PREFETCH(out + VIDX(d, y, x0n, H, W));
+                SGM_PREFETCH(out + VIDX(d, y, x0n, H, W));
             }
             const int dmax = min(D - 1, x);
             const int nvec = dmax / VW + 1;
@@ -307,15 +394,14 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
                 if (first) {
                     val = c;
                 } else {
-                    /* D2 large at pd = x - d, lanes d0 .. d0 + 15: big_r[xr - base] reversed */
-                    const int16 big_r = as_int16(shuffle(vload16(0, (const uint *)big_r_row + (x - d0 - base - (VW - 1))),
-                                                         reverse));
+                    /* D2 large at pd = x - d, lanes d0 .. d0 + 15 */
+                    const int16 big_r = vload16(0, big_r_rev + rt - (x - d0 - base));
                     const float16 p1 = select((float16)(p1_a), (float16)(p1_b), big_r);
                     const float16 p2 = select((float16)(p2_a), (float16)(p2_b), big_r);
                     const float16 pm = vload16(0, prev + d0);     /* d - 1 */
                     const float16 pd = vload16(0, prev + d0 + 1); /* d */
                     const float16 pn = vload16(0, prev + d0 + 2); /* d + 1 */
-                    const float16 best = fmin(fmin(pd, (float16)(m) + p2), fmin(pm, pn) + p1);
+                    const float16 best = fmin(fmin_b(pd, (float16)(m) + p2), fmin(pm, pn) + p1);
                     val = c - (float16)(m) + best;
                 }
                 val = select((float16)(INFINITY), val, valid);

@@ -271,19 +271,23 @@ def case_cbca(ctx, rng, chk):
 
 
 def case_sgm(ctx, rng, chk):
-    """sgm.cl: the four directions (rows and columns kernels), both penalty variants."""
+    """sgm.cl: the four directions (rows and columns kernels), both penalty
+    variants; the default configuration of this device and the CPU one (128
+    columns per sgm_columns work-item, a partial strip) with the first sweep
+    in bands of rows (the vertical path's state carried between launches)."""
     from mccnn_cl.reference.aggregation import sgm
     from mccnn_cl.stages.sgm import SGM
 
-    st = SGM(ctx)
-    for (D, H, W), kw in (((5, 4, 13), {}), ((7, 5, 5), {"variant": "code", "outside_large": False}),
-                          ((5, 1, 19), {})):
+    for (D, H, W), kw, cfg in (((5, 4, 13), {}, {}),
+                               ((7, 5, 5), {"variant": "code", "outside_large": False}, {}),
+                               ((5, 1, 19), {}, {}),
+                               ((6, 5, 21), {}, {"cols": 128, "band": 2})):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
         C = _volume(rng, D, H, W)
         out = _poisoned(ctx, 4 * D * H * W)
-        st(ctx.to_device(C), ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=out, **kw)
+        SGM(ctx, **cfg)(ctx.to_device(C), ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=out, **kw)
         # as tests/test_sgm.py: 2e-5 of (cost range + Pi2); float32 path sums re-based every step
-        chk.close(f"SGM D={D} {H}x{W} {kw}", ctx.from_device(out, (D, H, W)),
+        chk.close(f"SGM D={D} {H}x{W} {kw} {cfg}", ctx.from_device(out, (D, H, W)),
                   sgm(C, img_l, img_r, **kw), atol=2e-5 * (1.0 + 32.0))
 
 

@@ -72,7 +72,12 @@ _DISP_ROUND = 32
 #: Most disparity levels SGM accepts: the kernels keep up to ~128 bytes of
 #: private memory per level and work-item (2048 levels checked on PoCL).
 MAX_LEVELS = 2048
-_COLS = 32  # columns per work-item in sgm_columns (two groups of VW = 16 lanes in sgm.cl)
+_COLS = 32  # default columns per work-item in sgm_columns (two groups of VW = 16 lanes in sgm.cl)
+#: Rows per band of the first sweep on CPU devices (module docstring).
+BAND_CPU = 0
+#: Columns per work-item of sgm_columns on CPU devices: longer runs of each
+#: plane per step (module docstring).
+COLS_CPU = 128
 
 
 def penalty_table(pi1=1.0, pi2=32.0, q1=4.0, q2=10.0, v=2.0, vertical=False, variant="paper",
@@ -97,28 +102,57 @@ class SGM:
     compilers such as Intel's CPU runtime or Rusticl).  Hints only: the
     results are the same either way.
 
+    ``band``: rows per band of the first sweep (see the module docstring);
+    None (default) picks BAND_CPU rows on CPU devices and the whole image
+    elsewhere.  ``cols``: columns per work-item of ``sgm_columns`` (a
+    multiple of 16; default 32).  Neither changes a bit of the result.
+
     ``half=True``: volumes stored as half (``VOL_HALF``, kernels/common.h);
     the recurrences run in float, and the output accumulates the four
     directions in place, so the partial sums are rounded to half too."""
 
-    def __init__(self, ctx, prefetch=None, half: bool = False):
+    def __init__(self, ctx, prefetch=None, half: bool = False, band=None, cols=None):
         self.ctx = ctx
         self.half = bool(half)
         self._kernels = {}
+        is_cpu = self._cpu = int(ctx.device.type) == int(ctx.cl.device_type.CPU)
         if prefetch is None:
-            prefetch = int(ctx.device.type) == int(ctx.cl.device_type.CPU)
+            prefetch = is_cpu
         self.prefetch = bool(prefetch)
+        if band is None:
+            band = BAND_CPU if is_cpu else 0
+        if int(band) < 0:
+            raise InputError(f"SGM band must be >= 0 rows (0: the whole image), got {band}")
+        self.band = int(band)
+        if cols is None:
+            cols = COLS_CPU if is_cpu else _COLS
+        if int(cols) < 16 or int(cols) % 16:
+            raise InputError(f"SGM cols must be a positive multiple of 16, got {cols}")
+        self.cols = int(cols)
+        self._state = None
+
+    @staticmethod
+    def scratch_bytes(D, W, cols=COLS_CPU) -> int:
+        """Device scratch besides the cost and output volumes: the vertical
+        paths' state, (D + 2) rows of W (rounded up to ``cols``) floats."""
+        return 4 * (int(D) + 2) * round_up(int(W), int(cols))
 
     def _kernel(self, D):
         max_disp = -(-int(D) // _DISP_ROUND) * _DISP_ROUND
         k = self._kernels.get(max_disp)
         if k is None:
             k = [self.ctx.kernel("sgm.cl", name, MAX_DISP=max_disp, SGM_CPU_PREFETCH=int(self.prefetch),
-                                 VOL_HALF=int(self.half))
+                                 VOL_HALF=int(self.half), SGM_COLS=self.cols)
                  for name in ("sgm_rows", "sgm_columns")]
-            k = [(kern, scan_local_size(self.ctx, kern)) for kern in k]
+            k = [(kern, 1 if self._cpu else scan_local_size(self.ctx, kern)) for kern in k]
             self._kernels[max_disp] = k
         return k
+
+    def _state_buffer(self, nbytes):
+        if self._state is None or self._state.size < nbytes:
+            self._state = None
+            self._state = self.ctx.empty(nbytes, "SGM path state")
+        return self._state
 
     def __call__(self, d_cost, d_img_left, d_img_right, D, H, W, pi1=1.0, pi2=32.0, tau_so=0.0625,
                  q1=4.0, q2=10.0, v=2.0, variant="paper", p2_times_pi1=False, outside_large=True,
@@ -134,15 +168,31 @@ class SGM:
         if out is None:
             out = self.ctx.empty(volume_bytes(self.half) * D * H * W, "SGM output volume")
         (k_rows, l_rows), (k_cols, l_cols) = self._kernel(D)
+        ws = round_up(W, self.cols)
+        state = self._state_buffer(self.scratch_bytes(D, W, self.cols))
         dims = (np.int32(D), np.int32(H), np.int32(W))
-        for i, (dx, dy) in enumerate(DIRECTIONS):
-            p1s, p2s = penalty_table(pi1, pi2, q1, q2, v, dy != 0, variant, p2_times_pi1)
-            mode = np.int32(0 if i == 0 else (2 if i == len(DIRECTIONS) - 1 else 1))
-            bufs = (d_cost, d_img_left, d_img_right, out)
-            if dy == 0:
-                launch(self.ctx, "SGM (horizontal)", k_rows, (round_up(H, l_rows),), (l_rows,), *bufs, *dims,
-                       np.int32(dx), *p1s, *p2s, np.float32(tau_so), np.int32(bool(outside_large)), mode)
-            else:
-                launch(self.ctx, "SGM (vertical)", k_cols, (round_up(-(-W // _COLS), l_cols),), (l_cols,), *bufs, *dims,
-                       np.int32(dy), *p1s, *p2s, np.float32(tau_so), mode)
+        bufs = (d_cost, d_img_left, d_img_right, out)
+        pen_h = penalty_table(pi1, pi2, q1, q2, v, False, variant, p2_times_pi1)
+        pen_v = penalty_table(pi1, pi2, q1, q2, v, True, variant, p2_times_pi1)
+        g_cols = (round_up(ws // self.cols, l_cols),)
+
+        def rows(dx, mode, y0, ny):
+            launch(self.ctx, "SGM (horizontal)", k_rows, (round_up(ny, l_rows),), (l_rows,), *bufs, *dims,
+                   np.int32(dx), *pen_h[0], *pen_h[1], np.float32(tau_so), np.int32(bool(outside_large)),
+                   np.int32(mode), np.int32(y0), np.int32(ny))
+
+        def columns(dy, mode, j0, nj):
+            launch(self.ctx, "SGM (vertical)", k_cols, g_cols, (l_cols,), *bufs, state, np.int32(ws), *dims,
+                   np.int32(j0), np.int32(nj), np.int32(dy), *pen_v[0], *pen_v[1], np.float32(tau_so), np.int32(mode))
+
+        # first sweep, top to bottom in bands: C_lr, + C_rl, + C_tb (the band's
+        # rows are still in the cache when the vertical path reaches them)
+        band = self.band or H
+        for y0 in range(0, H, band):
+            ny = min(band, H - y0)
+            rows(1, 0, y0, ny)
+            rows(-1, 1, y0, ny)
+            columns(1, 1, y0, ny)
+        # second sweep: + C_bt, divided by 4
+        columns(-1, 2, 0, H)
         return out
