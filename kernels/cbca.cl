@@ -5,7 +5,9 @@
  * derivation of the two passes from the set U_d(p) is in that module's
  * docstring).  Two implementations: cbca_rows / cbca_columns (running sums,
  * any MAX_ARM, described here) and cbca_rows_short / cbca_columns_short
- * (float16 direct sums, MAX_ARM <= CBCA_SHORT_MAX, further down).
+ * (float16 direct sums, MAX_ARM <= CBCA_SHORT_MAX, further down), the latter
+ * also fused into one launch per iteration (cbca_fused_short) and per up to
+ * CBCA_K iterations (cbca_fused_multi_short, at the end).
  *
  * Arms: bytes in four planes [4][H][W] (left, right, up, down), as written
  * by cross.cl; ARM(a, k, i) is arm k of pixel index i = y * W + x.
