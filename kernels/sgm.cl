@@ -60,9 +60,15 @@
 
 #define SGM_G (SGM_COLS / VW) /* groups of VW columns per work-item of sgm_columns */
 
-/* fmin(a, b) for b that is never NaN: a unless b < a or a is NaN, i.e. one
- * comparison (not a <= b) instead of fmin's NaN test and comparison; the
- * same value as fmin in every such case, ties included (a). */
+/* fmin (OpenCL: y if y < x, else x; the other argument if one is NaN) with
+ * one comparison instead of a NaN test and a comparison, where one argument
+ * is known never to be NaN; the same value as fmin in every such case, ties
+ * included.  fmin_a: a is never NaN; fmin_b: b is never NaN. */
+static inline __attribute__((always_inline)) float16 fmin_a(const float16 a, const float16 b)
+{
+    return select(a, b, b < a);
+}
+
 static inline __attribute__((always_inline)) float16 fmin_b(const float16 a, const float16 b)
 {
     return select(a, b, !(a <= b));
@@ -119,14 +125,17 @@ static inline __attribute__((always_inline)) void col_row(
                 const float16 p1 = select(p1a[g], p1b[g], big_r);
                 const float16 p2 = select(p2a[g], p2b[g], big_r);
                 const float16 pn = vload16(0, sp + ws + g * VW); /* C_r(p - r, d + 1) */
-                const float16 best = fmin(fmin_b(pd[g], m[g] + p2), fmin(pm1[g], pn) + p1);
+                /* m and newm are never NaN (minima from +INFINITY through fmin, which
+                 * drops NaN), so neither are m + P2 nor fmin_b(., m + P2): fmin_a/b
+                 * are fmin there; C_r(p - r, .) may be NaN (a NaN cost) */
+                const float16 best = fmin_a(fmin_b(pd[g], m[g] + p2), fmin(pm1[g], pn) + p1);
                 val = c - m[g] + best;
                 pm1[g] = pd[g];
                 pd[g] = pn;
             }
             val = select((float16)(INFINITY), val, valid);
             vstore16(val, 0, sp + g * VW);
-            newm[g] = fmin(newm[g], val);
+            newm[g] = fmin_a(newm[g], val);
             float16 o;
             if (mode == 0) {
                 o = select((float16)(NAN), val, valid);
@@ -302,7 +311,8 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
                        const int outside_large,     /* 1: pd - r outside the right image = large D2 */
                        const int mode,              /* 0 write, 1 add, 2 add and divide by 4 */
                        const int y0,                /* first row walked by this launch */
-                       const int ny)                /* rows walked by this launch */
+                       const int ny,                /* rows walked by this launch */
+                       const int both)              /* 1: then walk each row the other way (-dx), adding */
 {
     if (get_global_id(0) >= ny)
         return;
@@ -319,130 +329,140 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
     }
     const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     const uint16 reverse = (uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
-    float m = INFINITY; /* min_k C_r(p - r, k) */
-    float16 r[VW];
-    int big_r_rev[MAX_DISP + VW]; /* D2 large, per right pixel of the chunk, reversed (below) */
-    const int nchunks = (W + VW - 1) / VW;
-    for (int ci = 0; ci < nchunks; ++ci) {
-        const int x0 = (dx > 0 ? ci : nchunks - 1 - ci) * VW;
-        const int n = min(VW, W - x0);
-        const int dmaxc = min(D - 1, x0 + n - 1);
-        const int ntiles = dmaxc / VW + 1;
-        for (int g = 0; g < ntiles; ++g) { /* load the chunk, transposed; d > dmaxc read as 0 */
-            const int d0 = g * VW;
-            __attribute__((opencl_unroll_hint))
-            for (int i = 0; i < VW; ++i)
-                r[i] = d0 + i <= dmaxc ? vol_load16_partial(cost, VIDX(d0 + i, y, x0, H, W), n, 0.0f)
-                                       : (float16)(0.0f);
-            transpose16(r);
-            for (int k = 0; k < VW; ++k)
-                vstore16(r[k], 0, blk + k * MAX_DISP + d0);
-        }
-        /* D2 >= tau_so (-1) or not (0) for the right pixels xr = base + t this chunk
-         * names (x0 - dmaxc <= xr < x0 + n), stored reversed at big_r_rev[rt - t]
-         * so that lanes d0 .. d0 + 15 of pixel x (xr = x - d) are one vector
-         * load; entries with xr < 0 are never used */
-        const int base = x0 - ntiles * VW, rt = (ntiles + 1) * VW - 1;
-        for (int t0 = 0; t0 < (ntiles + 1) * VW; t0 += VW) {
-            const int xa = base + t0, xb = xa - dx;
-            float16 a, b;
-            if (xa >= 0 && xb >= 0 && xa + VW <= W && xb + VW <= W) {
-                a = vload16(0, ir + xa);
-                b = vload16(0, ir + xb);
-            } else {
-                float ta[VW], tb[VW];
+    for (int pass = 0; pass < 1 + both; ++pass) {
+        /* the second pass (both = 1) walks the row the other way, adding to the
+         * first pass's output while the row is still in the cache */
+        const int dxp = pass ? -dx : dx;
+        const int modep = pass ? 1 : mode;
+        if (pass)
+            for (int i = 0; i < MAX_DISP + 2 + VW; ++i) {
+                buf_a[i] = INFINITY;
+                buf_b[i] = INFINITY;
+            }
+        float m = INFINITY; /* min_k C_r(p - r, k) */
+        float16 r[VW];
+        int big_r_rev[MAX_DISP + VW]; /* D2 large, per right pixel of the chunk, reversed (below) */
+        const int nchunks = (W + VW - 1) / VW;
+        for (int ci = 0; ci < nchunks; ++ci) {
+            const int x0 = (dxp > 0 ? ci : nchunks - 1 - ci) * VW;
+            const int n = min(VW, W - x0);
+            const int dmaxc = min(D - 1, x0 + n - 1);
+            const int ntiles = dmaxc / VW + 1;
+            for (int g = 0; g < ntiles; ++g) { /* load the chunk, transposed; d > dmaxc read as 0 */
+                const int d0 = g * VW;
+                __attribute__((opencl_unroll_hint))
+                for (int i = 0; i < VW; ++i)
+                    r[i] = d0 + i <= dmaxc ? vol_load16_partial(cost, VIDX(d0 + i, y, x0, H, W), n, 0.0f)
+                                           : (float16)(0.0f);
+                transpose16(r);
+                for (int k = 0; k < VW; ++k)
+                    vstore16(r[k], 0, blk + k * MAX_DISP + d0);
+            }
+            /* D2 >= tau_so (-1) or not (0) for the right pixels xr = base + t this chunk
+             * names (x0 - dmaxc <= xr < x0 + n), stored reversed at big_r_rev[rt - t]
+             * so that lanes d0 .. d0 + 15 of pixel x (xr = x - d) are one vector
+             * load; entries with xr < 0 are never used */
+            const int base = x0 - ntiles * VW, rt = (ntiles + 1) * VW - 1;
+            for (int t0 = 0; t0 < (ntiles + 1) * VW; t0 += VW) {
+                const int xa = base + t0, xb = xa - dxp;
+                float16 a, b;
+                if (xa >= 0 && xb >= 0 && xa + VW <= W && xb + VW <= W) {
+                    a = vload16(0, ir + xa);
+                    b = vload16(0, ir + xb);
+                } else {
+                    float ta[VW], tb[VW];
+                    for (int i = 0; i < VW; ++i) {
+                        ta[i] = (xa + i >= 0 && xa + i < W) ? ir[xa + i] : 0.0f;
+                        tb[i] = (xb + i >= 0 && xb + i < W) ? ir[xb + i] : 0.0f;
+                    }
+                    a = vload16(0, ta);
+                    b = vload16(0, tb);
+                }
+                const int16 xrp = (int16)(xb) + lane;
+                const int16 outside = (xrp < (int16)(0)) | (xrp >= (int16)(W));
+                int16 big = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
+                big = select(big, (int16)(outside_large ? -1 : 0), outside);
+                vstore16(as_int16(shuffle(as_uint16(big), reverse)), 0, big_r_rev + ntiles * VW - t0);
+            }
+            /* the next chunk's lines of every plane, spread over this chunk's pixels */
+            const int cin = ci + 1 < nchunks ? ci + 1 : ci;
+            const int x0n = (dxp > 0 ? cin : nchunks - 1 - cin) * VW;
+            const int dmaxn = min(D - 1, x0n + min(VW, W - x0n) - 1);
+            const int pf_per = dmaxn / VW + 1;
+            for (int kk = 0; kk < n; ++kk) {
+                const int k = dxp > 0 ? kk : n - 1 - kk;
+                const int x = x0 + k;
+                for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
+                    SGM_PREFETCH(cost + VIDX(d, y, x0n, H, W));
+                    SGM_PREFETCH(out + VIDX(d, y, x0n, H, W));
+                }
+                const int dmax = min(D - 1, x);
+                const int nvec = dmax / VW + 1;
+                const int first = x == (dxp > 0 ? 0 : W - 1); /* first pixel of the path: C_r = C */
+                const int px = x - dxp;
+                const int big_l = first ? 0 : !(fabs(il[x] - il[px]) < tau_so);
+                const float p1_a = big_l ? p1_one : p1_small, p1_b = big_l ? p1_both : p1_one;
+                const float p2_a = big_l ? p2_one : p2_small, p2_b = big_l ? p2_both : p2_one;
+                float16 newm = (float16)(INFINITY);
+                for (int v = 0; v < nvec; ++v) {
+                    const int d0 = v * VW;
+                    float *bp = blk + k * MAX_DISP + d0;
+                    const float16 c = vload16(0, bp);
+                    float16 val;
+                    if (first) {
+                        val = c;
+                    } else {
+                        /* D2 large at pd = x - d, lanes d0 .. d0 + 15 */
+                        const int16 big_r = vload16(0, big_r_rev + rt - (x - d0 - base));
+                        const float16 p1 = select((float16)(p1_a), (float16)(p1_b), big_r);
+                        const float16 p2 = select((float16)(p2_a), (float16)(p2_b), big_r);
+                        const float16 pm = vload16(0, prev + d0);     /* d - 1 */
+                        const float16 pd = vload16(0, prev + d0 + 1); /* d */
+                        const float16 pn = vload16(0, prev + d0 + 2); /* d + 1 */
+                        const float16 best = fmin_a(fmin_b(pd, (float16)(m) + p2), fmin(pm, pn) + p1);
+                        val = c - (float16)(m) + best;
+                    }
+                    if (v == nvec - 1) /* only the last vector has lanes d > dmax */
+                        val = select((float16)(INFINITY), val, (int16)(d0) + lane <= (int16)(dmax));
+                    vstore16(val, 0, cur + d0 + 1);
+                    vstore16(val, 0, bp); /* lanes d > dmax: discarded at write-back */
+                    newm = fmin_a(newm, val);
+                }
+                vstore16((float16)(INFINITY), 0, cur + nvec * VW + 1); /* d beyond the valid range */
+                const float8 m8 = fmin(newm.lo, newm.hi);
+                const float4 m4 = fmin(m8.lo, m8.hi);
+                const float2 m2 = fmin(m4.lo, m4.hi);
+                m = fmin(m2.x, m2.y);
+                float *sw = prev;
+                prev = cur;
+                cur = sw;
+            }
+            const int16 xs = (int16)(x0) + lane;
+            for (int g = 0; g < ntiles; ++g) { /* write the chunk back, rows d of 16 x */
+                const int d0 = g * VW;
+                for (int k = 0; k < VW; ++k)
+                    r[k] = vload16(0, blk + k * MAX_DISP + d0);
+                transpose16(r);
+                __attribute__((opencl_unroll_hint))
                 for (int i = 0; i < VW; ++i) {
-                    ta[i] = (xa + i >= 0 && xa + i < W) ? ir[xa + i] : 0.0f;
-                    tb[i] = (xb + i >= 0 && xb + i < W) ? ir[xb + i] : 0.0f;
+                    const int d = d0 + i;
+                    if (d > dmaxc)
+                        break;
+                    const int16 valid = xs >= (int16)(d);
+                    const size_t i0 = VIDX(d, y, x0, H, W);
+                    float16 o;
+                    if (modep == 0) {
+                        o = select((float16)(INVALID_COST), r[i], valid);
+                    } else {
+                        const float16 old = vol_load16_partial(out, i0, n, 0.0f);
+                        o = select(old, SGM_COMBINE(old, r[i], modep), valid);
+                    }
+                    vol_store16_partial(o, out + i0, n);
                 }
-                a = vload16(0, ta);
-                b = vload16(0, tb);
             }
-            const int16 xrp = (int16)(xb) + lane;
-            const int16 outside = (xrp < (int16)(0)) | (xrp >= (int16)(W));
-            int16 big = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
-            big = select(big, (int16)(outside_large ? -1 : 0), outside);
-            vstore16(as_int16(shuffle(as_uint16(big), reverse)), 0, big_r_rev + ntiles * VW - t0);
+            if (modep == 0)
+                for (int d = dmaxc + 1; d < D; ++d)
+                    vol_store16_partial((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
         }
-        /* the next chunk's lines of every plane, spread over this chunk's pixels */
-        const int cin = ci + 1 < nchunks ? ci + 1 : ci;
-        const int x0n = (dx > 0 ? cin : nchunks - 1 - cin) * VW;
-        const int dmaxn = min(D - 1, x0n + min(VW, W - x0n) - 1);
-        const int pf_per = dmaxn / VW + 1;
-        for (int kk = 0; kk < n; ++kk) {
-            const int k = dx > 0 ? kk : n - 1 - kk;
-            const int x = x0 + k;
-            for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
-                SGM_PREFETCH(cost + VIDX(d, y, x0n, H, W));
-                SGM_PREFETCH(out + VIDX(d, y, x0n, H, W));
-            }
-            const int dmax = min(D - 1, x);
-            const int nvec = dmax / VW + 1;
-            const int first = x == (dx > 0 ? 0 : W - 1); /* first pixel of the path: C_r = C */
-            const int px = x - dx;
-            const int big_l = first ? 0 : !(fabs(il[x] - il[px]) < tau_so);
-            const float p1_a = big_l ? p1_one : p1_small, p1_b = big_l ? p1_both : p1_one;
-            const float p2_a = big_l ? p2_one : p2_small, p2_b = big_l ? p2_both : p2_one;
-            float16 newm = (float16)(INFINITY);
-            for (int v = 0; v < nvec; ++v) {
-                const int d0 = v * VW;
-                const int16 ds = (int16)(d0) + lane;
-                const int16 valid = ds <= (int16)(dmax);
-                float *bp = blk + k * MAX_DISP + d0;
-                const float16 c = vload16(0, bp);
-                float16 val;
-                if (first) {
-                    val = c;
-                } else {
-                    /* D2 large at pd = x - d, lanes d0 .. d0 + 15 */
-                    const int16 big_r = vload16(0, big_r_rev + rt - (x - d0 - base));
-                    const float16 p1 = select((float16)(p1_a), (float16)(p1_b), big_r);
-                    const float16 p2 = select((float16)(p2_a), (float16)(p2_b), big_r);
-                    const float16 pm = vload16(0, prev + d0);     /* d - 1 */
-                    const float16 pd = vload16(0, prev + d0 + 1); /* d */
-                    const float16 pn = vload16(0, prev + d0 + 2); /* d + 1 */
-                    const float16 best = fmin(fmin_b(pd, (float16)(m) + p2), fmin(pm, pn) + p1);
-                    val = c - (float16)(m) + best;
-                }
-                val = select((float16)(INFINITY), val, valid);
-                vstore16(val, 0, cur + d0 + 1);
-                vstore16(val, 0, bp); /* lanes d > dmax: discarded at write-back */
-                newm = fmin(newm, val);
-            }
-            vstore16((float16)(INFINITY), 0, cur + nvec * VW + 1); /* d beyond the valid range */
-            const float8 m8 = fmin(newm.lo, newm.hi);
-            const float4 m4 = fmin(m8.lo, m8.hi);
-            const float2 m2 = fmin(m4.lo, m4.hi);
-            m = fmin(m2.x, m2.y);
-            float *sw = prev;
-            prev = cur;
-            cur = sw;
-        }
-        const int16 xs = (int16)(x0) + lane;
-        for (int g = 0; g < ntiles; ++g) { /* write the chunk back, rows d of 16 x */
-            const int d0 = g * VW;
-            for (int k = 0; k < VW; ++k)
-                r[k] = vload16(0, blk + k * MAX_DISP + d0);
-            transpose16(r);
-            __attribute__((opencl_unroll_hint))
-            for (int i = 0; i < VW; ++i) {
-                const int d = d0 + i;
-                if (d > dmaxc)
-                    break;
-                const int16 valid = xs >= (int16)(d);
-                const size_t i0 = VIDX(d, y, x0, H, W);
-                float16 o;
-                if (mode == 0) {
-                    o = select((float16)(INVALID_COST), r[i], valid);
-                } else {
-                    const float16 old = vol_load16_partial(out, i0, n, 0.0f);
-                    o = select(old, SGM_COMBINE(old, r[i], mode), valid);
-                }
-                vol_store16_partial(o, out + i0, n);
-            }
-        }
-        if (mode == 0)
-            for (int d = dmaxc + 1; d < D; ++d)
-                vol_store16_partial((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
     }
 }

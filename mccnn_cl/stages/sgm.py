@@ -41,20 +41,40 @@ one row per work-item, copying each chunk of all D planes into private
 memory transposed to [x][d] (16 x 16 tiles transposed in registers) and
 running the recurrence on float16 lanes over d, C_r overwriting the costs
 in the block before it is transposed back and combined with the output;
-the right-image gradient decisions are taken once per chunk.
-``sgm_columns`` walks 32 adjacent columns per work-item (two groups on
-float16 lanes over x: 128 contiguous bytes of each plane per step).
-Private arrays are sized by ``-D MAX_DISP`` (D rounded up to a multiple of
-32): ``sgm_rows`` ~76 bytes per level (about 21 KB at MAX_DISP = 256, i.e.
-KITTI's D = 228), ``sgm_columns`` 128 bytes per level (32.9 KB).  The four
-launches accumulate straight into the output (write, add, add,
-add-and-divide), so no per-direction volume is stored.  Each pass reads one
-64-byte line in each of D planes per step, which no hardware prefetcher
-follows: on CPU devices whose compiler targets the CPU's instruction set
-(PoCL) the kernels prefetch the next step's lines (``prefetch``, below);
-elsewhere they give OpenCL's ``prefetch()`` hint.  Measured on
-PoCL (2 cores) this is several times faster than one scalar work-item per
-scanline, which touched D pages per step.
+the right-image gradient decisions are taken once per chunk (stored
+reversed, so a pixel's 16 levels are one vector load).  With ``both`` it
+then walks the same row the other way, adding to the output while the row
+is still in the cache (``fused_rows``, default on CPUs).  ``sgm_columns``
+walks ``cols`` adjacent columns per work-item (groups of 16 on float16
+lanes over x: ``cols`` contiguous elements of each plane per step); the
+path's state between rows, C_r(p - r, .) and its minimum, lives in a global
+(D + 2) x W buffer (``SGM.scratch_bytes``), so a path can be walked in
+several launches (``band``) and the kernel keeps no large private arrays;
+C_r(p - r, d + 1) is carried to the next level in registers and the
+right-image gradient flags are computed once per row.  ``sgm_rows`` keeps
+~76 bytes of private memory per level (about 21 KB at MAX_DISP = 256, i.e.
+KITTI's D = 228).  The launches accumulate straight into the output in the
+order C_lr (written), + C_rl, + C_tb, + C_bt and / 4, so no per-direction
+volume is stored and the sums are rounded exactly as before.  Each step
+reads one line in each of D planes, which no hardware prefetcher follows:
+on CPU devices whose compiler targets the CPU's instruction set (PoCL) the
+kernels prefetch the next step's lines (``prefetch``, below); elsewhere they
+give OpenCL's ``prefetch()`` hint.  fmin is written as one comparison where
+an argument is known never to be NaN (the same value, ties included).
+
+Defaults by device type (results identical bit for bit, tested): CPU
+devices walk 128 columns per ``sgm_columns`` work-item (32 elsewhere, for
+W / 32 work-items), work-groups of 1 (PoCL runs each group on one thread:
+few large work-items in groups of 8 left a core idle), fused row passes,
+and the whole image as one band (bands of rows, meant to keep a band in the
+cache for the vertical path, measured slower on PoCL: the row launches get
+too few work-items).
+
+Measured on PoCL, 2 cores (AMD EPYC VM), KITTI D = 228, 367 x 1234, best of
+3 per launch: before, 580-720 ms per call (sgm_rows 130 + 85 ms, sgm_columns
+2 x 175 ms); now ~MEASURED.  A walk over the volume that only loads and
+stores, in the same pattern, costs ~70 ms per read-read-write pass, so both
+kernels are now within about 1.3x of their memory traffic.
 """
 
 from __future__ import annotations
@@ -111,7 +131,7 @@ class SGM:
     the recurrences run in float, and the output accumulates the four
     directions in place, so the partial sums are rounded to half too."""
 
-    def __init__(self, ctx, prefetch=None, half: bool = False, band=None, cols=None):
+    def __init__(self, ctx, prefetch=None, half: bool = False, band=None, cols=None, fused_rows=None):
         self.ctx = ctx
         self.half = bool(half)
         self._kernels = {}
@@ -129,6 +149,7 @@ class SGM:
         if int(cols) < 16 or int(cols) % 16:
             raise InputError(f"SGM cols must be a positive multiple of 16, got {cols}")
         self.cols = int(cols)
+        self.fused_rows = is_cpu if fused_rows is None else bool(fused_rows)
         self._state = None
 
     @staticmethod
@@ -176,10 +197,10 @@ class SGM:
         pen_v = penalty_table(pi1, pi2, q1, q2, v, True, variant, p2_times_pi1)
         g_cols = (round_up(ws // self.cols, l_cols),)
 
-        def rows(dx, mode, y0, ny):
+        def rows(dx, mode, y0, ny, both=0):
             launch(self.ctx, "SGM (horizontal)", k_rows, (round_up(ny, l_rows),), (l_rows,), *bufs, *dims,
                    np.int32(dx), *pen_h[0], *pen_h[1], np.float32(tau_so), np.int32(bool(outside_large)),
-                   np.int32(mode), np.int32(y0), np.int32(ny))
+                   np.int32(mode), np.int32(y0), np.int32(ny), np.int32(both))
 
         def columns(dy, mode, j0, nj):
             launch(self.ctx, "SGM (vertical)", k_cols, g_cols, (l_cols,), *bufs, state, np.int32(ws), *dims,
@@ -190,8 +211,11 @@ class SGM:
         band = self.band or H
         for y0 in range(0, H, band):
             ny = min(band, H - y0)
-            rows(1, 0, y0, ny)
-            rows(-1, 1, y0, ny)
+            if self.fused_rows:
+                rows(1, 0, y0, ny, both=1)
+            else:
+                rows(1, 0, y0, ny)
+                rows(-1, 1, y0, ny)
             columns(1, 1, y0, ny)
         # second sweep: + C_bt, divided by 4
         columns(-1, 2, 0, H)
