@@ -20,19 +20,19 @@ from mccnn_cl.stages.sgm import SGM
 from test_cbca import ad_volume, blocky_image, invalid_mask, random_volume
 
 
-def run_sgm(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, **kw):
+def run_sgm(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, **kw):
     D, H, W = cost.shape
     d_out = ctx.empty(cost.nbytes)
     ctx.fill(d_out, POISON, cost.nbytes)
     d_cost = ctx.to_device(cost)
-    SGM(ctx, prefetch=prefetch, band=band, cols=cols)(d_cost, ctx.to_device(img_l), ctx.to_device(img_r),
+    SGM(ctx, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows)(d_cost, ctx.to_device(img_l), ctx.to_device(img_r),
                                                       D, H, W, out=d_out, **kw)
     np.testing.assert_array_equal(ctx.from_device(d_cost, cost.shape), cost)  # input untouched
     return ctx.from_device(d_out, cost.shape)
 
 
-def check(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, **kw):
-    got = run_sgm(ctx, cost, img_l, img_r, prefetch=prefetch, band=band, cols=cols, **kw)
+def check(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, **kw):
+    got = run_sgm(ctx, cost, img_l, img_r, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows, **kw)
     want = sgm(cost, img_l, img_r, **kw)
     np.testing.assert_array_equal(np.isnan(got), invalid_mask(*cost.shape))
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
@@ -99,26 +99,27 @@ def test_several_tiles_and_interior_chunks_with_and_without_prefetch(ctx):
     np.testing.assert_array_equal(with_pf, without_pf)
 
 
-#: (band, cols) configurations: whole image / bands of 1 and 3 rows (the
-#: vertical path's state carried between launches), 16 to 128 columns per
-#: sgm_columns work-item (one to eight groups of 16, partial strips).
-CONFIGS = [(0, 16), (1, 32), (3, 128), (0, 64), (5, 48)]
+#: (band, cols, fused_rows) configurations: whole image / bands of 1 and 3
+#: rows (the vertical path's state carried between launches), 16 to 128
+#: columns per sgm_columns work-item (one to eight groups of 16, partial
+#: strips), the two row directions in one launch or two.
+CONFIGS = [(0, 16, False), (1, 32, True), (3, 128, False), (0, 64, True), (5, 48, True)]
 
 
 @pytest.mark.parametrize("D,H,W", [(21, 9, 150), (40, 6, 23), (17, 13, 130)])
 def test_configurations_match_reference_and_each_other(ctx, D, H, W):
-    """Every band / columns configuration against the reference, and bit for
-    bit against the others (they reorder work, never arithmetic).  W not a
+    """Every band / columns / fused-rows configuration against the reference,
+    and bit for bit against the others (they reorder work, never arithmetic).  W not a
     multiple of 16, 32 or 128; D not a multiple of 16; D > W."""
     rng = np.random.default_rng(D * 1000 + W)
     cost = random_volume(rng, D, H, W, scale=3.0)
     img_l, img_r = blocky_image(rng, H, W, 3, 0.08), blocky_image(rng, H, W, 3, 0.08)
     first = None
-    for band, cols in CONFIGS:
-        got, _ = check(ctx, cost, img_l, img_r, band=band, cols=cols)
+    for band, cols, fused in CONFIGS:
+        got, _ = check(ctx, cost, img_l, img_r, band=band, cols=cols, fused_rows=fused)
         if first is None:
             first = got
-        np.testing.assert_array_equal(got.view(np.uint32), first.view(np.uint32), err_msg=f"band={band} cols={cols}")
+        np.testing.assert_array_equal(got.view(np.uint32), first.view(np.uint32), err_msg=f"band={band} cols={cols} fused={fused}")
 
 
 def test_configurations_on_kitti_crop(ctx, shared_data):
@@ -132,11 +133,11 @@ def test_configurations_on_kitti_crop(ctx, shared_data):
         imgs.append(img[180:180 + H, 400:400 + W].astype(np.float32) / 255.0)
     cost = ad_volume(imgs[0], imgs[1], D)
     first = None
-    for band, cols in CONFIGS:
-        got, _ = check(ctx, cost, imgs[0], imgs[1], band=band, cols=cols)
+    for band, cols, fused in CONFIGS:
+        got, _ = check(ctx, cost, imgs[0], imgs[1], band=band, cols=cols, fused_rows=fused)
         if first is None:
             first = got
-        np.testing.assert_array_equal(got.view(np.uint32), first.view(np.uint32), err_msg=f"band={band} cols={cols}")
+        np.testing.assert_array_equal(got.view(np.uint32), first.view(np.uint32), err_msg=f"band={band} cols={cols} fused={fused}")
 
 
 def test_bad_configuration(ctx):
