@@ -71,10 +71,15 @@ cache for the vertical path, measured slower on PoCL: the row launches get
 too few work-items).
 
 Measured on PoCL, 2 cores (AMD EPYC VM), KITTI D = 228, 367 x 1234, best of
-3 per launch: before, 580-720 ms per call (sgm_rows 130 + 85 ms, sgm_columns
-2 x 175 ms); now ~MEASURED.  A walk over the volume that only loads and
-stores, in the same pattern, costs ~70 ms per read-read-write pass, so both
-kernels are now within about 1.3x of their memory traffic.
+3 per launch, A/B in one process, bit-identical outputs: before, 580-720 ms
+per call (sgm_rows 133 + 84 ms, sgm_columns 177 + 177 ms); now 320-330 ms
+(one fused sgm_rows launch ~175 ms, sgm_columns ~70-75 ms each).  Later in
+the same session, with the machine's memory visibly slower (a load/store-only
+walk twice as slow, the plain copy not), 535-575 ms against 575-1010 ms for
+the old kernels.  A walk that only loads and stores in sgm_columns' pattern
+costs ~70-80 ms per read-read-write pass (sgm_rows' pattern ~73 ms), so the
+vertical kernel is near its memory traffic; the row kernel is about half
+arithmetic (transposes, a serial minimum per pixel).
 """
 
 from __future__ import annotations
