@@ -151,9 +151,17 @@ static inline __attribute__((always_inline)) void col_row(
         m[g] = newm[g];
 }
 
-/* col_row with constant first (f), mode and full arguments */
+/* col_row with constant first (f), mode and full arguments (12 inlined
+ * copies), or with SGM_SPECIALIZE=0 one copy taking them at run time: the
+ * same operations on every value (bit-identical), a sixth of the code, for
+ * compilers that take minutes on the specialised kernel (Mesa's llvmpipe:
+ * ~190 s at MAX_DISP = 32). */
+#ifndef SGM_SPECIALIZE
+#define SGM_SPECIALIZE 1
+#endif
 #define COL_ROW(f, md, fl) col_row(cost, out, state, ws, H, W, xw, dmax, y, dy, last, (f), (md), (fl), bigr, \
                                    p1a, p1b, p2a, p2b, m)
+#if SGM_SPECIALIZE
 #define COL_ROW_MODES(f)                                                                        \
     do {                                                                                        \
         if (full) {                                                                             \
@@ -162,6 +170,7 @@ static inline __attribute__((always_inline)) void col_row(
             if (mode == 0) COL_ROW(f, 0, 0); else if (mode == 1) COL_ROW(f, 1, 0); else COL_ROW(f, 2, 0); \
         }                                                                                       \
     } while (0)
+#endif
 
 /* Vertical paths, rows j0 .. j0 + nj - 1 of the path (row y = j on
  * top->bottom paths, H - 1 - j on bottom->top ones): one work-item walks
@@ -216,7 +225,9 @@ __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume 
         const int last = j + 1 >= H;
         float16 p1a[SGM_G], p1b[SGM_G], p2a[SGM_G], p2b[SGM_G];
         if (j == 0) {
+#if SGM_SPECIALIZE
             COL_ROW_MODES(1);
+#endif
         } else {
             const int py = y - dy;
             __attribute__((opencl_unroll_hint))
@@ -249,8 +260,13 @@ __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume 
                 }
                 vstore16(isless(fabs(a - b), (float16)(tau_so)) == (int16)(0), 0, bigr + t0);
             }
+#if SGM_SPECIALIZE
             COL_ROW_MODES(0);
+#endif
         }
+#if !SGM_SPECIALIZE
+        COL_ROW(j == 0, mode, full); /* first row: p1a .. p2b and bigr are not read */
+#endif
         if (mode == 0)
             for (int d = dmax + 1; d < D; ++d)
                 for (int g = 0; g < SGM_G; ++g) {

@@ -275,13 +275,14 @@ def case_sgm(ctx, rng, chk):
     variants; the default configuration of this device and the CPU one (128
     columns per sgm_columns work-item, a partial strip; both row directions
     in one launch) with the first sweep in bands of rows (the vertical path's
-    state carried between launches)."""
+    state carried between launches); the column kernel with and without its
+    specialised row loops."""
     from mccnn_cl.reference.aggregation import sgm
     from mccnn_cl.stages.sgm import SGM
 
     for (D, H, W), kw, cfg in (((5, 4, 13), {}, {}),
                                ((7, 5, 5), {"variant": "code", "outside_large": False}, {}),
-                               ((5, 1, 19), {}, {}),
+                               ((5, 1, 19), {}, {"specialize": False}),
                                ((6, 5, 21), {}, {"cols": 128, "band": 2, "fused_rows": True})):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
         C = _volume(rng, D, H, W)

@@ -20,19 +20,20 @@ from mccnn_cl.stages.sgm import SGM
 from test_cbca import ad_volume, blocky_image, invalid_mask, random_volume
 
 
-def run_sgm(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, **kw):
+def run_sgm(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None, **kw):
     D, H, W = cost.shape
     d_out = ctx.empty(cost.nbytes)
     ctx.fill(d_out, POISON, cost.nbytes)
     d_cost = ctx.to_device(cost)
-    SGM(ctx, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows)(d_cost, ctx.to_device(img_l), ctx.to_device(img_r),
-                                                      D, H, W, out=d_out, **kw)
+    SGM(ctx, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows, specialize=specialize)(
+        d_cost, ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=d_out, **kw)
     np.testing.assert_array_equal(ctx.from_device(d_cost, cost.shape), cost)  # input untouched
     return ctx.from_device(d_out, cost.shape)
 
 
-def check(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, **kw):
-    got = run_sgm(ctx, cost, img_l, img_r, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows, **kw)
+def check(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None, **kw):
+    got = run_sgm(ctx, cost, img_l, img_r, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows,
+                  specialize=specialize, **kw)
     want = sgm(cost, img_l, img_r, **kw)
     np.testing.assert_array_equal(np.isnan(got), invalid_mask(*cost.shape))
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
@@ -99,11 +100,13 @@ def test_several_tiles_and_interior_chunks_with_and_without_prefetch(ctx):
     np.testing.assert_array_equal(with_pf, without_pf)
 
 
-#: (band, cols, fused_rows) configurations: whole image / bands of 1 and 3
-#: rows (the vertical path's state carried between launches), 16 to 128
-#: columns per sgm_columns work-item (one to eight groups of 16, partial
-#: strips), the two row directions in one launch or two.
-CONFIGS = [(0, 16, False), (1, 32, True), (3, 128, False), (0, 64, True), (5, 48, True)]
+#: (band, cols, fused_rows, specialize) configurations: whole image / bands
+#: of 1 and 3 rows (the vertical path's state carried between launches), 16
+#: to 128 columns per sgm_columns work-item (one to eight groups of 16,
+#: partial strips), the two row directions in one launch or two, the column
+#: kernel's row loop specialised per case or not.
+CONFIGS = [(0, 16, False, True), (1, 32, True, False), (3, 128, False, True), (0, 64, True, False),
+           (5, 48, True, True)]
 
 
 @pytest.mark.parametrize("D,H,W", [(21, 9, 150), (40, 6, 23), (17, 13, 130)])
@@ -115,11 +118,12 @@ def test_configurations_match_reference_and_each_other(ctx, D, H, W):
     cost = random_volume(rng, D, H, W, scale=3.0)
     img_l, img_r = blocky_image(rng, H, W, 3, 0.08), blocky_image(rng, H, W, 3, 0.08)
     first = None
-    for band, cols, fused in CONFIGS:
-        got, _ = check(ctx, cost, img_l, img_r, band=band, cols=cols, fused_rows=fused)
+    for band, cols, fused, spec in CONFIGS:
+        got, _ = check(ctx, cost, img_l, img_r, band=band, cols=cols, fused_rows=fused, specialize=spec)
         if first is None:
             first = got
-        np.testing.assert_array_equal(got.view(np.uint32), first.view(np.uint32), err_msg=f"band={band} cols={cols} fused={fused}")
+        np.testing.assert_array_equal(got.view(np.uint32), first.view(np.uint32),
+                                      err_msg=f"band={band} cols={cols} fused={fused} specialize={spec}")
 
 
 def test_configurations_on_kitti_crop(ctx, shared_data):
@@ -133,11 +137,12 @@ def test_configurations_on_kitti_crop(ctx, shared_data):
         imgs.append(img[180:180 + H, 400:400 + W].astype(np.float32) / 255.0)
     cost = ad_volume(imgs[0], imgs[1], D)
     first = None
-    for band, cols, fused in CONFIGS:
-        got, _ = check(ctx, cost, imgs[0], imgs[1], band=band, cols=cols, fused_rows=fused)
+    for band, cols, fused, spec in CONFIGS:
+        got, _ = check(ctx, cost, imgs[0], imgs[1], band=band, cols=cols, fused_rows=fused, specialize=spec)
         if first is None:
             first = got
-        np.testing.assert_array_equal(got.view(np.uint32), first.view(np.uint32), err_msg=f"band={band} cols={cols} fused={fused}")
+        np.testing.assert_array_equal(got.view(np.uint32), first.view(np.uint32),
+                                      err_msg=f"band={band} cols={cols} fused={fused} specialize={spec}")
 
 
 def test_bad_configuration(ctx):
