@@ -64,7 +64,8 @@ BENCH_LINE = re.compile(r"^(?P<label>\S.*?)\s{2,}(?P<sec>\d+\.\d+)(?:\s+\d+\.\d+
 # mccnn-cl bench -v per-stage lines: "  <name>   <seconds>".
 RAW_LINE = re.compile(r"^  (?P<label>\S+)\s+(?P<sec>\d+\.\d+)$")
 # bench_aggregation.py lines: "<label>   <ms> ms ..." (first number followed by " ms").
-AGG_LINE = re.compile(r"^(?P<label>buffer copy|cross arms \(x2\)|CBCA 4 it \(max_arm=\s*\d+\)|SGM 4 directions)"
+AGG_LINE = re.compile(r"^(?P<label>buffer copy|cross arms \(x2\)|CBCA 4 it \(max_arm=\s*\d+(?:, [\w-]+ ?)?\)|"
+                      r"SGM 4 directions)"
                       r"\s+(?P<ms>\d+\.\d+) ms")
 
 
