@@ -91,7 +91,7 @@ class RightReference:
     def volume(self, d_cost, D, H, W, out=None):
         if out is None:
             out = self.ctx.empty(D * H * W * self.vbytes, "right-reference cost volume")
-        launch(self.ctx, "right-reference volume", self.k_volume, (W, H, D), d_cost, out,
+        launch(self.ctx, "right-reference volume", self.k_volume, (-(-W // 16), H, D), d_cost, out,
                np.int32(D), np.int32(H), np.int32(W))
         return out
 
