@@ -104,8 +104,11 @@ def test_several_tiles_and_interior_chunks_with_and_without_prefetch(ctx):
 #: of 1 and 3 rows (the vertical path's state carried between launches), 16
 #: to 128 columns per sgm_columns work-item (one to eight groups of 16,
 #: partial strips), the two row directions in one launch or two, the column
-#: kernel's row loop specialised per case or not.
-CONFIGS = [(0, 16, False, True), (1, 32, True, False), (3, 128, False, True), (0, 64, True, False),
+#: kernel's row loop specialised per case or not (the other tests run each
+#: device's default, on CPUs 128 columns specialised; here the wide strips
+#: are unspecialised because Rusticl's llvmpipe takes minutes to compile a
+#: specialised 128-column kernel).
+CONFIGS = [(0, 16, False, True), (1, 32, True, False), (3, 128, False, False), (0, 64, True, False),
            (5, 48, True, True)]
 
 
