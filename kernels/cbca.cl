@@ -189,8 +189,6 @@ static inline int16 cbca_arm16(__global const uchar *a, const int k, const int f
     return convert_int16(vload16(0, t));
 }
 
-#define LANES ((int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
-
 /* Combined arm of one direction k (ARM_LEFT, ...) for 16 pixels starting at
  * index i of row-major H x W: the shorter of the left image's arm at i and the
  * right image's at i - d (pixel x - d), capped by `cap`.  Uses the caller's

@@ -24,6 +24,9 @@
 
 #define INVALID_COST NAN
 
+/* Lane numbers 0 .. 15 of a 16-wide vector (x offsets of a 16-pixel chunk). */
+#define LANES ((int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+
 /* Index of cell (d, y, x) in a D x H x W volume. */
 #define VIDX(d, y, x, H, W) (((size_t)(d) * (size_t)(H) + (size_t)(y)) * (size_t)(W) + (size_t)(x))
 

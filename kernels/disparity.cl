@@ -30,7 +30,7 @@ __kernel void disparity_wta_left(
     if (x0 >= W || y >= H)
         return;
     const int n = min(16, W - x0);
-    const int16 xs = (int16)(x0) + (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const int16 xs = (int16)(x0) + LANES;
     const int dmax = min(D - 1, x0 + n - 1);
     float16 best = vol_load16_partial(cost + VIDX(0, y, x0, H, W), 0, n, 0.0f);
     int16 best_d = (int16)(0);

@@ -93,7 +93,7 @@ __kernel void refine_median16(
     const int y = get_global_id(1);
     if (xc >= W || y >= H)
         return;
-    const int16 xs = (int16)(xc) + (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const int16 xs = (int16)(xc) + LANES;
     const bool interior = xc - MEDIAN_RADIUS >= 0 && xc + 16 + MEDIAN_RADIUS <= W;
     float16 v[MEDIAN_COUNT];
     int n = 0;

@@ -90,7 +90,7 @@ static inline __attribute__((always_inline)) void col_row(
     const int mode, const int full, const int *bigr, const float16 *p1a, const float16 *p1b,
     const float16 *p2a, const float16 *p2b, float16 *m)
 {
-    const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const int16 lane = LANES;
     const size_t plane = (size_t)H * (size_t)W;
     const int next = dy * W; /* offset of the next row on the path */
     float16 newm[SGM_G], pm1[SGM_G], pd[SGM_G];
@@ -343,7 +343,7 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
         buf_a[i] = INFINITY;
         buf_b[i] = INFINITY;
     }
-    const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const int16 lane = LANES;
     const uint16 reverse = (uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
     for (int pass = 0; pass < 1 + both; ++pass) {
         /* the second pass (both = 1) walks the row the other way, adding to the

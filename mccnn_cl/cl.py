@@ -295,6 +295,12 @@ class ClContext:
         return int(self.device.max_work_group_size)
 
     @property
+    def is_rusticl(self) -> bool:
+        """The device belongs to Mesa's Rusticl (llvmpipe here), which some
+        stages steer around: see CBCA (half) and SGM (compile time)."""
+        return "rusticl" in self.device.platform.name.lower()
+
+    @property
     def has_fp64(self) -> bool:
         return "cl_khr_fp64" in self.device.extensions
 

@@ -164,7 +164,7 @@ class CBCA:
         self.short = bool(short)
         if fused is None:
             fused = bool(ctx.device.type & ctx.cl.device_type.CPU)
-            if half and "rusticl" in ctx.device.platform.name.lower():
+            if half and ctx.is_rusticl:
                 # Mesa 22.3's Rusticl/llvmpipe computes wrong sums in the half
                 # variant of cbca_fused_short beyond ~170 rows (cost errors up
                 # to 1.0), while PoCL, Intel's runtime and Oclgrind agree with

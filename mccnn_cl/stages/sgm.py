@@ -147,7 +147,7 @@ class SGM:
         # Mesa's llvmpipe (Rusticl) compiles the column kernel at its first
         # launch, and takes minutes on the specialised 128-column CPU variant
         # (~190 s at MAX_DISP = 32; ~4 s unspecialised at 32 columns)
-        slow_compiler = "rusticl" in ctx.device.platform.name.lower()
+        slow_compiler = ctx.is_rusticl
         if specialize is None:
             specialize = not slow_compiler
         self.specialize = bool(specialize)
