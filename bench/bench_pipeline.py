@@ -33,7 +33,7 @@ DATA = Path(os.environ.get("MCCNN_SHARED_DATA", REPO.parent / "shared" / "data")
 
 # Pipeline stage names (StereoResult.timings keys) -> row of the paper's table.
 GROUPS = {"C_CNN": "matching cost", "cross": "CBCA", "C_CBCA": "CBCA", "C": "CBCA", "C_SGM": "SGM",
-          "cross_R": "CBCA", "C_R_CBCA": "CBCA", "C_R": "CBCA", "C_R_SGM": "SGM"}
+          "cross_R": "CBCA", "C_R": "CBCA", "C_R_SGM": "SGM"}
 
 
 def kitti_pair(height=376, width=1240):

@@ -73,7 +73,7 @@ QUICK = {
 
 # StereoResult.timings keys -> group; anything else (WTA ... bilateral) is "rest".
 GROUP = {"C_CNN": "cost", "cross": "CBCA", "C_CBCA": "CBCA", "C": "CBCA", "cross_R": "CBCA",
-         "C_R_CBCA": "CBCA", "C_R": "CBCA", "C_SGM": "SGM", "C_R_SGM": "SGM"}
+         "C_R": "CBCA", "C_SGM": "SGM", "C_R_SGM": "SGM"}
 STEREO_QUANTITIES = ("CBCA", "SGM", "rest", "total_excl_cost")
 NETWORK_QUANTITIES = ("network",)
 

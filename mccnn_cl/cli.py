@@ -449,7 +449,7 @@ def synthetic_pair(width, height, max_disparity, seed=0):
 # StereoMatcher's stage names (pipeline.py) -> the bench's groups; unknown names go by substring.
 _STAGE_OF = {"C_CNN": "network", "cross": "CBCA", "C_CBCA": "CBCA", "C": "CBCA", "C_SGM": "SGM",
              # right-reference volume (right_reference="aggregated"): the same stages again
-             "cross_R": "CBCA", "C_R_CBCA": "CBCA", "C_R_SGM": "SGM", "C_R": "CBCA", "right_volume": "rest"}
+             "cross_R": "CBCA", "C_R_SGM": "SGM", "C_R": "CBCA", "right_volume": "rest"}
 _STAGE_GROUPS = (("network", ("network", "cnn", "census", "conv")),
                  ("CBCA", ("cbca", "cross", "aggregat")),
                  ("SGM", ("sgm", "semiglobal")))
@@ -510,13 +510,15 @@ def _bench_rates(matcher, shape, groups, total, sgbm_time, vol):
     at least, over the device's buffer-copy bandwidth: one read and one
     write of the D x H x W volume per CBCA round (its iterations can run in
     one pass, as the fused kernel does; a round of 0 iterations moves
-    nothing) and per SGM call, per reference; the right-reference volume,
-    read + write; each WTA, one read."""
+    nothing): the left reference's two rounds and the right reference's
+    round after SGM (its first round is the left one, shifted); per SGM
+    call, per reference; the right-reference volume, read + write; each
+    WTA, one read."""
     p = matcher.params
     nref = 2 if p.right_reference == "aggregated" else 1
     copy_bw = _copy_bandwidth(matcher.ctx)
-    rounds = int(p.cbca_iterations > 0) + int(p.cbca_iterations_after > 0)
-    traffic = {"CBCA": nref * rounds * 2 * vol,
+    rounds = int(p.cbca_iterations > 0) + nref * int(p.cbca_iterations_after > 0)
+    traffic = {"CBCA": rounds * 2 * vol,
                "SGM": nref * 2 * vol,
                "rest": (2 * vol if nref == 2 else 0) + 2 * vol}
     rows, floor = [], 0.0

@@ -184,8 +184,8 @@ class StereoResult:
     ``timings``: stage -> seconds (queue finished after every stage), keyed by
     the output names above plus ``cross`` (arms), and with
     ``right_reference="aggregated"`` ``right_volume`` (the shifted, mirrored
-    C_CNN), ``cross_R``, ``C_R_CBCA``, ``C_R_SGM``, ``C_R`` (the same stages
-    for the right reference).
+    C_CBCA: the right reference's first aggregation), ``cross_R``,
+    ``C_R_SGM``, ``C_R`` (the later stages for the right reference).
     ``margin``: m, the offset of the cropped domain in the image.
     ``plan``: the :class:`MemoryPlan` followed; ``peak_device_bytes``: the
     peak of the device buffers the run held beyond those alive when it began
@@ -439,11 +439,13 @@ class StereoMatcher:
         # CBCA aggregates in place (out=its input): a recorded volume is copied
         # to the host before the next stage overwrites it.
         arm = max_arm(p.cbca_eta, p.cross_include_neighbor)
-        if p.right_reference == "aggregated":  # taken before CBCA overwrites C_CNN
-            C_R = rec("right_volume", self.right_ref.volume(C_CNN, D, H, W, out=self._take_volume(D, H, W)))
         arms_L = self.cross(d_J_L, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
         arms_R = rec("cross", self.cross(d_J_R, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor))
         C_CBCA = rec("C_CBCA", self.cbca(C_CNN, arms_L, arms_R, D, H, W, p.cbca_iterations, arm, out=C_CNN), vol, self.vdtype)
+        if p.right_reference == "aggregated":
+            # The right reference's first CBCA is this one, shifted: its support
+            # regions are the left ones moved by -d (docs/method.md, 5.)
+            C_R = rec("right_volume", self.right_ref.volume(C_CBCA, D, H, W, out=self._take_volume(D, H, W)))
         C_SGM = rec("C_SGM", self.sgm(C_CBCA, d_J_L, d_J_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                       p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
                                       p.sgm_outside_large, out=self._take_volume(D, H, W)), vol, self.vdtype)
@@ -473,9 +475,10 @@ class StereoMatcher:
 
     def _right_reference(self, C_R, J_L, J_R, rec):
         """D^R with the right image as the reference (``right_reference="aggregated"``):
-        the mirrored right-reference cost volume (from C_CNN, network not rerun)
-        through cross arms, CBCA, SGM, CBCA and the left WTA with the mirrored
-        right and left images as (left, right); the map is mirrored back."""
+        the mirrored right-reference volume after its first CBCA (``C_R``, the
+        shifted, mirrored C_CBCA; network not rerun) through SGM, CBCA and the
+        left WTA with the mirrored right and left images as (left, right); the
+        map is mirrored back."""
         p, ctx, D = self.params, self.ctx, self.max_disparity
         H, W = J_L.shape
         d_K_L = ctx.to_device(np.ascontiguousarray(J_R[:, ::-1]))  # mirrored right image
@@ -483,7 +486,6 @@ class StereoMatcher:
         arm = max_arm(p.cbca_eta, p.cross_include_neighbor)
         arms_L = self.cross(d_K_L, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
         arms_R = rec("cross_R", self.cross(d_K_R, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor))
-        C_R = rec("C_R_CBCA", self.cbca(C_R, arms_L, arms_R, D, H, W, p.cbca_iterations, arm, out=C_R))
         C_R_SGM = rec("C_R_SGM", self.sgm(C_R, d_K_L, d_K_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                           p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
                                           p.sgm_outside_large, out=self._take_volume(D, H, W)))

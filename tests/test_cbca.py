@@ -293,3 +293,46 @@ def test_bad_input(ctx):
         CBCA(ctx)(d_cost, d_arms, d_arms, 0, 3, 4)
     with pytest.raises(InputError):
         arms_to_device(ctx, np.zeros((3, 4, 4), np.int32))
+
+
+def mirrored_right(cost):
+    """The mirrored right-reference volume (RightReference.volume):
+    out(d, y, x) = cost(d, y, W - 1 - x + d), NaN for x < d."""
+    from mccnn_cl.reference.disparity import right_cost_volume
+    return np.ascontiguousarray(right_cost_volume(cost)[:, :, ::-1])
+
+
+@pytest.mark.parametrize("source,eta,nb", [("random", 4, False), ("random", 9, True), ("kitti", 4, False)])
+def test_right_reference_aggregation_is_the_left_one_shifted(ctx, shared_data, source, eta, nb):
+    """The pipeline takes the right reference's first CBCA from the left one:
+    CBCA of the mirrored right-reference volume, with the mirrored right and
+    left images' arms, equals the mirrored right-reference volume of the left
+    CBCA (U_d of right pixel x is U_d of left pixel x + d, shifted by -d).
+    Checked on the references (float64, so to rounding) and through the
+    kernels (CBCA, then RightReference.volume) against the reference."""
+    from mccnn_cl.stages.disparity import RightReference
+    rng = np.random.default_rng(11)
+    if source == "random":
+        D, H, W = 12, 29, 47
+        img_l, img_r = blocky_image(rng, H, W, 4, 0.01), blocky_image(rng, H, W, 3, 0.01)
+        cost = random_volume(rng, D, H, W)
+    else:
+        H, W, D = 40, 75, 20
+        img_l, img_r = (cv2.imread(str(shared_data / "kitti2015/training" / side / "000000_10.png"),
+                                   cv2.IMREAD_GRAYSCALE)[180:180 + H, 600:600 + W].astype(np.float32) / 255.0
+                        for side in ("image_2", "image_3"))
+        cost = ad_volume(img_l, img_r, D)
+    arms_l = cross_arms(img_l, eta=eta, include_neighbor=nb)
+    arms_r = cross_arms(img_r, eta=eta, include_neighbor=nb)
+    arms_ml = cross_arms(np.ascontiguousarray(img_r[:, ::-1]), eta=eta, include_neighbor=nb)
+    arms_mr = cross_arms(np.ascontiguousarray(img_l[:, ::-1]), eta=eta, include_neighbor=nb)
+    want = cbca(mirrored_right(cost), arms_ml, arms_mr, 4)  # the right reference aggregated itself
+    shifted = mirrored_right(cbca(cost, arms_l, arms_r, 4))
+    compare(shifted, want, cost)
+    assert np.nanmax(np.abs(shifted - want)) < 1e-6 * np.nanmax(np.abs(cost))
+    # through the kernels, as the pipeline does it
+    got_l = run_cbca(ctx, cost, arms_l, arms_r, 4)
+    d_out = ctx.empty(cost.nbytes)
+    ctx.fill(d_out, POISON, cost.nbytes)
+    RightReference(ctx).volume(ctx.to_device(got_l), D, H, W, out=d_out)
+    compare(ctx.from_device(d_out, cost.shape), want, cost)
