@@ -189,6 +189,19 @@ static inline int16 cbca_arm16(__global const uchar *a, const int k, const int f
     return convert_int16(vload16(0, t));
 }
 
+/* As cbca_arm16, as bytes. */
+static inline uchar16 cbca_arm16u(__global const uchar *a, const int k, const int first, const int n,
+                                  const int H, const int W)
+{
+    __global const uchar *p = a + (size_t)k * (size_t)H * (size_t)W;
+    if (n == VW && first >= 0)
+        return vload16(0, p + first);
+    uchar t[VW];
+    for (int i = 0; i < VW; ++i)
+        t[i] = (i < n && first + i >= 0) ? p[first + i] : (uchar)0;
+    return vload16(0, t);
+}
+
 /* Combined arm of one direction k (ARM_LEFT, ...) for 16 pixels starting at
  * index i of row-major H x W: the shorter of the left image's arm at i and the
  * right image's at i - d (pixel x - d), capped by `cap`.  Uses the caller's
@@ -498,6 +511,9 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
 #define CBCA_NRS (2 * MAX_ARM + 1)                          /* row sums of rows y - A .. y + A */
 #define CBCA_NARM ((CBCA_K > 2 ? CBCA_K : 2) * MAX_ARM + 1) /* arms of rows t - K A .. t (and t - 2 A) */
 #define CBCA_NCNT ((CBCA_K - 1) * MAX_ARM + 1)              /* counts of rows t - K A .. t - A */
+#ifndef CBCA_FEVERY
+#define CBCA_FEVERY 8
+#endif
 #define CBCA_FROWS (CBCA_K * CBCA_NRS + (CBCA_NCNT + 1) / 2)  /* float rows per plane (2 count rows per float row) */
 
 /* Aligned 16-lane access to the scratch rows (every scratch row and chunk
@@ -513,15 +529,19 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
 #endif
 
 /* Masked running sum of the 2 MAX_ARM + 1 vectors LOAD(k), k = -MAX_ARM ..
- * MAX_ARM in order: term k < 0 taken where NEG >= -k, k > 0 where POS >= k. */
+ * MAX_ARM in order: term k < 0 taken where NEG >= -k, k > 0 where POS >= k.
+ * NEG, POS: char16 arms (<= CBCA_SHORT_MAX, so positive as signed bytes).
+ * Signed bytes on purpose: for k = +-1 LLVM turns an unsigned or int
+ * "arm >= 1" into "arm != 0" and PoCL then emits an add plus a masked blend
+ * (two 512-bit ops); a signed byte "arm > 0" stays one masked add. */
 #define CBCA_MASKED_SUM(s, LOAD, NEG, POS)                                        \
     do {                                                                          \
         _Pragma("unroll") for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {             \
             const float16 v_ = LOAD(k);                                           \
             if (k < 0)                                                            \
-                (s) = select((s), (s) + v_, (NEG) >= (int16)(-k));                \
+                (s) = select((s), (s) + v_, convert_int16((NEG) >= (char16)(-k))); \
             else if (k > 0)                                                       \
-                (s) = select((s), (s) + v_, (POS) >= (int16)(k));                 \
+                (s) = select((s), (s) + v_, convert_int16((POS) >= (char16)(k)));  \
             else                                                                  \
                 (s) = (s) + v_;                                                   \
         }                                                                         \
@@ -582,21 +602,31 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
     for (int t = 0; t < H + iters * MAX_ARM; ++t) {
         if (t < H) { /* combined arms of row t, capped at the borders, 0 in invalid lanes */
             const size_t o = (size_t)(t % CBCA_NARM) * WR;
+            const uchar16 capu = (uchar16)((uchar)min(MAX_ARM, t));
+            const uchar16 capw = (uchar16)((uchar)min(MAX_ARM, H - 1 - t));
             for (int c = c0; c < nch; ++c) {
                 const int x0 = c * VW;
                 const int n = min(VW, W - x0);
-                const int16 xs = (int16)(x0) + LANES;
-                const int16 valid = (xs >= (int16)(d)) & (LANES < (int16)(n));
                 const int it = t * W + x0;
-                const int16 l = select((int16)(0), CBCA_COMBINED16(ARM_LEFT, it, min((int16)(MAX_ARM), xs - (int16)(d))), valid);
-                const int16 r = select((int16)(0), CBCA_COMBINED16(ARM_RIGHT, it, min((int16)(MAX_ARM), (int16)(W - 1) - xs)), valid);
-                const int16 u = CBCA_COMBINED16(ARM_UP, it, (int16)(min(MAX_ARM, t)));
-                const int16 w = CBCA_COMBINED16(ARM_DOWN, it, (int16)(min(MAX_ARM, H - 1 - t)));
-                SCR_U16(arm + o + x0) = convert_uchar16(l);
-                SCR_U16(arm + AP + o + x0) = convert_uchar16(r);
-                SCR_U16(arm + 2 * AP + o + x0) = convert_uchar16(select((int16)(0), u, valid));
-                SCR_U16(arm + 3 * AP + o + x0) = convert_uchar16(select((int16)(0), w, valid));
-                SCR_U16(arm + 4 * AP + o + x0) = convert_uchar16(select((int16)(0), l + r + (int16)(1), valid));
+                /* bytes throughout (uchar16 is one 128-bit register where
+                 * int16 takes four); the lane caps and the valid mask only
+                 * near the row ends */
+                uchar16 capl = (uchar16)(MAX_ARM), capr = (uchar16)(MAX_ARM), vm = (uchar16)(255);
+                if (x0 < d + MAX_ARM || x0 + VW > W - MAX_ARM) {
+                    const int16 xs = (int16)(x0) + LANES;
+                    vm = as_uchar16(convert_char16((xs >= (int16)(d)) & (LANES < (int16)(n))));
+                    capl = convert_uchar16(clamp(xs - (int16)(d), (int16)(0), (int16)(MAX_ARM))) & vm;
+                    capr = convert_uchar16(clamp((int16)(W - 1) - xs, (int16)(0), (int16)(MAX_ARM))) & vm;
+                }
+#define CBCA_COMBINED16U(k) min(cbca_arm16u(arms_l, (k), it, n, H, W), cbca_arm16u(arms_r, (k), it - d, n, H, W))
+                const uchar16 l = min(CBCA_COMBINED16U(ARM_LEFT), capl);
+                const uchar16 r = min(CBCA_COMBINED16U(ARM_RIGHT), capr);
+                SCR_U16(arm + o + x0) = l;
+                SCR_U16(arm + AP + o + x0) = r;
+                SCR_U16(arm + 2 * AP + o + x0) = min(CBCA_COMBINED16U(ARM_UP), capu) & vm;
+                SCR_U16(arm + 3 * AP + o + x0) = min(CBCA_COMBINED16U(ARM_DOWN), capw) & vm;
+                SCR_U16(arm + 4 * AP + o + x0) = (l + r + (uchar16)(1)) & vm;
+#undef CBCA_COMBINED16U
             }
         }
         const int yc = t - MAX_ARM;
@@ -623,6 +653,23 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                 *(__global ushort16 *)(cnts + (size_t)(yc % CBCA_NCNT) * WR + x0) = convert_ushort16(max(cnt, (int16)(1)));
             }
         }
+        /* src row t + 1 into the other src row buffer, one chunk every
+         * CBCA_FEVERY chunk steps of the row-sum and column loops below (the
+         * rest after them): spread over the whole step, the row's cache
+         * misses overlap with arithmetic (fetched in one loop, as before,
+         * they outran the misses the core keeps in flight and stalled it) */
+        __global vol_t *xn = (t & 1) ? xs0 : xs1;
+        __global const vol_t *nrow = src + VIDX(d, min(t + 1, H - 1), 0, H, W);
+        int fc = t + 1 < H ? c0 : nch; /* next chunk of row t + 1 to fetch */
+        int ftick = 0;
+#define CBCA_FETCH()                                                                   \
+    do {                                                                               \
+        if (fc < nch && ++ftick == CBCA_FEVERY) {                                      \
+            ftick = 0;                                                                 \
+            CBCA_COPY_CHUNK(xn + fc * VW, nrow + fc * VW, min(VW, W - fc * VW));       \
+            ++fc;                                                                      \
+        }                                                                              \
+    } while (0)
         for (int i = 1; i <= iters; ++i) {
             const int yin = t - (i - 1) * MAX_ARM; /* input row of iteration i */
             const int yo = yin - MAX_ARM;          /* output row of iteration i */
@@ -635,17 +682,11 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                 __global float *rs = rg + (size_t)(yin % CBCA_NRS) * WR;
                 const size_t oa = (size_t)(yin % CBCA_NARM) * WR;
                 __global const vol_t *xi = i > 1 ? xy : (t & 1) ? xs1 : xs0;
-                /* iteration 1 fetches src row t + 1 meanwhile (its cache
-                 * misses overlap with the sums) */
-                const int fetch = i == 1 && t + 1 < H;
-                __global vol_t *xn = (t & 1) ? xs0 : xs1;
-                __global const vol_t *nrow = src + VIDX(d, fetch ? t + 1 : t, 0, H, W);
                 for (int c = c0; c < nch; ++c) {
                     const int x0 = c * VW;
-                    if (fetch)
-                        CBCA_COPY_CHUNK(xn + x0, nrow + x0, min(VW, W - x0));
-                    const int16 l = convert_int16(SCR_U16(arm + oa + x0));
-                    const int16 r = convert_int16(SCR_U16(arm + AP + oa + x0));
+                    CBCA_FETCH();
+                    const char16 l = as_char16(SCR_U16(arm + oa + x0));
+                    const char16 r = as_char16(SCR_U16(arm + AP + oa + x0));
                     __global const vol_t *p = xi + x0;
                     float16 s = (float16)(0.0f);
 #define CBCA_LOAD_X(k) VOL_LOAD16(p + (k))
@@ -669,8 +710,9 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                     vol_store16_partial((float16)(INVALID_COST), dst + orow + c * VW, min(VW, W - c * VW));
             for (int c = c0; c < nch; ++c) {
                 const int x0 = c * VW;
-                const int16 u = convert_int16(SCR_U16(arm + 2 * AP + oa + x0));
-                const int16 w = convert_int16(SCR_U16(arm + 3 * AP + oa + x0));
+                CBCA_FETCH();
+                const char16 u = as_char16(SCR_U16(arm + 2 * AP + oa + x0));
+                const char16 w = as_char16(SCR_U16(arm + 3 * AP + oa + x0));
                 float16 s = (float16)(0.0f);
 #define CBCA_LOAD_R(k) SCR_F16(rg + rk[(k) + MAX_ARM] + x0)
                 CBCA_MASKED_SUM(s, CBCA_LOAD_R, u, w);
@@ -684,6 +726,9 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                     XROW_STORE16(xy + x0, res);
             }
         }
+        for (; fc < nch; ++fc)
+            CBCA_COPY_CHUNK(xn + fc * VW, nrow + fc * VW, min(VW, W - fc * VW));
+#undef CBCA_FETCH
     }
 }
 #undef CBCA_COPY_CHUNK

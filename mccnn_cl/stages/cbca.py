@@ -85,15 +85,28 @@ Two implementations of the same two passes (``kernels/cbca.cl``), chosen by
   cell count |U_d(p)| (as the float divisor).  Per iteration and 16-px chunk
   there remain 2 (2 max_arm + 1) masked adds (``s = select(s, s + v, take)``,
   one AVX-512 masked add; identical to ``s += select(0, v, take)`` because s
-  starts at +0 and so is never -0) and one division.  The next src row is
-  fetched inside iteration 1's row-sum loop (two row buffers), so its cache
-  misses overlap arithmetic.  Bit-identical to iterating
+  starts at +0 and so is never -0; the arms are compared as signed bytes,
+  which keeps the k = +-1 terms one masked add each instead of an add and a
+  blend) and one division.  The next src row is fetched while the row-sum
+  and column loops run, one chunk every 8 chunk steps (two row buffers), so
+  its cache misses overlap arithmetic.  Bit-identical to iterating
   ``cbca_fused_short`` (float and half volumes; in half mode each
   iteration's output row is rounded to half before the next iteration reads
   it, as the volume round trip does).  Measured on PoCL (2 cores of an
   AMD EPYC with AVX-512), KITTI-size volume 228 x 367 x 1234, 4 iterations,
   best of 3 in one process: 476 ms (``cbca_fused_short``) -> 193 ms
-  (2.4x; the volume copy alone takes ~36 ms).  Only D work-items, like
+  (2.4x; the volume copy alone takes ~36 ms).  Then (2026-11-23, A/B best
+  of 5 in one process, PoCL 3.1, real KITTI arms, shared machine): 186 ->
+  169 ms (0.91x) from the signed-byte masks (no blends), the fetch spread
+  over the step (the src row's misses had cost ~9 % when fetched in one
+  loop) and the arms ring built on uchar16 instead of int16; Intel's CPU
+  runtime unchanged (183 -> 182 ms).  Where the time goes (stub variants,
+  same process): the 2 x 7 masked adds ~40 % (Zen 4 runs a 512-bit add per
+  cycle: throughput-bound), volume read and write ~9 % each, the arms ring
+  ~7 %, the division hidden, the rest loads, stores and loop overhead.
+  Tried without gain: one loop per iteration for both passes (worse:
+  spills), a duplicated interleaved ring addressing the column pass's 7
+  rows from one pointer (~1 %).  Only D work-items, like
   ``cbca_fused_short``: a GPU keeps the two-pass kernels.
 
 Tests compare all of them with the float64 set-definition reference at 1e-5
