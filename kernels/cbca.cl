@@ -637,20 +637,22 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                 ok[k + MAX_ARM] = 4 * AP + (size_t)(clamp(yc + k, 0, H - 1) % CBCA_NARM) * WR;
             for (int c = c0; c < nch; ++c) {
                 const int x0 = c * VW;
-                const int16 u = convert_int16(SCR_U16(arm + 2 * AP + oc + x0));
-                const int16 w = convert_int16(SCR_U16(arm + 3 * AP + oc + x0));
-                int16 cnt = (int16)(0);
+                /* ushort lanes (counts <= (2 CBCA_SHORT_MAX + 1)^2), signed
+                 * byte masks (see CBCA_MASKED_SUM) */
+                const char16 u = as_char16(SCR_U16(arm + 2 * AP + oc + x0));
+                const char16 w = as_char16(SCR_U16(arm + 3 * AP + oc + x0));
+                ushort16 cnt = (ushort16)(0);
 #pragma unroll
                 for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {
-                    const int16 rc = convert_int16(SCR_U16(arm + ok[k + MAX_ARM] + x0));
+                    const ushort16 rc = convert_ushort16(SCR_U16(arm + ok[k + MAX_ARM] + x0));
                     if (k < 0)
-                        cnt = select(cnt, cnt + rc, u >= (int16)(-k));
+                        cnt = select(cnt, cnt + rc, convert_short16(u >= (char16)(-k)));
                     else if (k > 0)
-                        cnt = select(cnt, cnt + rc, w >= (int16)(k));
+                        cnt = select(cnt, cnt + rc, convert_short16(w >= (char16)(k)));
                     else
                         cnt += rc;
                 }
-                *(__global ushort16 *)(cnts + (size_t)(yc % CBCA_NCNT) * WR + x0) = convert_ushort16(max(cnt, (int16)(1)));
+                *(__global ushort16 *)(cnts + (size_t)(yc % CBCA_NCNT) * WR + x0) = max(cnt, (ushort16)(1));
             }
         }
         /* src row t + 1 into the other src row buffer, one chunk every

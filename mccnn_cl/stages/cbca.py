@@ -100,7 +100,8 @@ Two implementations of the same two passes (``kernels/cbca.cl``), chosen by
   169 ms (0.91x) from the signed-byte masks (no blends), the fetch spread
   over the step (the src row's misses had cost ~9 % when fetched in one
   loop) and the arms ring built on uchar16 instead of int16; Intel's CPU
-  runtime unchanged (183 -> 182 ms).  Where the time goes (stub variants,
+  runtime unchanged (183 -> 182 ms).  Cell counts summed on ushort16
+  instead of int16 lanes: 169 -> 161 ms (A/B best of 5, same process).  Where the time goes (stub variants,
   same process): the 2 x 7 masked adds ~40 % (Zen 4 runs a 512-bit add per
   cycle: throughput-bound), volume read and write ~9 % each, the arms ring
   ~7 %, the division hidden, the rest loads, stores and loop overhead.
