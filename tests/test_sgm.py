@@ -20,20 +20,23 @@ from mccnn_cl.stages.sgm import SGM
 from test_cbca import ad_volume, blocky_image, invalid_mask, random_volume
 
 
-def run_sgm(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None, **kw):
+def run_sgm(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None,
+            whole_tiles=None, **kw):
     D, H, W = cost.shape
     d_out = ctx.empty(cost.nbytes)
     ctx.fill(d_out, POISON, cost.nbytes)
     d_cost = ctx.to_device(cost)
-    SGM(ctx, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows, specialize=specialize)(
+    SGM(ctx, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows, specialize=specialize,
+        whole_tiles=whole_tiles)(
         d_cost, ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=d_out, **kw)
     np.testing.assert_array_equal(ctx.from_device(d_cost, cost.shape), cost)  # input untouched
     return ctx.from_device(d_out, cost.shape)
 
 
-def check(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None, **kw):
+def check(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None,
+          whole_tiles=None, **kw):
     got = run_sgm(ctx, cost, img_l, img_r, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows,
-                  specialize=specialize, **kw)
+                  specialize=specialize, whole_tiles=whole_tiles, **kw)
     want = sgm(cost, img_l, img_r, **kw)
     np.testing.assert_array_equal(np.isnan(got), invalid_mask(*cost.shape))
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
@@ -98,6 +101,23 @@ def test_several_tiles_and_interior_chunks_with_and_without_prefetch(ctx):
     with_pf, _ = check(ctx, cost, img_l, img_r, prefetch=True, outside_large=False)
     without_pf, _ = check(ctx, cost, img_l, img_r, prefetch=False, outside_large=False)
     np.testing.assert_array_equal(with_pf, without_pf)
+
+
+def test_whole_tile_path_and_general_path(ctx):
+    """sgm_rows moves whole 16 x 16 tiles by plain loads and stores
+    (whole_tiles, default except on Rusticl) and the rest element-wise; with
+    whole_tiles=False every tile takes the general path.  D = 40, W = 100:
+    whole tiles, partial last tiles (levels) and a partial last chunk
+    (columns), both row directions in one launch and in two.  Both builds
+    match the reference, and each other bit for bit."""
+    rng = np.random.default_rng(19)
+    D, H, W = 40, 4, 100
+    cost = random_volume(rng, D, H, W, scale=3.0)
+    img_l, img_r = blocky_image(rng, H, W, 3, 0.08), blocky_image(rng, H, W, 3, 0.08)
+    for fused in (True, False):
+        whole, _ = check(ctx, cost, img_l, img_r, whole_tiles=True, fused_rows=fused)
+        general, _ = check(ctx, cost, img_l, img_r, whole_tiles=False, fused_rows=fused)
+        np.testing.assert_array_equal(whole.view(np.uint32), general.view(np.uint32))
 
 
 #: (band, cols, fused_rows, specialize) configurations: whole image / bands

@@ -80,6 +80,21 @@ the old kernels.  A walk that only loads and stores in sgm_columns' pattern
 costs ~70-80 ms per read-read-write pass (sgm_rows' pattern ~73 ms), so the
 vertical kernel is near its memory traffic; the row kernel is about half
 arithmetic (transposes, a serial minimum per pixel).
+
+sgm_rows on the same machine (2026-11-23 evening, KITTI size as above, A/B
+in one process, best of 3, three rounds; a variant of the kernel for each
+measurement, its outputs wrong where it skips work): skipping the recurrence
+altogether changes the launch by less than the noise (~170 ms either way);
+skipping the transposes saves ~40 ms; loading every chunk's costs from one
+cached place saves ~30 ms, and ~10 ms more with the output too.  So the
+launch is bound by moving the chunks (loads that wait for memory although
+prefetched, transposes, index arithmetic), not by the serial minimum; the
+d - 1 / d + 1 neighbours shuffled from aligned vectors instead of misaligned
+loads, unpack-pattern transposes (LLVM emits the same vpermt2ps), prefetching
+2 or 3 chunks ahead, both lines of a misaligned chunk, write intent or L2
+hints: no measurable change.  Whole tiles moved by plain loads and stores
+(``whole_tiles``): sgm_rows 167-173 -> 158-160 ms, the SGM call 311-322 ->
+302-319 ms; Intel's CPU runtime 159-203 -> 141-165 ms (noisier).
 """
 
 from __future__ import annotations
@@ -134,15 +149,18 @@ class SGM:
     on Rusticl).  ``specialize``: compile the column kernel's inner row
     loop once per (first row, output mode, strip inside the image)
     combination (~7 % faster on PoCL); default on, except on Rusticl, whose
-    llvmpipe compiler takes minutes on it.  None of these changes a bit of
-    the result.
+    llvmpipe compiler takes minutes on it.  ``whole_tiles``: move whole
+    16 x 16 tiles in ``sgm_rows`` by a separate path of plain vector loads
+    and stores (~9 % faster on PoCL); default on, except on Rusticl (its
+    compile time, ~+30 % for the SGM portability case).  None of these
+    changes a bit of the result.
 
     ``half=True``: volumes stored as half (``VOL_HALF``, kernels/common.h);
     the recurrences run in float, and the output accumulates the four
     directions in place, so the partial sums are rounded to half too."""
 
     def __init__(self, ctx, prefetch=None, half: bool = False, band=None, cols=None, fused_rows=None,
-                 specialize=None):
+                 specialize=None, whole_tiles=None):
         self.ctx = ctx
         # Mesa's llvmpipe (Rusticl) compiles the column kernel at its first
         # launch, and takes minutes on the specialised 128-column CPU variant
@@ -151,6 +169,9 @@ class SGM:
         if specialize is None:
             specialize = not slow_compiler
         self.specialize = bool(specialize)
+        if whole_tiles is None:
+            whole_tiles = not slow_compiler
+        self.whole_tiles = bool(whole_tiles)
         self.half = bool(half)
         self._kernels = {}
         is_cpu = self._cpu = int(ctx.device.type) == int(ctx.cl.device_type.CPU)
@@ -181,7 +202,8 @@ class SGM:
         k = self._kernels.get(max_disp)
         if k is None:
             k = [self.ctx.kernel("sgm.cl", name, MAX_DISP=max_disp, SGM_CPU_PREFETCH=int(self.prefetch),
-                                 VOL_HALF=int(self.half), SGM_COLS=self.cols, SGM_SPECIALIZE=int(self.specialize))
+                                 VOL_HALF=int(self.half), SGM_COLS=self.cols, SGM_SPECIALIZE=int(self.specialize),
+                                 SGM_WHOLE_TILES=int(self.whole_tiles))
                  for name in ("sgm_rows", "sgm_columns")]
             k = [(kern, 1 if self._cpu else scan_local_size(self.ctx, kern)) for kern in k]
             self._kernels[max_disp] = k
