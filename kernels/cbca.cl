@@ -512,7 +512,7 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
 #define CBCA_NARM ((CBCA_K > 2 ? CBCA_K : 2) * MAX_ARM + 1) /* arms of rows t - K A .. t (and t - 2 A) */
 #define CBCA_NCNT ((CBCA_K - 1) * MAX_ARM + 1)              /* counts of rows t - K A .. t - A */
 #ifndef CBCA_FEVERY
-#define CBCA_FEVERY 8
+#define CBCA_FEVERY 4
 #endif
 #define CBCA_FROWS (CBCA_K * CBCA_NRS + (CBCA_NCNT + 1) / 2)  /* float rows per plane (2 count rows per float row) */
 
@@ -656,10 +656,11 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
             }
         }
         /* src row t + 1 into the other src row buffer, one chunk every
-         * CBCA_FEVERY chunk steps of the row-sum and column loops below (the
-         * rest after them): spread over the whole step, the row's cache
-         * misses overlap with arithmetic (fetched in one loop, as before,
-         * they outran the misses the core keeps in flight and stalled it) */
+         * CBCA_FEVERY chunk steps of the row-sum loops below (the rest after
+         * them): spread over the step, the row's cache misses overlap with
+         * arithmetic (fetched in one loop, as before, they outran the misses
+         * the core keeps in flight and stalled it; spread over the column
+         * loops as well it measured 3-5 % slower) */
         __global vol_t *xn = (t & 1) ? xs0 : xs1;
         __global const vol_t *nrow = src + VIDX(d, min(t + 1, H - 1), 0, H, W);
         int fc = t + 1 < H ? c0 : nch; /* next chunk of row t + 1 to fetch */
@@ -712,7 +713,6 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
                     vol_store16_partial((float16)(INVALID_COST), dst + orow + c * VW, min(VW, W - c * VW));
             for (int c = c0; c < nch; ++c) {
                 const int x0 = c * VW;
-                CBCA_FETCH();
                 const char16 u = as_char16(SCR_U16(arm + 2 * AP + oa + x0));
                 const char16 w = as_char16(SCR_U16(arm + 3 * AP + oa + x0));
                 float16 s = (float16)(0.0f);

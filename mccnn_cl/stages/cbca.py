@@ -88,8 +88,8 @@ Two implementations of the same two passes (``kernels/cbca.cl``), chosen by
   starts at +0 and so is never -0; the arms are compared as signed bytes,
   which keeps the k = +-1 terms one masked add each instead of an add and a
   blend) and one division.  The next src row is fetched while the row-sum
-  and column loops run, one chunk every 8 chunk steps (two row buffers), so
-  its cache misses overlap arithmetic.  Bit-identical to iterating
+  loops run, one chunk every 4 chunk steps (two row buffers), so its cache
+  misses overlap arithmetic.  Bit-identical to iterating
   ``cbca_fused_short`` (float and half volumes; in half mode each
   iteration's output row is rounded to half before the next iteration reads
   it, as the volume round trip does).  Measured on PoCL (2 cores of an
@@ -103,7 +103,9 @@ Two implementations of the same two passes (``kernels/cbca.cl``), chosen by
   runtime unchanged (183 -> 182 ms).  Cell counts summed on ushort16
   instead of int16 lanes: 169 -> 161 ms (A/B best of 5, same process).
   Work-groups of one work-item on CPUs (see ``_get``): 161 -> 149 ms on
-  PoCL, 179 -> 154 ms on Intel (A/B best of 5 and 4, same process).  Where the time goes (stub variants,
+  PoCL, 179 -> 154 ms on Intel (A/B best of 5 and 4, same process).
+  The fetch in the row-sum loops only (every 4 chunk steps, was every 8 of
+  the row-sum and column loops): 156 -> 150 ms on PoCL (best of 5).  Where the time goes (stub variants,
   same process): the 2 x 7 masked adds ~40 % (Zen 4 runs a 512-bit add per
   cycle: throughput-bound), volume read and write ~9 % each, the arms ring
   ~7 %, the division hidden, the rest loads, stores and loop overhead.
