@@ -95,23 +95,28 @@ Two implementations of the same two passes (``kernels/cbca.cl``), chosen by
   it, as the volume round trip does).  Measured on PoCL (2 cores of an
   AMD EPYC with AVX-512), KITTI-size volume 228 x 367 x 1234, 4 iterations,
   best of 3 in one process: 476 ms (``cbca_fused_short``) -> 193 ms
-  (2.4x; the volume copy alone takes ~36 ms).  Then (2026-11-23, A/B best
-  of 5 in one process, PoCL 3.1, real KITTI arms, shared machine): 186 ->
-  169 ms (0.91x) from the signed-byte masks (no blends), the fetch spread
-  over the step (the src row's misses had cost ~9 % when fetched in one
-  loop) and the arms ring built on uchar16 instead of int16; Intel's CPU
-  runtime unchanged (183 -> 182 ms).  Cell counts summed on ushort16
-  instead of int16 lanes: 169 -> 161 ms (A/B best of 5, same process).
-  Work-groups of one work-item on CPUs (see ``_get``): 161 -> 149 ms on
-  PoCL, 179 -> 154 ms on Intel (A/B best of 5 and 4, same process).
-  The fetch in the row-sum loops only (every 4 chunk steps, was every 8 of
-  the row-sum and column loops): 156 -> 150 ms on PoCL (best of 5).  Where the time goes (stub variants,
-  same process): the 2 x 7 masked adds ~40 % (Zen 4 runs a 512-bit add per
-  cycle: throughput-bound), volume read and write ~9 % each, the arms ring
-  ~7 %, the division hidden, the rest loads, stores and loop overhead.
-  Tried without gain: one loop per iteration for both passes (worse:
-  spills), a duplicated interleaved ring addressing the column pass's 7
-  rows from one pointer (~1 %).  Only D work-items, like
+  (2.4x; the volume copy alone takes ~36 ms).  Then (2026-11-23, PoCL
+  3.1, real KITTI arms, shared 2-core machine, every figure an A/B best of
+  4-5 in one process): the signed-byte masks (no blends), the next src row
+  fetched over the row-sum loops (in one loop its misses had cost ~9 %)
+  and the arms ring on uchar16 instead of int16: 186 -> 169 ms; the cell
+  counts on ushort16 instead of int16: -> 161 ms; work-groups of one
+  work-item on CPUs (see ``_get``): 161 -> 149 ms; the fetch in the
+  row-sum loops only (not the column loops): 156 -> 150 ms; all together
+  (the previous kernel at its previous work-group size) 194 -> 155-163
+  ms per round (0.79-0.83x; in the pipeline the three KITTI rounds 187-193
+  -> 145-160 ms), Intel's CPU runtime 196 -> 179 ms (0.91x).  Where the
+  time goes (stub variants, same process): the column pass's masked adds
+  ~28 %, the row pass's ~16 % (Zen 4 issues one 512-bit add per cycle),
+  the arms ring ~13 % (its loads mostly miss the L2: every plane re-reads
+  both images' arm planes), the src fetch and dst write now <= 2 % each, the
+  division hidden, the rest loads, stores and loop overhead.  Tried without
+  gain: one loop per iteration for both passes (slower), the fetch spread
+  over the column loops too (3-5 % slower), the arms of row t + 1 computed
+  over the row-sum loops (12-18 % slower), arms and counts in one loop,
+  counts stored as floats (no conversion, more cache), a duplicated
+  interleaved ring addressing the column pass's 7 rows from one pointer
+  (~1 %).  Only D work-items, like
   ``cbca_fused_short``: a GPU keeps the two-pass kernels.
 
 Tests compare all of them with the float64 set-definition reference at 1e-5
