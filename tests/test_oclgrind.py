@@ -276,14 +276,16 @@ def case_sgm(ctx, rng, chk):
     columns per sgm_columns work-item, a partial strip; both row directions
     in one launch) with the first sweep in bands of rows (the vertical path's
     state carried between launches); the column kernel with and without its
-    specialised row loops."""
+    specialised row loops; with D >= 16 the row kernel's whole-tile path."""
     from mccnn_cl.reference.aggregation import sgm
     from mccnn_cl.stages.sgm import SGM
 
     for (D, H, W), kw, cfg in (((5, 4, 13), {}, {}),
                                ((7, 5, 5), {"variant": "code", "outside_large": False}, {}),
                                ((5, 1, 19), {}, {"specialize": False}),
-                               ((6, 5, 21), {}, {"cols": 128, "band": 2, "fused_rows": True})):
+                               ((6, 5, 21), {}, {"cols": 128, "band": 2, "fused_rows": True}),
+                               # D >= 16 and 16-column chunks: sgm_rows' whole-tile path (default off Rusticl)
+                               ((20, 3, 40), {}, {"fused_rows": True})):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
         C = _volume(rng, D, H, W)
         out = _poisoned(ctx, 4 * D * H * W)
