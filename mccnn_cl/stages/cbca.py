@@ -108,8 +108,11 @@ Two implementations of the same two passes (``kernels/cbca.cl``), chosen by
   -> 145-160 ms), Intel's CPU runtime 196 -> 179 ms (0.91x).  Where the
   time goes (stub variants, same process): the column pass's masked adds
   ~28 %, the row pass's ~16 % (Zen 4 issues one 512-bit add per cycle),
-  the arms ring ~13 % (its loads mostly miss the L2: every plane re-reads
-  both images' arm planes), the src fetch and dst write now <= 2 % each, the
+  the arms ring ~13 % (every plane re-reads both images' arm planes; not
+  cache misses: with the right arms read aligned with the left ones, or
+  not at all, a round is 0-8 % faster, within ~2x the noise, so two planes
+  per work-item sharing the left arms would save a few per cent at most),
+  the src fetch and dst write now <= 2 % each, the
   division hidden, the rest loads, stores and loop overhead.  Tried without
   gain: one loop per iteration for both passes (slower), the fetch spread
   over the column loops too (3-5 % slower), the arms of row t + 1 computed
