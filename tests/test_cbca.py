@@ -197,7 +197,7 @@ def test_scratch_reused_across_sizes(ctx, multi):
     """The fused paths' scratch rings grow for a wider/deeper volume and are
     reused for a smaller one (stale ring contents must not leak into sums)."""
     rng = np.random.default_rng(7)
-    stage = CBCA(ctx, multi=multi)
+    stage = CBCA(ctx, fused=True, multi=multi)
     # one-iteration kernel: D x (2A + 1) x W float row sums + byte counts
     assert CBCA.scratch_bytes(228, 1232, max_arm(4), multi=False) == 5 * 228 * 7 * 1232
     # multi-iteration kernel (MULTI_K = 4, A = 3, W rounded up to 16 = 1232):
@@ -235,7 +235,7 @@ def multi_vs_single(ctx, cost, arms_l, arms_r, iterations, in_place):
         else:
             out = ctx.empty(cost.nbytes)
             ctx.fill(out, POISON, cost.nbytes)
-        stage = CBCA(ctx, multi=multi)
+        stage = CBCA(ctx, fused=True, multi=multi)
         assert stage.fused and stage.multi == multi
         assert stage(d_cost, d_l, d_r, D, H, W, iterations=iterations, max_arm=A, out=out) is out
         res.append(ctx.from_device(out, cost.shape))
@@ -336,3 +336,25 @@ def test_right_reference_aggregation_is_the_left_one_shifted(ctx, shared_data, s
     ctx.fill(d_out, POISON, cost.nbytes)
     RightReference(ctx).volume(ctx.to_device(got_l), D, H, W, out=d_out)
     compare(ctx.from_device(d_out, cost.shape), want, cost)
+
+
+def test_large_volume_default_path(ctx):
+    """This device's default CBCA on a volume of KITTI height and half its
+    width equals the two-pass short kernels (which the tests above check
+    against the reference) bit for bit.  Rusticl/llvmpipe computes both
+    fused kernels wrongly at this size (exact at 64 x 96), so CBCA's
+    default there is the two-pass kernels; run with --cl-impl rusticl to
+    check that choice."""
+    rng = np.random.default_rng(12)
+    D, H, W = 16, 367, 632
+    cost = random_volume(rng, D, H, W)
+    arms_l, arms_r = cross_arms(blocky_image(rng, H, W)), cross_arms(blocky_image(rng, H, W))
+    d_l, d_r = arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r)
+    results = []
+    for cbca_ in (CBCA(ctx), CBCA(ctx, fused=False, multi=False)):
+        d_out = ctx.empty(cost.nbytes)
+        ctx.fill(d_out, POISON, cost.nbytes)
+        cbca_(ctx.to_device(cost), d_l, d_r, D, H, W, iterations=4, max_arm=3, out=d_out)
+        results.append(ctx.from_device(d_out, cost.shape))
+    np.testing.assert_array_equal(np.isnan(results[0]), invalid_mask(D, H, W))
+    np.testing.assert_array_equal(results[0].view(np.uint32), results[1].view(np.uint32))

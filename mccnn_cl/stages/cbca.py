@@ -190,11 +190,15 @@ class CBCA:
         self.short = bool(short)
         if fused is None:
             fused = bool(ctx.device.type & ctx.cl.device_type.CPU)
-            if half and ctx.is_rusticl:
-                # Mesa 22.3's Rusticl/llvmpipe computes wrong sums in the half
-                # variant of cbca_fused_short beyond ~170 rows (cost errors up
-                # to 1.0), while PoCL, Intel's runtime and Oclgrind agree with
-                # the reference: the two-pass kernels there (tests/test_half.py)
+            if ctx.is_rusticl:
+                # Mesa 22.3's Rusticl/llvmpipe computes wrong sums in the fused
+                # kernels on larger volumes (cost errors up to 1.0: the half
+                # cbca_fused_short beyond ~170 rows; in float32 the multi-
+                # iteration kernel at 100 x 632 and the one-iteration one at
+                # 367 x 632, both exact at 64 x 96), while PoCL, Intel's
+                # runtime and Oclgrind agree with the reference; its two-pass
+                # kernels are right (tests/test_half.py,
+                # tests/test_cbca.py::test_large_volume_default_path)
                 fused = False
         self.fused = bool(fused)
         if multi is None:
