@@ -177,19 +177,6 @@ __kernel void cbca_columns(__global vol_t *buf,           /* D x H x W row sums 
 
 /* Arm k of the 16 pixels first .. first + 15 of one image; lanes not read
  * (i >= n or first + i < 0) get 0. */
-static inline int16 cbca_arm16(__global const uchar *a, const int k, const int first, const int n,
-                               const int H, const int W)
-{
-    __global const uchar *p = a + (size_t)k * (size_t)H * (size_t)W;
-    if (n == VW && first >= 0)
-        return convert_int16(vload16(0, p + first));
-    uchar t[VW];
-    for (int i = 0; i < VW; ++i)
-        t[i] = (i < n && first + i >= 0) ? p[first + i] : (uchar)0;
-    return convert_int16(vload16(0, t));
-}
-
-/* As cbca_arm16, as bytes. */
 static inline uchar16 cbca_arm16u(__global const uchar *a, const int k, const int first, const int n,
                                   const int H, const int W)
 {
@@ -200,6 +187,13 @@ static inline uchar16 cbca_arm16u(__global const uchar *a, const int k, const in
     for (int i = 0; i < VW; ++i)
         t[i] = (i < n && first + i >= 0) ? p[first + i] : (uchar)0;
     return vload16(0, t);
+}
+
+/* As cbca_arm16u, widened to int lanes. */
+static inline int16 cbca_arm16(__global const uchar *a, const int k, const int first, const int n,
+                               const int H, const int W)
+{
+    return convert_int16(cbca_arm16u(a, k, first, n, H, W));
 }
 
 /* Combined arm of one direction k (ARM_LEFT, ...) for 16 pixels starting at

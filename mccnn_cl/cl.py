@@ -297,7 +297,8 @@ class ClContext:
     @property
     def is_rusticl(self) -> bool:
         """The device belongs to Mesa's Rusticl (llvmpipe here), which some
-        stages steer around: see CBCA (half) and SGM (compile time)."""
+        stages steer around: CBCA (its fused kernels compute wrong sums
+        there) and SGM (compile time; it warns of its own wrong results)."""
         return "rusticl" in self.device.platform.name.lower()
 
     @property

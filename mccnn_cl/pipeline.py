@@ -322,9 +322,6 @@ class StereoMatcher:
         self.cross = CrossArms(ctx)
         self.cbca = CBCA(ctx, half=self.half)
         self.sgm = SGM(ctx, half=self.half)
-        if ctx.is_rusticl:
-            log.warning("Rusticl/llvmpipe: the SGM kernels give wrong costs on larger volumes there "
-                        "(known gap, docs/portability.md); use PoCL or another OpenCL implementation")
         self.wta = WinnerTakeAll(ctx, half=self.half)
         self.right_ref = RightReference(ctx, half=self.half)
         self.lr_check = LeftRightCheck(ctx)

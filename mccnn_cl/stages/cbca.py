@@ -188,8 +188,9 @@ class CBCA:
                  half: bool = False, multi: bool | None = None):
         self.ctx = ctx
         self.short = bool(short)
+        self._cpu = bool(ctx.device.type & ctx.cl.device_type.CPU)
         if fused is None:
-            fused = bool(ctx.device.type & ctx.cl.device_type.CPU)
+            fused = self._cpu
             if ctx.is_rusticl:
                 # Mesa 22.3's Rusticl/llvmpipe computes wrong sums in the fused
                 # kernels on larger volumes (cost errors up to 1.0: the half
@@ -202,7 +203,7 @@ class CBCA:
                 fused = False
         self.fused = bool(fused)
         if multi is None:
-            multi = bool(ctx.device.type & ctx.cl.device_type.CPU)
+            multi = self._cpu
         self.multi = bool(multi)
         self.half = bool(half)
         self._kernels = {}
@@ -240,8 +241,7 @@ class CBCA:
                 # cores; groups of the preferred multiple (8 on PoCL, 128 on
                 # Intel's runtime: 2 groups for D = 228) left cores idle at
                 # the end: 161 -> 149 ms on PoCL, 179 -> 154 ms on Intel.
-                cpu = bool(self.ctx.device.type & self.ctx.cl.device_type.CPU)
-                k = [(kern, 1 if cpu else scan_local_size(self.ctx, kern))]
+                k = [(kern, 1 if self._cpu else scan_local_size(self.ctx, kern))]
             elif fused:
                 kern = self.ctx.kernel("cbca.cl", "cbca_fused_short", MAX_ARM=max_arm, CBCA_GROUPS=_GROUPS,
                                        VOL_HALF=int(self.half))

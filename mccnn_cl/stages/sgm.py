@@ -99,12 +99,16 @@ hints: no measurable change.  Whole tiles moved by plain loads and stores
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from ..errors import InputError
 from ..cl import round_up
 from .cross import check_size, launch, scan_local_size
 from .disparity import volume_bytes
+
+log = logging.getLogger(__name__)
 
 #: The paper's four directions r = (dx, dy), in the order accumulated.
 DIRECTIONS = ((1, 0), (-1, 0), (0, 1), (0, -1))
@@ -166,6 +170,9 @@ class SGM:
         # launch, and takes minutes on the specialised 128-column CPU variant
         # (~190 s at MAX_DISP = 32; ~4 s unspecialised at 32 columns)
         slow_compiler = ctx.is_rusticl
+        if ctx.is_rusticl:
+            log.warning("Rusticl/llvmpipe: the SGM kernels give wrong costs on larger volumes there "
+                        "(known gap, docs/portability.md); use PoCL or another OpenCL implementation")
         if specialize is None:
             specialize = not slow_compiler
         self.specialize = bool(specialize)
