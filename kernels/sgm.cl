@@ -517,3 +517,312 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
         }
     }
 }
+
+/* Paired sweeps (``sgm_paired``, two work-items, two launches): work-item A
+ * walks its rows top to bottom and adds the left->right and top->bottom
+ * paths, work-item B walks its rows bottom to top and adds the right->left
+ * and bottom->top paths.  Launch 0: A rows 0 .. h - 1, B rows H - 1 .. h,
+ * each writing its pair's sum; launch 1: A rows h .. H - 1, B rows h - 1 .. 0,
+ * each adding its pair's sum to the other's and dividing by 4, so every cell
+ * is ((C_lr + C_tb) + (C_rl + C_bt)) / 4 (float addition commutes, so both
+ * halves round alike).  The volume is read twice and the output written
+ * twice (with one read), instead of four volume reads, three output reads
+ * and four writes for the one-direction kernels.
+ *
+ * Per row, chunks of SGM_PAIR_CW columns (a multiple of 16; the host uses
+ * 16: wider chunks measured slower on PoCL) in the horizontal path's order;
+ * per chunk and 16-column group: the group's D x 16 costs are loaded as
+ * 16 x 16 tiles and the vertical recurrence runs on the tiles' rows (float16
+ * lanes over x, levels in sequence, as in col_row), its C_r stored in the
+ * path state (global; per work-item and group one contiguous [D + 2][16]
+ * block, the minimum per column as level D + 1, so a chunk touches a few
+ * pages of state instead of D + 2); the tiles are transposed into the
+ * private block; then the horizontal recurrence runs over the chunk's pixels
+ * as in sgm_rows, the block is transposed back, the group's vertical C_r
+ * (still in the state) added, and the result written or added. */
+#ifndef SGM_PAIR_CW
+#define SGM_PAIR_CW 16
+#endif
+#define PCW SGM_PAIR_CW
+__kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (NaN invalid) */
+                         __global const float *img_l, /* H x W left image, gray in [0, 1] */
+                         __global const float *img_r, /* H x W right image, gray in [0, 1] */
+                         __global vol_t *out,         /* D x H x W C_SGM */
+                         __global float *state,       /* 2 x ws / 16 x (D + 2) x 16 vertical path state */
+                         const int ws,                /* W rounded up to a multiple of SGM_PAIR_CW */
+                         const int D,                 /* disparity levels, <= MAX_DISP */
+                         const int H,                 /* height */
+                         const int W,                 /* width */
+                         const int h,                 /* rows 0 .. h - 1 are A's in launch 0 */
+                         const int launch_no,         /* 0: write the pair's sum, 1: add and divide by 4 */
+                         const float ph1_small,       /* horizontal P1 when 0, 1, 2 gradients are large */
+                         const float ph1_one,
+                         const float ph1_both,
+                         const float ph2_small,       /* horizontal P2 likewise */
+                         const float ph2_one,
+                         const float ph2_both,
+                         const float pv1_small,       /* vertical P1 */
+                         const float pv1_one,
+                         const float pv1_both,
+                         const float pv2_small,       /* vertical P2 */
+                         const float pv2_one,
+                         const float pv2_both,
+                         const float tau_so,          /* gradient threshold (paper 0.0625) */
+                         const int outside_large)     /* 1: pd - r outside the right image = large D2 */
+{
+    const int role = get_global_id(0);
+    if (role > 1)
+        return;
+    const int dir = role == 0 ? 1 : -1; /* r = (dir, 0) and (0, dir) */
+    const int mode = launch_no == 0 ? 0 : 2;
+    const int split = role == 0 ? h : H - h; /* path rows j < split are walked in launch 0 */
+    const int j0 = launch_no == 0 ? 0 : split, j1 = launch_no == 0 ? split : H;
+    __global float *st = state + (size_t)role * (size_t)(D + 2) * (size_t)ws;
+    float blk[PCW * MAX_DISP]; /* one chunk, [k][d]: costs, overwritten by the horizontal C_r */
+    float buf_a[MAX_DISP + 2 + VW], buf_b[MAX_DISP + 2 + VW];
+    int big_r_rev[MAX_DISP + PCW]; /* horizontal D2 large, reversed (as in sgm_rows) */
+    int bigv[MAX_DISP + PCW];      /* vertical D2 large at right pixel x0 - MAX_DISP + t */
+    const int16 lane = LANES;
+    const size_t plane = (size_t)H * (size_t)W;
+    const uint16 reverse = (uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+    const int nchunks = (W + PCW - 1) / PCW;
+    for (int j = j0; j < j1; ++j) {
+        const int y = dir > 0 ? j : H - 1 - j;
+        const int vfirst = j == 0;
+        const int py = vfirst ? y : y - dir; /* previous row of the vertical path */
+        __global const float *il = img_l + y * W;
+        __global const float *ir = img_r + y * W;
+        __global const float *ilp = img_l + py * W;
+        __global const float *irp = img_r + py * W;
+        float *prev = buf_a; /* horizontal C_r(p - r, d) at prev[d + 1] */
+        float *cur = buf_b;
+        for (int i = 0; i < MAX_DISP + 2 + VW; ++i) {
+            buf_a[i] = INFINITY;
+            buf_b[i] = INFINITY;
+        }
+        float m = INFINITY; /* horizontal min_k C_r(p - r, k) */
+        float16 r[VW];
+        for (int ci = 0; ci < nchunks; ++ci) {
+            const int x0 = (dir > 0 ? ci : nchunks - 1 - ci) * PCW;
+            const int n = min(PCW, W - x0);
+            const int dmaxc = min(D - 1, x0 + n - 1);
+            const int ntiles = dmaxc / VW + 1;
+            if (!vfirst) /* vertical D2 at right pixels x0 - MAX_DISP + t, t >= MAX_DISP - dmaxc */
+                for (int t0 = (MAX_DISP - dmaxc) / VW * VW; t0 < MAX_DISP + PCW; t0 += VW) {
+                    const int x1 = x0 - MAX_DISP + t0;
+                    float16 a, b;
+                    if (x1 >= 0 && x1 + VW <= W) {
+                        a = vload16(0, ir + x1);
+                        b = vload16(0, irp + x1);
+                    } else {
+                        float ta[VW], tb[VW];
+                        for (int i = 0; i < VW; ++i) {
+                            const int in = x1 + i >= 0 && x1 + i < W;
+                            ta[i] = in ? ir[x1 + i] : 0.0f;
+                            tb[i] = in ? irp[x1 + i] : 0.0f;
+                        }
+                        a = vload16(0, ta);
+                        b = vload16(0, tb);
+                    }
+                    vstore16(isless(fabs(a - b), (float16)(tau_so)) == (int16)(0), 0, bigv + t0);
+                }
+            for (int gx = 0; gx * VW < n; ++gx) { /* 16-column groups: vertical path, transpose into blk */
+                const int xg = x0 + gx * VW, ng = min(VW, n - gx * VW);
+                __global float *sg = st + (size_t)(xg / VW) * (D + 2) * VW; /* the group's state, [D + 2][16] */
+                const int16 xs = (int16)(xg) + lane;
+                const int16 valid_x = lane < (int16)(ng);
+                const int dmaxg = min(D - 1, xg + ng - 1);
+                float16 p1a = (float16)(0.0f), p1b = p1a, p2a = p1a, p2b = p1a, mv, pd, pm1;
+                if (vfirst) {
+                    /* levels beyond the group's valid range read as +INFINITY at level d + 1 */
+                    for (int d = dmaxg + 1; d <= D; ++d)
+                        vstore16((float16)(INFINITY), 0, sg + d * VW);
+                    mv = (float16)(INFINITY);
+                    pd = mv;
+                    pm1 = mv;
+                } else {
+                    const int16 big_l = isless(fabs(load16_partial(il, xg, ng, 0.0f) - load16_partial(ilp, xg, ng, 0.0f)),
+                                               (float16)(tau_so)) == (int16)(0);
+                    p1a = select((float16)(pv1_small), (float16)(pv1_one), big_l); /* D2 small */
+                    p1b = select((float16)(pv1_one), (float16)(pv1_both), big_l);  /* D2 large */
+                    p2a = select((float16)(pv2_small), (float16)(pv2_one), big_l);
+                    p2b = select((float16)(pv2_one), (float16)(pv2_both), big_l);
+                    mv = vload16(0, sg + (D + 1) * VW);
+                    pd = vload16(0, sg);
+                    pm1 = (float16)(INFINITY);
+                }
+                float16 newmv = (float16)(INFINITY);
+                for (int g = 0; g < ntiles; ++g) {
+                    const int d0 = g * VW;
+                    if (SGM_WHOLE_TILES && ng == VW && d0 + VW - 1 <= dmaxg) {
+                        __global const vol_t *src = cost + VIDX(d0, y, xg, H, W);
+                        __attribute__((opencl_unroll_hint))
+                        for (int i = 0; i < VW; ++i)
+                            r[i] = VOL_LOAD16(src + i * plane);
+                    } else {
+                        __attribute__((opencl_unroll_hint))
+                        for (int i = 0; i < VW; ++i)
+                            r[i] = d0 + i <= dmaxg ? vol_load16_partial(cost, VIDX(d0 + i, y, xg, H, W), ng, 0.0f)
+                                                   : (float16)(0.0f);
+                    }
+                    const int iend = min(VW, dmaxg + 1 - d0);
+                    for (int i = 0; i < iend; ++i) {
+                        const int d = d0 + i;
+                        float16 val;
+                        if (vfirst) {
+                            val = r[i];
+                        } else {
+                            const int16 big_r = vload16(0, bigv + MAX_DISP + gx * VW - d);
+                            const float16 p1 = select(p1a, p1b, big_r);
+                            const float16 p2 = select(p2a, p2b, big_r);
+                            const float16 pn = vload16(0, sg + (d + 1) * VW); /* C_r(p - r, d + 1) */
+                            const float16 best = fmin_a(fmin_b(pd, mv + p2), fmin(pm1, pn) + p1);
+                            val = r[i] - mv + best;
+                            pm1 = pd;
+                            pd = pn;
+                        }
+                        val = select((float16)(INFINITY), val, (xs >= (int16)(d)) & valid_x);
+                        vstore16(val, 0, sg + d * VW);
+                        newmv = fmin_a(newmv, val);
+                    }
+                    transpose16(r);
+                    for (int k = 0; k < VW; ++k)
+                        vstore16(r[k], 0, blk + (gx * VW + k) * MAX_DISP + d0);
+                }
+                vstore16(newmv, 0, sg + (D + 1) * VW);
+            }
+            /* horizontal D2, as in sgm_rows: right pixels base .. x0 + n - 1, reversed */
+            const int base = x0 - ntiles * VW, rt = ntiles * VW + PCW - 1;
+            for (int t0 = 0; t0 < ntiles * VW + PCW; t0 += VW) {
+                const int xa = base + t0, xb = xa - dir;
+                float16 a, b;
+                if (xa >= 0 && xb >= 0 && xa + VW <= W && xb + VW <= W) {
+                    a = vload16(0, ir + xa);
+                    b = vload16(0, ir + xb);
+                } else {
+                    float ta[VW], tb[VW];
+                    for (int i = 0; i < VW; ++i) {
+                        ta[i] = (xa + i >= 0 && xa + i < W) ? ir[xa + i] : 0.0f;
+                        tb[i] = (xb + i >= 0 && xb + i < W) ? ir[xb + i] : 0.0f;
+                    }
+                    a = vload16(0, ta);
+                    b = vload16(0, tb);
+                }
+                const int16 xrp = (int16)(xb) + lane;
+                const int16 outside = (xrp < (int16)(0)) | (xrp >= (int16)(W));
+                int16 big = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
+                big = select(big, (int16)(outside_large ? -1 : 0), outside);
+                vstore16(as_int16(shuffle(as_uint16(big), reverse)), 0, big_r_rev + rt - VW + 1 - t0);
+            }
+            /* the next chunk's lines of every plane (cost, output), spread over this chunk's pixels */
+            const int cin = ci + 1 < nchunks ? ci + 1 : ci;
+            const int x0n = (dir > 0 ? cin : nchunks - 1 - cin) * PCW;
+            const int nn = min(PCW, W - x0n);
+            const int dmaxn = min(D - 1, x0n + nn - 1);
+            const int pf_per = dmaxn / n + 1;
+            for (int kk = 0; kk < n; ++kk) {
+                const int k = dir > 0 ? kk : n - 1 - kk;
+                const int x = x0 + k;
+                for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
+                    __global const vol_t *pc = cost + VIDX(d, y, x0n, H, W);
+                    __global const vol_t *po = out + VIDX(d, y, x0n, H, W);
+                    for (int e = 0; e < nn; e += VW) {
+                        SGM_PREFETCH(pc + e);
+                        SGM_PREFETCH(po + e);
+                    }
+                    SGM_PREFETCH(pc + nn - 1);
+                    SGM_PREFETCH(po + nn - 1);
+                }
+                const int dmax = min(D - 1, x);
+                const int nvec = dmax / VW + 1;
+                const int first = x == (dir > 0 ? 0 : W - 1); /* first pixel of the path: C_r = C */
+                const int px = x - dir;
+                const int big_l = first ? 0 : !(fabs(il[x] - il[px]) < tau_so);
+                const float p1_a = big_l ? ph1_one : ph1_small, p1_b = big_l ? ph1_both : ph1_one;
+                const float p2_a = big_l ? ph2_one : ph2_small, p2_b = big_l ? ph2_both : ph2_one;
+                float16 newm = (float16)(INFINITY);
+                for (int v = 0; v < nvec; ++v) {
+                    const int d0 = v * VW;
+                    float *bp = blk + k * MAX_DISP + d0;
+                    const float16 c = vload16(0, bp);
+                    float16 val;
+                    if (first) {
+                        val = c;
+                    } else {
+                        const int16 big_r = vload16(0, big_r_rev + rt - (x - d0 - base));
+                        const float16 p1 = select((float16)(p1_a), (float16)(p1_b), big_r);
+                        const float16 p2 = select((float16)(p2_a), (float16)(p2_b), big_r);
+                        const float16 pm = vload16(0, prev + d0);      /* d - 1 */
+                        const float16 pdh = vload16(0, prev + d0 + 1); /* d */
+                        const float16 pn = vload16(0, prev + d0 + 2);  /* d + 1 */
+                        const float16 best = fmin_a(fmin_b(pdh, (float16)(m) + p2), fmin(pm, pn) + p1);
+                        val = c - (float16)(m) + best;
+                    }
+                    if (v == nvec - 1) /* only the last vector has lanes d > dmax */
+                        val = select((float16)(INFINITY), val, (int16)(d0) + lane <= (int16)(dmax));
+                    vstore16(val, 0, cur + d0 + 1);
+                    vstore16(val, 0, bp); /* lanes d > dmax: discarded at write-back */
+                    newm = fmin_a(newm, val);
+                }
+                vstore16((float16)(INFINITY), 0, cur + nvec * VW + 1); /* d beyond the valid range */
+                const float8 m8 = fmin(newm.lo, newm.hi);
+                const float4 m4 = fmin(m8.lo, m8.hi);
+                const float2 m2 = fmin(m4.lo, m4.hi);
+                m = fmin(m2.x, m2.y);
+                float *sw = prev;
+                prev = cur;
+                cur = sw;
+            }
+            for (int gx = 0; gx * VW < n; ++gx) { /* write back: horizontal + vertical C_r, rows d of 16 x */
+                const int xg = x0 + gx * VW, ng = min(VW, n - gx * VW);
+                __global float *sg = st + (size_t)(xg / VW) * (D + 2) * VW; /* the group's state, [D + 2][16] */
+                const int16 xs = (int16)(xg) + lane;
+                const int dmaxg = min(D - 1, xg + ng - 1);
+                for (int g = 0; g <= dmaxg / VW; ++g) {
+                    const int d0 = g * VW;
+                    for (int k = 0; k < VW; ++k)
+                        r[k] = vload16(0, blk + (gx * VW + k) * MAX_DISP + d0);
+                    transpose16(r);
+                    if (SGM_WHOLE_TILES && ng == VW && d0 + VW - 1 <= dmaxg) { /* plain loads and stores */
+                        __global vol_t *dst = out + VIDX(d0, y, xg, H, W);
+                        __attribute__((opencl_unroll_hint))
+                        for (int i = 0; i < VW; ++i) {
+                            const int16 valid = xs >= (int16)(d0 + i);
+                            const float16 pair = r[i] + vload16(0, sg + (d0 + i) * VW);
+                            __global vol_t *p = dst + i * plane;
+                            float16 o;
+                            if (mode == 0) {
+                                o = select((float16)(INVALID_COST), pair, valid);
+                            } else {
+                                const float16 old = VOL_LOAD16(p);
+                                o = select(old, SGM_COMBINE(old, pair, mode), valid);
+                            }
+                            vol_store16_partial(o, p, VW);
+                        }
+                        continue;
+                    }
+                    __attribute__((opencl_unroll_hint))
+                    for (int i = 0; i < VW; ++i) {
+                        const int d = d0 + i;
+                        if (d > dmaxg)
+                            break;
+                        const int16 valid = xs >= (int16)(d);
+                        const float16 pair = r[i] + vload16(0, sg + d * VW);
+                        const size_t i0 = VIDX(d, y, xg, H, W);
+                        float16 o;
+                        if (mode == 0) {
+                            o = select((float16)(INVALID_COST), pair, valid);
+                        } else {
+                            const float16 old = vol_load16_partial(out, i0, ng, 0.0f);
+                            o = select(old, SGM_COMBINE(old, pair, mode), valid);
+                        }
+                        vol_store16_partial(o, out + i0, ng);
+                    }
+                }
+                if (mode == 0)
+                    for (int d = dmaxg + 1; d < D; ++d)
+                        vol_store16_partial((float16)(NAN), out + VIDX(d, y, xg, H, W), ng);
+            }
+        }
+    }
+}

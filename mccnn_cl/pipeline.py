@@ -530,7 +530,7 @@ class StereoMatcher:
         maps = MAP_BUFFERS * Hi * Wi * 4                    # images, arms, disparity maps
         arm = max_arm(self.params.cbca_eta, self.params.cross_include_neighbor)
         maps += self.cbca.scratch_bytes(D, W, arm, self.cbca.short, self.cbca.fused, self.cbca.multi)  # CBCA's rings
-        maps += self.sgm.scratch_bytes(D, W, self.sgm.cols)  # SGM's vertical path state
+        maps += self.sgm.scratch_bytes(D, W, self.sgm.cols, self.sgm.paired)  # SGM's vertical path state
         scratch = self.cost.scratch_bytes(H, W)            # the cost's own buffers besides the volume
         budget, max_alloc = self.memory_limit, self.ctx.max_alloc
         whole = nvol * row * H + scratch + maps

@@ -276,7 +276,8 @@ def case_sgm(ctx, rng, chk):
     columns per sgm_columns work-item, a partial strip; both row directions
     in one launch) with the first sweep in bands of rows (the vertical path's
     state carried between launches); the column kernel with and without its
-    specialised row loops; with D >= 16 the row kernel's whole-tile path."""
+    specialised row loops; with D >= 16 the row kernel's whole-tile path;
+    the paired sweeps."""
     from mccnn_cl.reference.aggregation import sgm
     from mccnn_cl.stages.sgm import SGM
 
@@ -285,7 +286,11 @@ def case_sgm(ctx, rng, chk):
                                ((5, 1, 19), {}, {"specialize": False}),
                                ((6, 5, 21), {}, {"cols": 128, "band": 2, "fused_rows": True}),
                                # D >= 16 and 16-column chunks: sgm_rows' whole-tile path (default off Rusticl)
-                               ((20, 3, 40), {}, {"fused_rows": True})):
+                               ((20, 3, 40), {}, {"fused_rows": True}),
+                               # the paired sweeps (default on CPUs with <= 2 compute units): odd H,
+                               # whole tiles and partial ones, a partial last chunk
+                               ((20, 5, 37), {}, {"paired": True}),
+                               ((7, 4, 9), {"variant": "code", "outside_large": False}, {"paired": True})):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
         C = _volume(rng, D, H, W)
         out = _poisoned(ctx, 4 * D * H * W)
@@ -365,7 +370,7 @@ CASE_KERNELS = {
     "cross": {"cross_build"},
     "cbca": {"cbca_rows", "cbca_columns", "cbca_rows_short", "cbca_columns_short", "cbca_fused_short",
              "cbca_fused_multi_short"},
-    "sgm": {"sgm_rows", "sgm_columns"},
+    "sgm": {"sgm_rows", "sgm_columns", "sgm_paired"},
     "disparity": {"disparity_wta_left", "disparity_wta_right", "disparity_lr_check",
                   "disparity_right_volume", "disparity_mirror", "interpolate_fill", "subpixel_refine"},
     "refine": {"refine_enlarge", "refine_median", "refine_median16", "refine_bilateral"},

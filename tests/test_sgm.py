@@ -21,22 +21,22 @@ from test_cbca import ad_volume, blocky_image, invalid_mask, random_volume
 
 
 def run_sgm(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None,
-            whole_tiles=None, **kw):
+            whole_tiles=None, paired=None, **kw):
     D, H, W = cost.shape
     d_out = ctx.empty(cost.nbytes)
     ctx.fill(d_out, POISON, cost.nbytes)
     d_cost = ctx.to_device(cost)
     SGM(ctx, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows, specialize=specialize,
-        whole_tiles=whole_tiles)(
+        whole_tiles=whole_tiles, paired=paired)(
         d_cost, ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=d_out, **kw)
     np.testing.assert_array_equal(ctx.from_device(d_cost, cost.shape), cost)  # input untouched
     return ctx.from_device(d_out, cost.shape)
 
 
 def check(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None,
-          whole_tiles=None, **kw):
+          whole_tiles=None, paired=None, **kw):
     got = run_sgm(ctx, cost, img_l, img_r, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows,
-                  specialize=specialize, whole_tiles=whole_tiles, **kw)
+                  specialize=specialize, whole_tiles=whole_tiles, paired=paired, **kw)
     want = sgm(cost, img_l, img_r, **kw)
     np.testing.assert_array_equal(np.isnan(got), invalid_mask(*cost.shape))
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
@@ -98,9 +98,10 @@ def test_several_tiles_and_interior_chunks_with_and_without_prefetch(ctx):
     D, H, W = 40, 3, 100
     cost = random_volume(rng, D, H, W, scale=3.0)
     img_l, img_r = blocky_image(rng, H, W, 3, 0.08), blocky_image(rng, H, W, 3, 0.08)
-    with_pf, _ = check(ctx, cost, img_l, img_r, prefetch=True, outside_large=False)
-    without_pf, _ = check(ctx, cost, img_l, img_r, prefetch=False, outside_large=False)
-    np.testing.assert_array_equal(with_pf, without_pf)
+    for paired in (False, True):
+        with_pf, _ = check(ctx, cost, img_l, img_r, prefetch=True, outside_large=False, paired=paired)
+        without_pf, _ = check(ctx, cost, img_l, img_r, prefetch=False, outside_large=False, paired=paired)
+        np.testing.assert_array_equal(with_pf, without_pf)
 
 
 def test_whole_tile_path_and_general_path(ctx):
@@ -114,9 +115,9 @@ def test_whole_tile_path_and_general_path(ctx):
     D, H, W = 40, 4, 100
     cost = random_volume(rng, D, H, W, scale=3.0)
     img_l, img_r = blocky_image(rng, H, W, 3, 0.08), blocky_image(rng, H, W, 3, 0.08)
-    for fused in (True, False):
-        whole, _ = check(ctx, cost, img_l, img_r, whole_tiles=True, fused_rows=fused)
-        general, _ = check(ctx, cost, img_l, img_r, whole_tiles=False, fused_rows=fused)
+    for fused, paired in ((True, False), (False, False), (None, True)):
+        whole, _ = check(ctx, cost, img_l, img_r, whole_tiles=True, fused_rows=fused, paired=paired)
+        general, _ = check(ctx, cost, img_l, img_r, whole_tiles=False, fused_rows=fused, paired=paired)
         np.testing.assert_array_equal(whole.view(np.uint32), general.view(np.uint32))
 
 
@@ -142,7 +143,8 @@ def test_configurations_match_reference_and_each_other(ctx, D, H, W):
     img_l, img_r = blocky_image(rng, H, W, 3, 0.08), blocky_image(rng, H, W, 3, 0.08)
     first = None
     for band, cols, fused, spec in CONFIGS:
-        got, _ = check(ctx, cost, img_l, img_r, band=band, cols=cols, fused_rows=fused, specialize=spec)
+        got, _ = check(ctx, cost, img_l, img_r, band=band, cols=cols, fused_rows=fused, specialize=spec,
+                       paired=False)
         if first is None:
             first = got
         np.testing.assert_array_equal(got.view(np.uint32), first.view(np.uint32),
@@ -161,11 +163,47 @@ def test_configurations_on_kitti_crop(ctx, shared_data):
     cost = ad_volume(imgs[0], imgs[1], D)
     first = None
     for band, cols, fused, spec in CONFIGS:
-        got, _ = check(ctx, cost, imgs[0], imgs[1], band=band, cols=cols, fused_rows=fused, specialize=spec)
+        got, _ = check(ctx, cost, imgs[0], imgs[1], band=band, cols=cols, fused_rows=fused, specialize=spec,
+                       paired=False)
         if first is None:
             first = got
         np.testing.assert_array_equal(got.view(np.uint32), first.view(np.uint32),
                                       err_msg=f"band={band} cols={cols} fused={fused} specialize={spec}")
+
+
+@pytest.mark.parametrize("D,H,W", [(16, 37, 53), (40, 9, 70), (21, 10, 150), (37, 5, 45), (20, 7, 12),
+                                   (5, 1, 40), (6, 2, 33), (4, 30, 1), (1, 1, 1), (3, 3, 16), (64, 4, 100)])
+def test_paired_sweeps_match_reference_and_one_direction_kernels(ctx, D, H, W):
+    """The paired sweeps (sgm_paired: two work-items, each adding one
+    horizontal and one vertical path, two launches; the default on CPUs with
+    <= 2 compute units) against the reference and against the one-direction
+    kernels.  They sum the directions in another order, ((C_lr + C_tb) +
+    (C_rl + C_bt)) / 4 instead of (((C_lr + C_rl) + C_tb) + C_bt) / 4, so the
+    two agree to rounding, not bit for bit.  Odd and even H (the split row
+    h = H // 2; H = 1: one work-item walks nothing in the first launch), W
+    below, at and above 16 and not a multiple of it, D > W, partial tiles."""
+    rng = np.random.default_rng(D * 7919 + H * 31 + W)
+    cost = random_volume(rng, D, H, W, scale=3.0)
+    img_l, img_r = blocky_image(rng, H, W, 3, 0.08), blocky_image(rng, H, W, 3, 0.08)
+    paired, want = check(ctx, cost, img_l, img_r, paired=True)
+    one_dir, _ = check(ctx, cost, img_l, img_r, paired=False)
+    scale = np.nanmax(cost) - np.nanmin(cost) + 32.0
+    np.testing.assert_allclose(paired, one_dir, rtol=0, atol=2e-5 * scale)
+
+
+def test_paired_sweeps_on_real_images_both_variants(ctx, shared_data):
+    """Paired sweeps on a real KITTI crop (AD costs), both penalty variants and
+    the outside-the-image choice, against the reference."""
+    H, W, D = 23, 90, 40
+    imgs = []
+    for rel in ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png"):
+        img = cv2.imread(str(shared_data / rel), cv2.IMREAD_GRAYSCALE)
+        assert img is not None, rel
+        imgs.append(img[150:150 + H, 600:600 + W].astype(np.float32) / 255.0)
+    cost = ad_volume(imgs[0], imgs[1], D)
+    a, _ = check(ctx, cost, imgs[0], imgs[1], paired=True)
+    b, _ = check(ctx, cost, imgs[0], imgs[1], paired=True, variant="code", outside_large=False, pi1=2.0, pi2=14.0)
+    assert np.nanmax(np.abs(a - b)) > 0.01
 
 
 def test_bad_configuration(ctx):
@@ -178,14 +216,17 @@ def test_bad_configuration(ctx):
 def test_scratch_bytes_bounds_the_state_buffer(ctx):
     """The path state the stage allocates fits SGM.scratch_bytes (the memory
     planner's figure), for the default and the widest configuration."""
+    D, H, W = 7, 3, 130
+    cost = np.zeros((D, H, W), np.float32)
+    d_img = ctx.to_device(np.zeros((H, W), np.float32))
     for cols in (None, 128):
-        st = SGM(ctx, cols=cols)
-        D, H, W = 7, 3, 130
-        cost = np.zeros((D, H, W), np.float32)
-        d_img = ctx.to_device(np.zeros((H, W), np.float32))
+        st = SGM(ctx, cols=cols, paired=False)
         st(ctx.to_device(cost), d_img, d_img, D, H, W)
         assert st._state.size <= SGM.scratch_bytes(D, W)
         assert st._state.size == SGM.scratch_bytes(D, W, st.cols)
+    st = SGM(ctx, paired=True)
+    st(ctx.to_device(cost), d_img, d_img, D, H, W)
+    assert st._state.size == SGM.scratch_bytes(D, W, paired=True)
 
 
 def test_constant_images(ctx):

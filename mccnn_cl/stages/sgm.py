@@ -1,5 +1,6 @@
 """Semi-global matching, SGM (paper, "Semiglobal matching") - drives
-``kernels/sgm.cl`` (kernels ``sgm_rows`` and ``sgm_columns``, one launch per direction).
+``kernels/sgm.cl`` (kernels ``sgm_rows`` and ``sgm_columns``, one launch per
+direction, or ``sgm_paired``, two launches for all four).
 
 Recurrence along each of the four directions r (left->right, right->left,
 top->bottom, bottom->top; p - r is the previous pixel on the path)::
@@ -61,6 +62,34 @@ on CPU devices whose compiler targets the CPU's instruction set (PoCL) the
 kernels prefetch the next step's lines (``prefetch``, below); elsewhere they
 give OpenCL's ``prefetch()`` hint.  fmin is written as one comparison where
 an argument is known never to be NaN (the same value, ties included).
+
+Paired sweeps (``paired``, kernel ``sgm_paired``; the default on CPU
+devices with at most PAIRED_MAX_UNITS = 2 compute units, not on Rusticl):
+two work-items per launch, two launches.  Work-item A walks rows top to
+bottom and adds the left->right and top->bottom paths of each row, B walks
+rows bottom to top with right->left and bottom->top; in the first launch A
+takes rows 0 .. H/2 - 1 and B the others, each writing its pair's sum, in
+the second each walks on through the other's rows (its vertical state kept
+in the scratch) adding its sum and dividing by 4.  So every cell is
+((C_lr + C_tb) + (C_rl + C_bt)) / 4: the same values to rounding (tested
+against the reference and the one-direction kernels at the same tolerance),
+not bit for bit.  Per row and 16-column chunk, in the horizontal path's
+order, the chunk's costs are loaded as 16 x 16 tiles, the vertical
+recurrence runs on the tiles' rows (lanes over x, its state one contiguous
+[D + 2][16] block per 16 columns), the tiles are transposed for the
+horizontal recurrence as in ``sgm_rows`` and transposed back, and the two
+paths' sum written.  The volume is read twice and the output written twice
+and read once, against four reads of the volume, three of the output and
+four writes for the one-direction kernels; but only two work-items run,
+hence the compute-unit limit.  Measured on PoCL (2 cores, KITTI D = 228,
+367 x 1234, A/B in one process, best of 3): one SGM call 269-297 ms ->
+204-213 ms (two launches of ~102 ms).  Of those, ~35 ms are the transposes
+and ~20 ms the vertical recurrence; with every computation stubbed out the
+loads and stores alone take ~150 ms.  Tried and slower: 32-, 64- or
+128-column chunks (257-283 ms, although a bare load/add/store walk gets
+faster with wider runs per plane), bands of 4-16 rows walked chunk by chunk
+(285-328 ms: each chunk then touches D pages per row of the band, more than
+the TLB holds), prefetching the state's lines (+5 ms).
 
 Defaults by device type (results identical bit for bit, tested): CPU
 devices walk 128 columns per ``sgm_columns`` work-item (32 elsewhere, for
@@ -136,6 +165,18 @@ def penalty_table(pi1=1.0, pi2=32.0, q1=4.0, q2=10.0, v=2.0, vertical=False, var
     return p1s, p2s
 
 
+def _max_disp(D) -> int:
+    """MAX_DISP compiled for D levels (D rounded up to a multiple of 32)."""
+    return -(-int(D) // _DISP_ROUND) * _DISP_ROUND
+
+
+#: ``SGM(paired=None)`` takes the paired sweeps on CPU devices with at most
+#: this many compute units (two work-items per launch; module docstring).
+PAIRED_MAX_UNITS = 2
+#: Columns per chunk of the paired sweeps (SGM_PAIR_CW in sgm.cl).
+PAIR_CW = 16
+
+
 class SGM:
     """C_SGM of a float32 [D][H][W] cost volume; see the module docstring.
 
@@ -159,12 +200,18 @@ class SGM:
     compile time, ~+30 % for the SGM portability case).  None of these
     changes a bit of the result.
 
+    ``paired``: the paired sweeps (module docstring; two work-items, so
+    meant for devices with few compute units); None (default) takes them on
+    CPU devices with at most PAIRED_MAX_UNITS compute units, except on
+    Rusticl.  ``band``, ``cols``, ``fused_rows`` and ``specialize``
+    configure the one-direction kernels only.
+
     ``half=True``: volumes stored as half (``VOL_HALF``, kernels/common.h);
     the recurrences run in float, and the output accumulates the four
     directions in place, so the partial sums are rounded to half too."""
 
     def __init__(self, ctx, prefetch=None, half: bool = False, band=None, cols=None, fused_rows=None,
-                 specialize=None, whole_tiles=None):
+                 specialize=None, whole_tiles=None, paired=None):
         self.ctx = ctx
         # Mesa's llvmpipe (Rusticl) compiles the column kernel at its first
         # launch, and takes minutes on the specialised 128-column CPU variant
@@ -196,24 +243,32 @@ class SGM:
             raise InputError(f"SGM cols must be a positive multiple of 16, got {cols}")
         self.cols = int(cols)
         self.fused_rows = is_cpu if fused_rows is None else bool(fused_rows)
+        if paired is None:
+            paired = is_cpu and not slow_compiler and int(ctx.device.max_compute_units) <= PAIRED_MAX_UNITS
+        self.paired = bool(paired)
         self._state = None
 
     @staticmethod
-    def scratch_bytes(D, W, cols=COLS_CPU) -> int:
+    def scratch_bytes(D, W, cols=COLS_CPU, paired=False) -> int:
         """Device scratch besides the cost and output volumes: the vertical
-        paths' state, (D + 2) rows of W (rounded up to ``cols``) floats."""
+        paths' state, (D + 2) rows of W (rounded up to ``cols``) floats; with
+        ``paired``, two such states (W rounded up to 16) and two chunk
+        buffers of MAX_DISP x 16 floats."""
+        if paired:
+            return 4 * 2 * (int(D) + 2) * round_up(int(W), PAIR_CW)
         return 4 * (int(D) + 2) * round_up(int(W), int(cols))
 
-    def _kernel(self, D):
-        max_disp = -(-int(D) // _DISP_ROUND) * _DISP_ROUND
-        k = self._kernels.get(max_disp)
+    def _kernel(self, D, names):
+        """(kernel, local size) for each of ``names``, built for D levels."""
+        max_disp = _max_disp(D)
+        k = self._kernels.get((max_disp, names))
         if k is None:
             k = [self.ctx.kernel("sgm.cl", name, MAX_DISP=max_disp, SGM_CPU_PREFETCH=int(self.prefetch),
                                  VOL_HALF=int(self.half), SGM_COLS=self.cols, SGM_SPECIALIZE=int(self.specialize),
-                                 SGM_WHOLE_TILES=int(self.whole_tiles))
-                 for name in ("sgm_rows", "sgm_columns")]
+                                 SGM_WHOLE_TILES=int(self.whole_tiles), SGM_PAIR_CW=PAIR_CW)
+                 for name in names]
             k = [(kern, 1 if self._cpu else scan_local_size(self.ctx, kern)) for kern in k]
-            self._kernels[max_disp] = k
+            self._kernels[(max_disp, names)] = k
         return k
 
     def _state_buffer(self, nbytes):
@@ -235,13 +290,22 @@ class SGM:
             raise InputError("SGM cannot work in place: out must differ from d_cost")
         if out is None:
             out = self.ctx.empty(volume_bytes(self.half) * D * H * W, "SGM output volume")
-        (k_rows, l_rows), (k_cols, l_cols) = self._kernel(D)
-        ws = round_up(W, self.cols)
-        state = self._state_buffer(self.scratch_bytes(D, W, self.cols))
         dims = (np.int32(D), np.int32(H), np.int32(W))
         bufs = (d_cost, d_img_left, d_img_right, out)
         pen_h = penalty_table(pi1, pi2, q1, q2, v, False, variant, p2_times_pi1)
         pen_v = penalty_table(pi1, pi2, q1, q2, v, True, variant, p2_times_pi1)
+        if self.paired:
+            ((k_pair, _),) = self._kernel(D, ("sgm_paired",))
+            ws = round_up(W, PAIR_CW)
+            state = self._state_buffer(self.scratch_bytes(D, W, paired=True))
+            for launch_no in (0, 1):
+                launch(self.ctx, "SGM (paired sweeps)", k_pair, (2,), (1,), *bufs, state,
+                       np.int32(ws), *dims, np.int32(H // 2), np.int32(launch_no), *pen_h[0], *pen_h[1],
+                       *pen_v[0], *pen_v[1], np.float32(tau_so), np.int32(bool(outside_large)))
+            return out
+        (k_rows, l_rows), (k_cols, l_cols) = self._kernel(D, ("sgm_rows", "sgm_columns"))
+        ws = round_up(W, self.cols)
+        state = self._state_buffer(self.scratch_bytes(D, W, self.cols))
         g_cols = (round_up(ws // self.cols, l_cols),)
 
         def rows(dx, mode, y0, ny, both=0):
