@@ -311,6 +311,10 @@ static inline __attribute__((always_inline)) void transpose16(float16 *r)
 #define SGM_WHOLE_TILES 1
 #endif
 
+/* Floats of sgm_rows' state per row between chunk ranges: C_r(p - r, .) as
+ * in prev, and its minimum. */
+#define SGM_RST (MAX_DISP + 3 + VW)
+
 /* Horizontal paths.  One work-item walks one row.  For each chunk of 16
  * x it copies the chunk's costs into a private block transposed to [x][d]
  * (16 x 16 tiles transposed in registers), so that the recurrence at one
@@ -338,7 +342,10 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
                        const int mode,              /* 0 write, 1 add, 2 add and divide by 4 */
                        const int y0,                /* first row walked by this launch */
                        const int ny,                /* rows walked by this launch */
-                       const int both)              /* 1: then walk each row the other way (-dx), adding */
+                       const int both,              /* 1: then walk each row the other way (-dx), adding */
+                       const int c0,                /* chunks c0 .. c1 - 1 along the walk (both = 0 unless */
+                       const int c1,                /*   the whole row: c0 = 0, c1 >= its chunks) */
+                       __global float *rst)         /* ny x SGM_RST path state between chunk ranges */
 {
     if (get_global_id(0) >= ny)
         return;
@@ -367,10 +374,20 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
                 buf_b[i] = INFINITY;
             }
         float m = INFINITY; /* min_k C_r(p - r, k) */
+        /* a row walked in several launches (chunk ranges; llvmpipe ends a
+         * work-item's loops after 65535 iterations): C_r(p - r, .) and its
+         * minimum are kept in rst between them */
+        __global float *rs = rst + (size_t)get_global_id(0) * SGM_RST;
+        if (c0 > 0) {
+            for (int i = 0; i < MAX_DISP + 2 + VW; ++i)
+                prev[i] = rs[i];
+            m = rs[MAX_DISP + 2 + VW];
+        }
         float16 r[VW];
         int big_r_rev[MAX_DISP + VW]; /* D2 large, per right pixel of the chunk, reversed (below) */
         const int nchunks = (W + VW - 1) / VW;
-        for (int ci = 0; ci < nchunks; ++ci) {
+        const int cend = min(c1, nchunks);
+        for (int ci = c0; ci < cend; ++ci) {
             const int x0 = (dxp > 0 ? ci : nchunks - 1 - ci) * VW;
             const int n = min(VW, W - x0);
             const int dmaxc = min(D - 1, x0 + n - 1);
@@ -514,6 +531,11 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
             if (modep == 0)
                 for (int d = dmaxc + 1; d < D; ++d)
                     vol_store16_partial((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
+        }
+        if (cend < nchunks) {
+            for (int i = 0; i < MAX_DISP + 2 + VW; ++i)
+                rs[i] = prev[i];
+            rs[MAX_DISP + 2 + VW] = m;
         }
     }
 }

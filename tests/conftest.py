@@ -66,15 +66,6 @@ KNOWN_GAPS: dict = {
         "tests/test_bench_scaling.py::test_quick_run_json_is_consistent":
             ("the quick scaling run includes network timings, which take longer than the "
              "test's 120 s subprocess timeout on Rusticl/llvmpipe", False),
-        # a correctness gap, found 2026-11-23 21:30 UTC: on llvmpipe the SGM kernels give
-        # wrong costs on larger volumes (64 x 367 x 632: up to 12 off; exact at 16 x 100 x 96
-        # and in every small Oclgrind/portability case), every SGM configuration alike, while
-        # the same configurations on PoCL agree with the reference; not yet understood
-        # (docs/portability.md, "Known gaps"); strict: a fix makes these pass and must drop them
-        "tests/test_tiling.py::test_tiled_vs_whole_within_tolerance":
-            ("SGM on Rusticl/llvmpipe is wrong on volumes of KITTI height (known gap)", True),
-        "tests/test_half.py::test_pipeline_half_storage":
-            ("SGM on Rusticl/llvmpipe is wrong on volumes of KITTI height (known gap)", True),
     },
     "oclgrind": {},
     "pocl": {},

@@ -153,6 +153,37 @@ BAND_CPU = 0
 COLS_CPU = 128
 
 
+#: Mesa's llvmpipe (the device of Rusticl here; gallivm's
+#: LP_MAX_TGSI_LOOP_ITERATIONS, Mesa 22.3.6) gives every work-item one
+#: counter of loop iterations, shared by all loops of the kernel, and ends
+#: each loop silently (no error) once that work-item has taken 65535 loop
+#: iterations in all; each later loop then runs one iteration at most.  An
+#: SGM work-item walks a whole path, so on llvmpipe the vertical paths are
+#: walked in bands of rows (the path state is kept between launches anyway)
+#: and each row pass gets its own launch.  Measured on llvmpipe: sgm_columns
+#: takes about 7.4 loop iterations per level and row at 32 columns (5.6 at
+#: 16), up to ~15 on partial strips at the right border in the adding modes;
+#: sgm_rows about 4.4 per level per 16-pixel chunk, plus ~40 per chunk, so a
+#: row pass would be cut short at KITTI's size (D = 228, W = 1234: wrong from
+#: pixel 1040 on); there the rows are walked in ranges of chunks, their path
+#: state kept between launches.
+LLVMPIPE_LOOP_LIMIT = 65535
+
+
+def llvmpipe_column_band(max_disp, cols) -> int:
+    """Rows of the vertical path per sgm_columns launch under a loop limit of
+    LLVMPIPE_LOOP_LIMIT iterations per work-item: an upper estimate of the
+    iterations per row (3.5x or more the most measured, see above)."""
+    per_row = int(max_disp) * (8 * (int(cols) // 16) + 32) + 40 * ((int(max_disp) + int(cols)) // 16) + 128
+    return max(1, LLVMPIPE_LOOP_LIMIT // per_row)
+
+
+def llvmpipe_row_iterations(max_disp, W, both=False) -> int:
+    """Upper estimate (~1.5x the measured) of the loop iterations of one
+    sgm_rows work-item: 16-pixel chunks times (6 per level + 96)."""
+    return (1 + int(bool(both))) * -(-int(W) // 16) * (6 * int(max_disp) + 96)
+
+
 def penalty_table(pi1=1.0, pi2=32.0, q1=4.0, q2=10.0, v=2.0, vertical=False, variant="paper",
                   p2_times_pi1=False):
     """((P1 for 0, 1, 2 large gradients), (P2 likewise)) as float32."""
@@ -217,9 +248,10 @@ class SGM:
         # launch, and takes minutes on the specialised 128-column CPU variant
         # (~190 s at MAX_DISP = 32; ~4 s unspecialised at 32 columns)
         slow_compiler = ctx.is_rusticl
-        if ctx.is_rusticl:
-            log.warning("Rusticl/llvmpipe: the SGM kernels give wrong costs on larger volumes there "
-                        "(known gap, docs/portability.md); use PoCL or another OpenCL implementation")
+        # llvmpipe ends a work-item's loops after 65535 iterations in all
+        # (LLVMPIPE_LOOP_LIMIT): the vertical paths are walked in bands of rows
+        # there, the row passes one direction per launch (__call__)
+        self._loop_limit = LLVMPIPE_LOOP_LIMIT if ctx.is_rusticl else None
         if specialize is None:
             specialize = not slow_compiler
         self.specialize = bool(specialize)
@@ -242,11 +274,14 @@ class SGM:
         if int(cols) < 16 or int(cols) % 16:
             raise InputError(f"SGM cols must be a positive multiple of 16, got {cols}")
         self.cols = int(cols)
-        self.fused_rows = is_cpu if fused_rows is None else bool(fused_rows)
+        if fused_rows is None:
+            fused_rows = is_cpu and self._loop_limit is None
+        self.fused_rows = bool(fused_rows)
         if paired is None:
             paired = is_cpu and not slow_compiler and int(ctx.device.max_compute_units) <= PAIRED_MAX_UNITS
         self.paired = bool(paired)
         self._state = None
+        self._rstate = None
 
     @staticmethod
     def scratch_bytes(D, W, cols=COLS_CPU, paired=False) -> int:
@@ -270,6 +305,12 @@ class SGM:
             k = [(kern, 1 if self._cpu else scan_local_size(self.ctx, kern)) for kern in k]
             self._kernels[(max_disp, names)] = k
         return k
+
+    def _row_state_buffer(self, nbytes):
+        if self._rstate is None or self._rstate.size < nbytes:
+            self._rstate = None
+            self._rstate = self.ctx.empty(nbytes, "SGM row path state")
+        return self._rstate
 
     def _state_buffer(self, nbytes):
         if self._state is None or self._state.size < nbytes:
@@ -295,6 +336,11 @@ class SGM:
         pen_h = penalty_table(pi1, pi2, q1, q2, v, False, variant, p2_times_pi1)
         pen_v = penalty_table(pi1, pi2, q1, q2, v, True, variant, p2_times_pi1)
         if self.paired:
+            if self._loop_limit is not None and \
+                    3 * (H + 1) // 2 * llvmpipe_row_iterations(_max_disp(D), W) // 2 > self._loop_limit:
+                # a paired work-item walks half the rows whole (about 1.5x a row pass per row)
+                raise InputError(f"SGM paired sweeps over {D} x {H} x {W} exceed llvmpipe's loop limit "
+                                 f"(Rusticl, LLVMPIPE_LOOP_LIMIT): use paired=False there")
             ((k_pair, _),) = self._kernel(D, ("sgm_paired",))
             ws = round_up(W, PAIR_CW)
             state = self._state_buffer(self.scratch_bytes(D, W, paired=True))
@@ -308,26 +354,48 @@ class SGM:
         state = self._state_buffer(self.scratch_bytes(D, W, self.cols))
         g_cols = (round_up(ws // self.cols, l_cols),)
 
+        nchunks = -(-W // 16)
+        hband = nchunks  # chunks of 16 columns per sgm_rows launch (llvmpipe's loop limit)
+        rstate = state  # sgm_rows' state between chunk ranges (unused when hband = nchunks)
+
         def rows(dx, mode, y0, ny, both=0):
-            launch(self.ctx, "SGM (horizontal)", k_rows, (round_up(ny, l_rows),), (l_rows,), *bufs, *dims,
-                   np.int32(dx), *pen_h[0], *pen_h[1], np.float32(tau_so), np.int32(bool(outside_large)),
-                   np.int32(mode), np.int32(y0), np.int32(ny), np.int32(both))
+            for c0 in range(0, nchunks, hband):
+                launch(self.ctx, "SGM (horizontal)", k_rows, (round_up(ny, l_rows),), (l_rows,), *bufs, *dims,
+                       np.int32(dx), *pen_h[0], *pen_h[1], np.float32(tau_so), np.int32(bool(outside_large)),
+                       np.int32(mode), np.int32(y0), np.int32(ny), np.int32(both), np.int32(c0),
+                       np.int32(c0 + hband), rstate)
 
         def columns(dy, mode, j0, nj):
             launch(self.ctx, "SGM (vertical)", k_cols, g_cols, (l_cols,), *bufs, state, np.int32(ws), *dims,
                    np.int32(j0), np.int32(nj), np.int32(dy), *pen_v[0], *pen_v[1], np.float32(tau_so), np.int32(mode))
+
+        # vertical paths in launches of at most vband rows (llvmpipe's loop limit)
+        vband = H
+        fused = self.fused_rows
+        if self._loop_limit is not None:
+            vband = llvmpipe_column_band(_max_disp(D), self.cols)
+            if llvmpipe_row_iterations(_max_disp(D), W, self.fused_rows) > self._loop_limit:
+                # walk the rows in ranges of chunks, one direction per launch
+                fused = False
+                hband = max(1, self._loop_limit // llvmpipe_row_iterations(_max_disp(D), 16))
+                if hband < nchunks:
+                    rstate = self._row_state_buffer(4 * H * (_max_disp(D) + 19))
+
+        def columns_banded(dy, mode, j0, nj):
+            for j in range(j0, j0 + nj, vband):
+                columns(dy, mode, j, min(vband, j0 + nj - j))
 
         # first sweep, top to bottom in bands: C_lr, + C_rl, + C_tb (the band's
         # rows are still in the cache when the vertical path reaches them)
         band = self.band or H
         for y0 in range(0, H, band):
             ny = min(band, H - y0)
-            if self.fused_rows:
+            if fused:
                 rows(1, 0, y0, ny, both=1)
             else:
                 rows(1, 0, y0, ny)
                 rows(-1, 1, y0, ny)
-            columns(1, 1, y0, ny)
+            columns_banded(1, 1, y0, ny)
         # second sweep: + C_bt, divided by 4
-        columns(-1, 2, 0, H)
+        columns_banded(-1, 2, 0, H)
         return out
