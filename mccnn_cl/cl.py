@@ -297,8 +297,10 @@ class ClContext:
     @property
     def is_rusticl(self) -> bool:
         """The device belongs to Mesa's Rusticl (llvmpipe here), which some
-        stages steer around: CBCA (its fused kernels compute wrong sums
-        there) and SGM (compile time; it warns of its own wrong results)."""
+        stages steer around: llvmpipe ends a work-item's loops after 65535
+        iterations in all, so CBCA takes its two-pass kernels and SGM walks
+        its paths in several launches there; SGM also builds smaller
+        kernels (compile time)."""
         return "rusticl" in self.device.platform.name.lower()
 
     @property

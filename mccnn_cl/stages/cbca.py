@@ -199,11 +199,11 @@ class CBCA:
                 # 367 x 632, both exact at 64 x 96), while PoCL, Intel's
                 # runtime and Oclgrind agree with the reference; its two-pass
                 # kernels are right (tests/test_half.py,
-                # tests/test_cbca.py::test_large_volume_default_path).  Most
-                # likely llvmpipe's loop limit (65535 loop iterations per
+                # tests/test_cbca.py::test_large_volume_default_path).  The
+                # cause is llvmpipe's loop limit (65535 loop iterations per
                 # work-item in all, then every loop ends silently; see
                 # stages/sgm.py, LLVMPIPE_LOOP_LIMIT): a fused work-item walks a
-                # whole plane
+                # whole plane and stops writing part way (docs/portability.md)
                 fused = False
         self.fused = bool(fused)
         if multi is None:
