@@ -688,24 +688,27 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
                                                    : (float16)(0.0f);
                     }
                     const int iend = min(VW, dmaxg + 1 - d0);
-                    for (int i = 0; i < iend; ++i) {
+                    __attribute__((opencl_unroll_hint))
+                    for (int i = 0; i < VW; ++i) { /* a constant trip count keeps r[] in registers */
                         const int d = d0 + i;
-                        float16 val;
-                        if (vfirst) {
-                            val = r[i];
-                        } else {
-                            const int16 big_r = vload16(0, bigv + MAX_DISP + gx * VW - d);
-                            const float16 p1 = select(p1a, p1b, big_r);
-                            const float16 p2 = select(p2a, p2b, big_r);
-                            const float16 pn = vload16(0, sg + (d + 1) * VW); /* C_r(p - r, d + 1) */
-                            const float16 best = fmin_a(fmin_b(pd, mv + p2), fmin(pm1, pn) + p1);
-                            val = r[i] - mv + best;
-                            pm1 = pd;
-                            pd = pn;
+                        if (i < iend) {
+                            float16 val;
+                            if (vfirst) {
+                                val = r[i];
+                            } else {
+                                const int16 big_r = vload16(0, bigv + MAX_DISP + gx * VW - d);
+                                const float16 p1 = select(p1a, p1b, big_r);
+                                const float16 p2 = select(p2a, p2b, big_r);
+                                const float16 pn = vload16(0, sg + (d + 1) * VW); /* C_r(p - r, d + 1) */
+                                const float16 best = fmin_a(fmin_b(pd, mv + p2), fmin(pm1, pn) + p1);
+                                val = r[i] - mv + best;
+                                pm1 = pd;
+                                pd = pn;
+                            }
+                            val = select((float16)(INFINITY), val, (xs >= (int16)(d)) & valid_x);
+                            vstore16(val, 0, sg + d * VW);
+                            newmv = fmin_a(newmv, val);
                         }
-                        val = select((float16)(INFINITY), val, (xs >= (int16)(d)) & valid_x);
-                        vstore16(val, 0, sg + d * VW);
-                        newmv = fmin_a(newmv, val);
                     }
                     transpose16(r);
                     for (int k = 0; k < VW; ++k)

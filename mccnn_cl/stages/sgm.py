@@ -83,9 +83,18 @@ and read once, against four reads of the volume, three of the output and
 four writes for the one-direction kernels; but only two work-items run,
 hence the compute-unit limit.  Measured on PoCL (2 cores, KITTI D = 228,
 367 x 1234, A/B in one process, best of 3): one SGM call 269-297 ms ->
-204-213 ms (two launches of ~102 ms).  Of those, ~35 ms are the transposes
-and ~20 ms the vertical recurrence; with every computation stubbed out the
-loads and stores alone take ~150 ms.  Tried and slower: 32-, 64- or
+204-213 ms (two launches of ~102 ms), then 194-200 ms (against 285-296 for
+the one-direction kernels in the same runs) once the vertical recurrence's
+loop over a tile's 16 levels had a constant trip count (so the tile stays
+in registers).  Of those, ~35 ms are the transposes and ~20 ms the
+vertical recurrence; with every computation stubbed out the loads and
+stores alone take ~150 ms.  Intel's CPU runtime runs the same kernel in
+~161 ms (its stubbed skeleton ~103 ms: its code moves the data faster;
+not understood).  Also tried: reading the right reference's volume
+mirrored straight from the left one (bit-identical, saves the 33 ms
+mirror copy, but the call took 298-318 ms instead of 193-203, even with
+whole-tile loads for the diagonal tiles), prefetching 2 or 3 chunks ahead
+(no change).  Tried and slower: 32-, 64- or
 128-column chunks (257-283 ms, although a bare load/add/store walk gets
 faster with wider runs per plane), bands of 4-16 rows walked chunk by chunk
 (285-328 ms: each chunk then touches D pages per row of the band, more than
