@@ -88,9 +88,16 @@ the one-direction kernels in the same runs) once the vertical recurrence's
 loop over a tile's 16 levels had a constant trip count (so the tile stays
 in registers).  Of those, ~35 ms are the transposes and ~20 ms the
 vertical recurrence; with every computation stubbed out the loads and
-stores alone take ~150 ms.  Intel's CPU runtime runs the same kernel in
-~161 ms (its stubbed skeleton ~103 ms: its code moves the data faster;
-not understood).  Also tried: reading the right reference's volume
+stores alone take ~150 ms.  Then the next chunk's lines prefetched into
+the L2 cache only (``prefetcht1``; the other kernels keep ``prefetcht0``,
+with which they are faster): 196-201 -> 144-156 ms, against 285-304 ms for
+the one-direction kernels in the same runs (0.50x).  Intel's CPU runtime
+(its own ``prefetch()``) runs the kernel in 154-162 ms.  Tried for the
+transposes: the classic unpack / 128-bit-lane form and four 8 x 8 float8
+transposes (LLVM 15 in PoCL emits the same permutes for the former; both
+cut the kernel's arithmetic when its memory accesses are stubbed out,
+150 -> 128-141 ms, but not the real call: 199 -> 203 and 221 ms); on
+Intel's runtime the unpack form is faster (154 -> 135 ms), not used.  Also tried: reading the right reference's volume
 mirrored straight from the left one (bit-identical, saves the 33 ms
 mirror copy, but the call took 298-318 ms instead of 193-203, even with
 whole-tile loads for the diagonal tiles), prefetching 2 or 3 chunks ahead
