@@ -328,6 +328,175 @@ static inline __attribute__((always_inline)) void transpose16(float16 *r)
  * in prev, and its minimum. */
 #define SGM_RST (MAX_DISP + 3 + VW)
 
+/* Horizontal D2 flags of one chunk (sgm_rows, sgm_paired): D2 >= tau_so (-1)
+ * or not (0) for the right pixels xr = base + t, 0 <= t < ntiles * 16 + cw
+ * (x0 - 16 ntiles <= xr < x0 + cw for a chunk of cw columns at x0 with
+ * levels in ntiles tiles), D2 = |I^R(xr) - I^R(xr - dir)|, pixels outside the
+ * row large when outside_large; stored reversed at big_r_rev[rt - t], rt =
+ * ntiles * 16 + cw - 1, so that lanes d0 .. d0 + 15 of pixel x (xr = x - d)
+ * are one vector load (row_chunk); entries with xr < 0 are never used. */
+static inline __attribute__((always_inline)) void row_gradients(
+    __global const float *ir, const int W, const int base, const int ntiles, const int cw, const int dir,
+    const float tau_so, const int outside_large, int *big_r_rev)
+{
+    const int16 lane = LANES;
+    const uint16 reverse = (uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+    for (int t0 = 0; t0 < ntiles * VW + cw; t0 += VW) {
+        const int xa = base + t0, xb = xa - dir;
+        float16 a, b;
+        if (xa >= 0 && xb >= 0 && xa + VW <= W && xb + VW <= W) {
+            a = vload16(0, ir + xa);
+            b = vload16(0, ir + xb);
+        } else {
+            float ta[VW], tb[VW];
+            for (int i = 0; i < VW; ++i) {
+                ta[i] = (xa + i >= 0 && xa + i < W) ? ir[xa + i] : 0.0f;
+                tb[i] = (xb + i >= 0 && xb + i < W) ? ir[xb + i] : 0.0f;
+            }
+            a = vload16(0, ta);
+            b = vload16(0, tb);
+        }
+        const int16 xrp = (int16)(xb) + lane;
+        const int16 outside = (xrp < (int16)(0)) | (xrp >= (int16)(W));
+        int16 big = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
+        big = select(big, (int16)(outside_large ? -1 : 0), outside);
+        vstore16(as_int16(shuffle(as_uint16(big), reverse)), 0, big_r_rev + ntiles * VW + cw - VW - t0);
+    }
+}
+
+/* Horizontal recurrence over the n pixels x0 .. x0 + n - 1 of one chunk, in
+ * the path's order dir (sgm_rows, sgm_paired).  blk holds the chunk as
+ * [k][d] (MAX_DISP floats per pixel): costs in, C_r out (lanes d > x
+ * undefined).  C_r(p - r, d) is at (*prev)[d + 1] (+INFINITY at 0 and beyond
+ * the valid range), its minimum in *m; the two buffers swap per pixel.
+ * big_r_rev, base, rt: from row_gradients.  Spread over the pixels, the
+ * next chunk's lines are prefetched: levels 0 .. dmaxn of pf_cost and
+ * pf_out (its first cells of level 0; levels a plane apart), pf_n cells
+ * each (the lines at 0, 16, ... and pf_n - 1); into L2 only with l2. */
+static inline __attribute__((always_inline)) void row_chunk(
+    float *blk, float **prev, float **cur, float *m, const int x0, const int n, const int dir, const int D,
+    const int W, __global const float *il, const float tau_so, const float p1_small, const float p1_one,
+    const float p1_both, const float p2_small, const float p2_one, const float p2_both,
+    const int *big_r_rev, const int base, const int rt, __global const vol_t *pf_cost,
+    __global const vol_t *pf_out, const size_t plane, const int dmaxn, const int pf_n, const int l2)
+{
+    const int16 lane = LANES;
+    const int pf_per = dmaxn / n + 1; /* levels prefetched per pixel */
+    for (int kk = 0; kk < n; ++kk) {
+        const int k = dir > 0 ? kk : n - 1 - kk;
+        const int x = x0 + k;
+        for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
+            __global const vol_t *pc = pf_cost + d * plane, *po = pf_out + d * plane;
+            for (int e = 0; e < pf_n; e += VW) {
+                if (l2) {
+                    SGM_PREFETCH_L2(pc + e);
+                    SGM_PREFETCH_L2(po + e);
+                } else {
+                    SGM_PREFETCH(pc + e);
+                    SGM_PREFETCH(po + e);
+                }
+            }
+            if (pf_n > 1) {
+                if (l2) {
+                    SGM_PREFETCH_L2(pc + pf_n - 1);
+                    SGM_PREFETCH_L2(po + pf_n - 1);
+                } else {
+                    SGM_PREFETCH(pc + pf_n - 1);
+                    SGM_PREFETCH(po + pf_n - 1);
+                }
+            }
+        }
+        const int dmax = min(D - 1, x);
+        const int nvec = dmax / VW + 1;
+        const int first = x == (dir > 0 ? 0 : W - 1); /* first pixel of the path: C_r = C */
+        const int px = x - dir;
+        const int big_l = first ? 0 : !(fabs(il[x] - il[px]) < tau_so);
+        const float p1_a = big_l ? p1_one : p1_small, p1_b = big_l ? p1_both : p1_one;
+        const float p2_a = big_l ? p2_one : p2_small, p2_b = big_l ? p2_both : p2_one;
+        const float mm = *m;
+        float *pv = *prev, *cv = *cur;
+        float16 newm = (float16)(INFINITY);
+        for (int v = 0; v < nvec; ++v) {
+            const int d0 = v * VW;
+            float *bp = blk + k * MAX_DISP + d0;
+            const float16 c = vload16(0, bp);
+            float16 val;
+            if (first) {
+                val = c;
+            } else {
+                /* D2 large at pd = x - d, lanes d0 .. d0 + 15 */
+                const int16 big_r = vload16(0, big_r_rev + rt - (x - d0 - base));
+                const float16 p1 = select((float16)(p1_a), (float16)(p1_b), big_r);
+                const float16 p2 = select((float16)(p2_a), (float16)(p2_b), big_r);
+                const float16 pm = vload16(0, pv + d0);     /* d - 1 */
+                const float16 pd = vload16(0, pv + d0 + 1); /* d */
+                const float16 pn = vload16(0, pv + d0 + 2); /* d + 1 */
+                const float16 best = fmin_a(fmin_b(pd, (float16)(mm) + p2), fmin(pm, pn) + p1);
+                val = c - (float16)(mm) + best;
+            }
+            if (v == nvec - 1) /* only the last vector has lanes d > dmax */
+                val = select((float16)(INFINITY), val, (int16)(d0) + lane <= (int16)(dmax));
+            vstore16(val, 0, cv + d0 + 1);
+            vstore16(val, 0, bp); /* lanes d > dmax: discarded at write-back */
+            newm = fmin_a(newm, val);
+        }
+        vstore16((float16)(INFINITY), 0, cv + nvec * VW + 1); /* d beyond the valid range */
+        const float8 m8 = fmin(newm.lo, newm.hi);
+        const float4 m4 = fmin(m8.lo, m8.hi);
+        const float2 m2 = fmin(m4.lo, m4.hi);
+        *m = fmin(m2.x, m2.y);
+        *prev = cv;
+        *cur = pv;
+    }
+}
+
+/* Writes (mode 0) or combines (modes 1 and 2, SGM_COMBINE) one 16 x 16 tile
+ * of C_r into the output (sgm_rows, sgm_paired): r[i] holds level d0 + i at
+ * the columns x0 .. x0 + n - 1 of one row, plus, when add is not 0, add's
+ * level row (16 floats per level, at add + d * 16); levels beyond dmax are
+ * not written.  dst: the output at cell (d0, y, x0), levels a plane apart.
+ * Cells with x < d keep their value (mode 0 writes NaN there). */
+static inline __attribute__((always_inline)) void write_tile(
+    const float16 *r, __global const float *add, __global vol_t *dst, const size_t plane, const int x0,
+    const int d0, const int n, const int dmax, const int mode)
+{
+    const int16 xs = (int16)(x0) + LANES;
+    if (SGM_WHOLE_TILES && n == VW && d0 + VW - 1 <= dmax) { /* plain loads and stores */
+        __attribute__((opencl_unroll_hint))
+        for (int i = 0; i < VW; ++i) {
+            const int16 valid = xs >= (int16)(d0 + i);
+            const float16 v = add ? r[i] + vload16(0, add + (d0 + i) * VW) : r[i];
+            __global vol_t *p = dst + i * plane;
+            float16 o;
+            if (mode == 0) {
+                o = select((float16)(INVALID_COST), v, valid);
+            } else {
+                const float16 old = VOL_LOAD16(p);
+                o = select(old, SGM_COMBINE(old, v, mode), valid);
+            }
+            vol_store16_partial(o, p, VW);
+        }
+        return;
+    }
+    __attribute__((opencl_unroll_hint))
+    for (int i = 0; i < VW; ++i) {
+        const int d = d0 + i;
+        if (d > dmax)
+            break;
+        const int16 valid = xs >= (int16)(d);
+        const float16 v = add ? r[i] + vload16(0, add + d * VW) : r[i];
+        __global vol_t *p = dst + i * plane;
+        float16 o;
+        if (mode == 0) {
+            o = select((float16)(INVALID_COST), v, valid);
+        } else {
+            const float16 old = vol_load16_partial(p, 0, n, 0.0f);
+            o = select(old, SGM_COMBINE(old, v, mode), valid);
+        }
+        vol_store16_partial(o, p, n);
+    }
+}
+
 /* Horizontal paths.  One work-item walks one row.  For each chunk of 16
  * x it copies the chunk's costs into a private block transposed to [x][d]
  * (16 x 16 tiles transposed in registers), so that the recurrence at one
@@ -375,7 +544,6 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
     }
     const int16 lane = LANES;
     const size_t plane = (size_t)H * (size_t)W;
-    const uint16 reverse = (uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
     for (int pass = 0; pass < 1 + both; ++pass) {
         /* the second pass (both = 1) walks the row the other way, adding to the
          * first pass's output while the row is still in the cache */
@@ -397,7 +565,7 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
             m = rs[MAX_DISP + 2 + VW];
         }
         float16 r[VW];
-        int big_r_rev[MAX_DISP + VW]; /* D2 large, per right pixel of the chunk, reversed (below) */
+        int big_r_rev[MAX_DISP + VW]; /* D2 large, per right pixel of the chunk, reversed (row_gradients) */
         const int nchunks = (W + VW - 1) / VW;
         const int cend = min(c1, nchunks);
         for (int ci = c0; ci < cend; ++ci) {
@@ -422,124 +590,21 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
                 for (int k = 0; k < VW; ++k)
                     vstore16(r[k], 0, blk + k * MAX_DISP + d0);
             }
-            /* D2 >= tau_so (-1) or not (0) for the right pixels xr = base + t this chunk
-             * names (x0 - dmaxc <= xr < x0 + n), stored reversed at big_r_rev[rt - t]
-             * so that lanes d0 .. d0 + 15 of pixel x (xr = x - d) are one vector
-             * load; entries with xr < 0 are never used */
             const int base = x0 - ntiles * VW, rt = (ntiles + 1) * VW - 1;
-            for (int t0 = 0; t0 < (ntiles + 1) * VW; t0 += VW) {
-                const int xa = base + t0, xb = xa - dxp;
-                float16 a, b;
-                if (xa >= 0 && xb >= 0 && xa + VW <= W && xb + VW <= W) {
-                    a = vload16(0, ir + xa);
-                    b = vload16(0, ir + xb);
-                } else {
-                    float ta[VW], tb[VW];
-                    for (int i = 0; i < VW; ++i) {
-                        ta[i] = (xa + i >= 0 && xa + i < W) ? ir[xa + i] : 0.0f;
-                        tb[i] = (xb + i >= 0 && xb + i < W) ? ir[xb + i] : 0.0f;
-                    }
-                    a = vload16(0, ta);
-                    b = vload16(0, tb);
-                }
-                const int16 xrp = (int16)(xb) + lane;
-                const int16 outside = (xrp < (int16)(0)) | (xrp >= (int16)(W));
-                int16 big = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
-                big = select(big, (int16)(outside_large ? -1 : 0), outside);
-                vstore16(as_int16(shuffle(as_uint16(big), reverse)), 0, big_r_rev + ntiles * VW - t0);
-            }
+            row_gradients(ir, W, base, ntiles, VW, dxp, tau_so, outside_large, big_r_rev);
             /* the next chunk's lines of every plane, spread over this chunk's pixels */
             const int cin = ci + 1 < nchunks ? ci + 1 : ci;
             const int x0n = (dxp > 0 ? cin : nchunks - 1 - cin) * VW;
             const int dmaxn = min(D - 1, x0n + min(VW, W - x0n) - 1);
-            const int pf_per = dmaxn / VW + 1;
-            for (int kk = 0; kk < n; ++kk) {
-                const int k = dxp > 0 ? kk : n - 1 - kk;
-                const int x = x0 + k;
-                for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
-                    SGM_PREFETCH(cost + VIDX(d, y, x0n, H, W));
-                    SGM_PREFETCH(out + VIDX(d, y, x0n, H, W));
-                }
-                const int dmax = min(D - 1, x);
-                const int nvec = dmax / VW + 1;
-                const int first = x == (dxp > 0 ? 0 : W - 1); /* first pixel of the path: C_r = C */
-                const int px = x - dxp;
-                const int big_l = first ? 0 : !(fabs(il[x] - il[px]) < tau_so);
-                const float p1_a = big_l ? p1_one : p1_small, p1_b = big_l ? p1_both : p1_one;
-                const float p2_a = big_l ? p2_one : p2_small, p2_b = big_l ? p2_both : p2_one;
-                float16 newm = (float16)(INFINITY);
-                for (int v = 0; v < nvec; ++v) {
-                    const int d0 = v * VW;
-                    float *bp = blk + k * MAX_DISP + d0;
-                    const float16 c = vload16(0, bp);
-                    float16 val;
-                    if (first) {
-                        val = c;
-                    } else {
-                        /* D2 large at pd = x - d, lanes d0 .. d0 + 15 */
-                        const int16 big_r = vload16(0, big_r_rev + rt - (x - d0 - base));
-                        const float16 p1 = select((float16)(p1_a), (float16)(p1_b), big_r);
-                        const float16 p2 = select((float16)(p2_a), (float16)(p2_b), big_r);
-                        const float16 pm = vload16(0, prev + d0);     /* d - 1 */
-                        const float16 pd = vload16(0, prev + d0 + 1); /* d */
-                        const float16 pn = vload16(0, prev + d0 + 2); /* d + 1 */
-                        const float16 best = fmin_a(fmin_b(pd, (float16)(m) + p2), fmin(pm, pn) + p1);
-                        val = c - (float16)(m) + best;
-                    }
-                    if (v == nvec - 1) /* only the last vector has lanes d > dmax */
-                        val = select((float16)(INFINITY), val, (int16)(d0) + lane <= (int16)(dmax));
-                    vstore16(val, 0, cur + d0 + 1);
-                    vstore16(val, 0, bp); /* lanes d > dmax: discarded at write-back */
-                    newm = fmin_a(newm, val);
-                }
-                vstore16((float16)(INFINITY), 0, cur + nvec * VW + 1); /* d beyond the valid range */
-                const float8 m8 = fmin(newm.lo, newm.hi);
-                const float4 m4 = fmin(m8.lo, m8.hi);
-                const float2 m2 = fmin(m4.lo, m4.hi);
-                m = fmin(m2.x, m2.y);
-                float *sw = prev;
-                prev = cur;
-                cur = sw;
-            }
-            const int16 xs = (int16)(x0) + lane;
+            row_chunk(blk, &prev, &cur, &m, x0, n, dxp, D, W, il, tau_so, p1_small, p1_one, p1_both, p2_small,
+                      p2_one, p2_both, big_r_rev, base, rt, cost + VIDX(0, y, x0n, H, W), out + VIDX(0, y, x0n, H, W),
+                      plane, dmaxn, 1, 0);
             for (int g = 0; g < ntiles; ++g) { /* write the chunk back, rows d of 16 x */
                 const int d0 = g * VW;
                 for (int k = 0; k < VW; ++k)
                     r[k] = vload16(0, blk + k * MAX_DISP + d0);
                 transpose16(r);
-                if (SGM_WHOLE_TILES && n == VW && d0 + VW - 1 <= dmaxc) { /* plain loads and stores */
-                    __global vol_t *dst = out + VIDX(d0, y, x0, H, W);
-                    __attribute__((opencl_unroll_hint))
-                    for (int i = 0; i < VW; ++i) {
-                        const int16 valid = xs >= (int16)(d0 + i);
-                        __global vol_t *p = dst + i * plane;
-                        float16 o;
-                        if (modep == 0) {
-                            o = select((float16)(INVALID_COST), r[i], valid);
-                        } else {
-                            const float16 old = VOL_LOAD16(p);
-                            o = select(old, SGM_COMBINE(old, r[i], modep), valid);
-                        }
-                        vol_store16_partial(o, p, VW);
-                    }
-                    continue;
-                }
-                __attribute__((opencl_unroll_hint))
-                for (int i = 0; i < VW; ++i) {
-                    const int d = d0 + i;
-                    if (d > dmaxc)
-                        break;
-                    const int16 valid = xs >= (int16)(d);
-                    const size_t i0 = VIDX(d, y, x0, H, W);
-                    float16 o;
-                    if (modep == 0) {
-                        o = select((float16)(INVALID_COST), r[i], valid);
-                    } else {
-                        const float16 old = vol_load16_partial(out, i0, n, 0.0f);
-                        o = select(old, SGM_COMBINE(old, r[i], modep), valid);
-                    }
-                    vol_store16_partial(o, out + i0, n);
-                }
+                write_tile(r, (__global const float *)0, out + VIDX(d0, y, x0, H, W), plane, x0, d0, n, dmaxc, modep);
             }
             if (modep == 0)
                 for (int d = dmaxc + 1; d < D; ++d)
@@ -619,7 +684,6 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
     int bigv[MAX_DISP + PCW];      /* vertical D2 large at right pixel x0 - MAX_DISP + t */
     const int16 lane = LANES;
     const size_t plane = (size_t)H * (size_t)W;
-    const uint16 reverse = (uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
     const int nchunks = (W + PCW - 1) / PCW;
     for (int j = j0; j < j1; ++j) {
         const int y = dir > 0 ? j : H - 1 - j;
@@ -729,133 +793,26 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
                 }
                 vstore16(newmv, 0, sg + (D + 1) * VW);
             }
-            /* horizontal D2, as in sgm_rows: right pixels base .. x0 + n - 1, reversed */
+            /* horizontal D2 and recurrence, as in sgm_rows */
             const int base = x0 - ntiles * VW, rt = ntiles * VW + PCW - 1;
-            for (int t0 = 0; t0 < ntiles * VW + PCW; t0 += VW) {
-                const int xa = base + t0, xb = xa - dir;
-                float16 a, b;
-                if (xa >= 0 && xb >= 0 && xa + VW <= W && xb + VW <= W) {
-                    a = vload16(0, ir + xa);
-                    b = vload16(0, ir + xb);
-                } else {
-                    float ta[VW], tb[VW];
-                    for (int i = 0; i < VW; ++i) {
-                        ta[i] = (xa + i >= 0 && xa + i < W) ? ir[xa + i] : 0.0f;
-                        tb[i] = (xb + i >= 0 && xb + i < W) ? ir[xb + i] : 0.0f;
-                    }
-                    a = vload16(0, ta);
-                    b = vload16(0, tb);
-                }
-                const int16 xrp = (int16)(xb) + lane;
-                const int16 outside = (xrp < (int16)(0)) | (xrp >= (int16)(W));
-                int16 big = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
-                big = select(big, (int16)(outside_large ? -1 : 0), outside);
-                vstore16(as_int16(shuffle(as_uint16(big), reverse)), 0, big_r_rev + rt - VW + 1 - t0);
-            }
-            /* the next chunk's lines of every plane (cost, output), spread over this chunk's pixels */
+            row_gradients(ir, W, base, ntiles, PCW, dir, tau_so, outside_large, big_r_rev);
             const int cin = ci + 1 < nchunks ? ci + 1 : ci;
             const int x0n = (dir > 0 ? cin : nchunks - 1 - cin) * PCW;
             const int nn = min(PCW, W - x0n);
             const int dmaxn = min(D - 1, x0n + nn - 1);
-            const int pf_per = dmaxn / n + 1;
-            for (int kk = 0; kk < n; ++kk) {
-                const int k = dir > 0 ? kk : n - 1 - kk;
-                const int x = x0 + k;
-                for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
-                    __global const vol_t *pc = cost + VIDX(d, y, x0n, H, W);
-                    __global const vol_t *po = out + VIDX(d, y, x0n, H, W);
-                    for (int e = 0; e < nn; e += VW) {
-                        SGM_PREFETCH_L2(pc + e);
-                        SGM_PREFETCH_L2(po + e);
-                    }
-                    SGM_PREFETCH_L2(pc + nn - 1);
-                    SGM_PREFETCH_L2(po + nn - 1);
-                }
-                const int dmax = min(D - 1, x);
-                const int nvec = dmax / VW + 1;
-                const int first = x == (dir > 0 ? 0 : W - 1); /* first pixel of the path: C_r = C */
-                const int px = x - dir;
-                const int big_l = first ? 0 : !(fabs(il[x] - il[px]) < tau_so);
-                const float p1_a = big_l ? ph1_one : ph1_small, p1_b = big_l ? ph1_both : ph1_one;
-                const float p2_a = big_l ? ph2_one : ph2_small, p2_b = big_l ? ph2_both : ph2_one;
-                float16 newm = (float16)(INFINITY);
-                for (int v = 0; v < nvec; ++v) {
-                    const int d0 = v * VW;
-                    float *bp = blk + k * MAX_DISP + d0;
-                    const float16 c = vload16(0, bp);
-                    float16 val;
-                    if (first) {
-                        val = c;
-                    } else {
-                        const int16 big_r = vload16(0, big_r_rev + rt - (x - d0 - base));
-                        const float16 p1 = select((float16)(p1_a), (float16)(p1_b), big_r);
-                        const float16 p2 = select((float16)(p2_a), (float16)(p2_b), big_r);
-                        const float16 pm = vload16(0, prev + d0);      /* d - 1 */
-                        const float16 pdh = vload16(0, prev + d0 + 1); /* d */
-                        const float16 pn = vload16(0, prev + d0 + 2);  /* d + 1 */
-                        const float16 best = fmin_a(fmin_b(pdh, (float16)(m) + p2), fmin(pm, pn) + p1);
-                        val = c - (float16)(m) + best;
-                    }
-                    if (v == nvec - 1) /* only the last vector has lanes d > dmax */
-                        val = select((float16)(INFINITY), val, (int16)(d0) + lane <= (int16)(dmax));
-                    vstore16(val, 0, cur + d0 + 1);
-                    vstore16(val, 0, bp); /* lanes d > dmax: discarded at write-back */
-                    newm = fmin_a(newm, val);
-                }
-                vstore16((float16)(INFINITY), 0, cur + nvec * VW + 1); /* d beyond the valid range */
-                const float8 m8 = fmin(newm.lo, newm.hi);
-                const float4 m4 = fmin(m8.lo, m8.hi);
-                const float2 m2 = fmin(m4.lo, m4.hi);
-                m = fmin(m2.x, m2.y);
-                float *sw = prev;
-                prev = cur;
-                cur = sw;
-            }
+            row_chunk(blk, &prev, &cur, &m, x0, n, dir, D, W, il, tau_so, ph1_small, ph1_one, ph1_both, ph2_small,
+                      ph2_one, ph2_both, big_r_rev, base, rt, cost + VIDX(0, y, x0n, H, W), out + VIDX(0, y, x0n, H, W),
+                      plane, dmaxn, nn, 1);
             for (int gx = 0; gx * VW < n; ++gx) { /* write back: horizontal + vertical C_r, rows d of 16 x */
                 const int xg = x0 + gx * VW, ng = min(VW, n - gx * VW);
                 __global float *sg = st + (size_t)(xg / VW) * (D + 2) * VW; /* the group's state, [D + 2][16] */
-                const int16 xs = (int16)(xg) + lane;
                 const int dmaxg = min(D - 1, xg + ng - 1);
                 for (int g = 0; g <= dmaxg / VW; ++g) {
                     const int d0 = g * VW;
                     for (int k = 0; k < VW; ++k)
                         r[k] = vload16(0, blk + (gx * VW + k) * MAX_DISP + d0);
                     transpose16(r);
-                    if (SGM_WHOLE_TILES && ng == VW && d0 + VW - 1 <= dmaxg) { /* plain loads and stores */
-                        __global vol_t *dst = out + VIDX(d0, y, xg, H, W);
-                        __attribute__((opencl_unroll_hint))
-                        for (int i = 0; i < VW; ++i) {
-                            const int16 valid = xs >= (int16)(d0 + i);
-                            const float16 pair = r[i] + vload16(0, sg + (d0 + i) * VW);
-                            __global vol_t *p = dst + i * plane;
-                            float16 o;
-                            if (mode == 0) {
-                                o = select((float16)(INVALID_COST), pair, valid);
-                            } else {
-                                const float16 old = VOL_LOAD16(p);
-                                o = select(old, SGM_COMBINE(old, pair, mode), valid);
-                            }
-                            vol_store16_partial(o, p, VW);
-                        }
-                        continue;
-                    }
-                    __attribute__((opencl_unroll_hint))
-                    for (int i = 0; i < VW; ++i) {
-                        const int d = d0 + i;
-                        if (d > dmaxg)
-                            break;
-                        const int16 valid = xs >= (int16)(d);
-                        const float16 pair = r[i] + vload16(0, sg + d * VW);
-                        const size_t i0 = VIDX(d, y, xg, H, W);
-                        float16 o;
-                        if (mode == 0) {
-                            o = select((float16)(INVALID_COST), pair, valid);
-                        } else {
-                            const float16 old = vol_load16_partial(out, i0, ng, 0.0f);
-                            o = select(old, SGM_COMBINE(old, pair, mode), valid);
-                        }
-                        vol_store16_partial(o, out + i0, ng);
-                    }
+                    write_tile(r, sg, out + VIDX(d0, y, xg, H, W), plane, xg, d0, ng, dmaxg, mode);
                 }
                 if (mode == 0)
                     for (int d = dmaxg + 1; d < D; ++d)

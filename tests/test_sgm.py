@@ -45,6 +45,17 @@ def check(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_ro
     return got, want
 
 
+def kitti_crop(shared_data, y0, x0, H, W):
+    """The H x W crop at (y0, x0) of KITTI 2015 training 000000, left and
+    right, gray in [0, 1]."""
+    imgs = []
+    for rel in ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png"):
+        img = cv2.imread(str(shared_data / rel), cv2.IMREAD_GRAYSCALE)
+        assert img is not None, rel
+        imgs.append(img[y0:y0 + H, x0:x0 + W].astype(np.float32) / 255.0)
+    return imgs
+
+
 def test_random_odd_size(ctx):
     rng = np.random.default_rng(11)
     D, H, W = 16, 37, 53
@@ -155,11 +166,7 @@ def test_configurations_on_kitti_crop(ctx, shared_data):
     """A real KITTI crop (AD costs, D = 30 over 70 columns): every configuration
     matches the reference and the others bit for bit."""
     H, W, D = 20, 70, 30
-    imgs = []
-    for rel in ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png"):
-        img = cv2.imread(str(shared_data / rel), cv2.IMREAD_GRAYSCALE)
-        assert img is not None, rel
-        imgs.append(img[180:180 + H, 400:400 + W].astype(np.float32) / 255.0)
+    imgs = kitti_crop(shared_data, 180, 400, H, W)
     cost = ad_volume(imgs[0], imgs[1], D)
     first = None
     for band, cols, fused, spec in CONFIGS:
@@ -195,11 +202,7 @@ def test_paired_sweeps_on_real_images_both_variants(ctx, shared_data):
     """Paired sweeps on a real KITTI crop (AD costs), both penalty variants and
     the outside-the-image choice, against the reference."""
     H, W, D = 23, 90, 40
-    imgs = []
-    for rel in ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png"):
-        img = cv2.imread(str(shared_data / rel), cv2.IMREAD_GRAYSCALE)
-        assert img is not None, rel
-        imgs.append(img[150:150 + H, 600:600 + W].astype(np.float32) / 255.0)
+    imgs = kitti_crop(shared_data, 150, 600, H, W)
     cost = ad_volume(imgs[0], imgs[1], D)
     a, _ = check(ctx, cost, imgs[0], imgs[1], paired=True)
     b, _ = check(ctx, cost, imgs[0], imgs[1], paired=True, variant="code", outside_large=False, pi1=2.0, pi2=14.0)
