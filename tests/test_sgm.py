@@ -209,11 +209,37 @@ def test_paired_sweeps_on_real_images_both_variants(ctx, shared_data):
     assert np.nanmax(np.abs(a - b)) > 0.01
 
 
+@pytest.mark.parametrize("D,H,W", [(40, 9, 170), (64, 12, 300)])
+def test_paths_walked_in_several_launches_are_bit_identical(ctx, D, H, W):
+    """Under a loop limit (llvmpipe's, on Rusticl: 65535 iterations per
+    work-item) the one-direction kernels walk the vertical paths in bands of
+    rows and the rows in ranges of chunks, their path state kept between
+    launches.  Forced here with small limits (3000: ranges of 6 chunks at
+    D = 64; 700: one chunk or row per launch) on any device: bit-identical to
+    one launch per path, and to the reference."""
+    rng = np.random.default_rng(D + W)
+    cost = random_volume(rng, D, H, W, scale=2.0)
+    img_l, img_r = blocky_image(rng, H, W, 4, 0.05), blocky_image(rng, H, W, 4, 0.05)
+    whole, _ = check(ctx, cost, img_l, img_r, paired=False)
+    for limit in (3000, 700):
+        d_out = ctx.empty(cost.nbytes)
+        ctx.fill(d_out, POISON, cost.nbytes)
+        SGM(ctx, paired=False, loop_limit=limit)(ctx.to_device(cost), ctx.to_device(img_l), ctx.to_device(img_r),
+                                                 D, H, W, out=d_out)
+        got = ctx.from_device(d_out, cost.shape)
+        np.testing.assert_array_equal(got.view(np.uint32), whole.view(np.uint32), err_msg=f"loop_limit={limit}")
+    with pytest.raises(InputError):  # the paired sweeps walk half the image per work-item
+        SGM(ctx, paired=True, loop_limit=700)(ctx.to_device(cost), ctx.to_device(img_l), ctx.to_device(img_r),
+                                              D, H, W)
+
+
 def test_bad_configuration(ctx):
     with pytest.raises(InputError):
         SGM(ctx, cols=24)
     with pytest.raises(InputError):
         SGM(ctx, band=-1)
+    with pytest.raises(InputError):
+        SGM(ctx, loop_limit=-1)
 
 
 def test_scratch_bytes_bounds_the_state_buffer(ctx):

@@ -253,12 +253,18 @@ class SGM:
     Rusticl.  ``band``, ``cols``, ``fused_rows`` and ``specialize``
     configure the one-direction kernels only.
 
+    ``loop_limit``: the most loop iterations a work-item may take in all
+    (0: no limit); None (default) is LLVMPIPE_LOOP_LIMIT on Rusticl, no limit
+    elsewhere.  Under a limit the one-direction kernels walk their paths in
+    several launches (same results, bit for bit) and the paired sweeps
+    refuse volumes beyond it.
+
     ``half=True``: volumes stored as half (``VOL_HALF``, kernels/common.h);
     the recurrences run in float, and the output accumulates the four
     directions in place, so the partial sums are rounded to half too."""
 
     def __init__(self, ctx, prefetch=None, half: bool = False, band=None, cols=None, fused_rows=None,
-                 specialize=None, whole_tiles=None, paired=None):
+                 specialize=None, whole_tiles=None, paired=None, loop_limit=None):
         self.ctx = ctx
         # Mesa's llvmpipe (Rusticl) compiles the column kernel at its first
         # launch, and takes minutes on the specialised 128-column CPU variant
@@ -267,7 +273,11 @@ class SGM:
         # llvmpipe ends a work-item's loops after 65535 iterations in all
         # (LLVMPIPE_LOOP_LIMIT): the vertical paths are walked in bands of rows
         # there, the row passes one direction per launch (__call__)
-        self._loop_limit = LLVMPIPE_LOOP_LIMIT if ctx.is_rusticl else None
+        if loop_limit is None:
+            loop_limit = LLVMPIPE_LOOP_LIMIT if ctx.is_rusticl else 0
+        if int(loop_limit) < 0:
+            raise InputError(f"SGM loop_limit must be >= 0 (0: none), got {loop_limit}")
+        self._loop_limit = int(loop_limit) or None
         if specialize is None:
             specialize = not slow_compiler
         self.specialize = bool(specialize)
