@@ -1,6 +1,8 @@
-/* sgm.cl - semi-global matching along one direction (paper, "Semiglobal
- * matching").  Driven by mccnn_cl/stages/sgm.py, which launches one kernel
- * per direction and accumulates C_SGM = (1/4) sum_r C_r in the output.
+/* sgm.cl - semi-global matching (paper, "Semiglobal matching").  Driven by
+ * mccnn_cl/stages/sgm.py, which either launches one kernel per direction
+ * (sgm_rows, sgm_columns) and accumulates C_SGM = (1/4) sum_r C_r in the
+ * output, or runs the paired sweeps (sgm_paired, at the end: two launches
+ * of two work-items for all four directions).
  *
  * Required define: MAX_DISP >= D; it sizes the private arrays.
  * Optional define: SGM_CPU_PREFETCH=1 (CPU devices), see SGM_PREFETCH.
@@ -23,7 +25,7 @@
  * Each step of either kernel reads one line in each of D planes, H x W
  * floats apart; the next step's lines are prefetched (SGM_PREFETCH).
  * Private memory per work-item, at MAX_DISP levels: sgm_rows 76 bytes per
- * level (+ ~1.4 KB), sgm_columns 128 bytes per level.
+ * level (+ ~1.4 KB), sgm_columns 128 bytes per level, sgm_paired about 80.
  * Output modes: 0 writes C_r (NaN in invalid cells), 1 adds C_r, 2 adds C_r
  * and divides by 4.
  */

@@ -107,8 +107,8 @@ faster with wider runs per plane), bands of 4-16 rows walked chunk by chunk
 (285-328 ms: each chunk then touches D pages per row of the band, more than
 the TLB holds), prefetching the state's lines (+5 ms).
 
-Defaults by device type (results identical bit for bit, tested): CPU
-devices walk 128 columns per ``sgm_columns`` work-item (32 elsewhere, for
+Defaults of the one-direction kernels by device type (results identical
+bit for bit, tested): CPU devices walk 128 columns per ``sgm_columns`` work-item (32 elsewhere, for
 W / 32 work-items), work-groups of 1 (PoCL runs each group on one thread:
 few large work-items in groups of 8 left a core idle), fused row passes,
 and the whole image as one band (bands of rows, meant to keep a band in the
