@@ -89,6 +89,53 @@ static inline __attribute__((always_inline)) float16 fmin_b(const float16 a, con
     return select(a, b, !(a <= b));
 }
 
+/* Vertical penalties of the columns x0 .. x0 + n - 1 (n <= 16; none when
+ * n = 0) of row y, whose predecessor on the path is row py: P1 and P2 for a
+ * small (*p1a, *p2a) and a large (*p1b, *p2b) D2, given the lanes' D1 =
+ * |I^L(x, y) - I^L(x, py)| (sgm_columns, sgm_paired). */
+static inline __attribute__((always_inline)) void vertical_penalties(
+    __global const float *img_l, const int W, const int y, const int py, const int x0, const int n,
+    const float tau_so, const float p1_small, const float p1_one, const float p1_both, const float p2_small,
+    const float p2_one, const float p2_both, float16 *p1a, float16 *p1b, float16 *p2a, float16 *p2b)
+{
+    int16 big_l = (int16)(0);
+    if (n > 0)
+        big_l = isless(fabs(load16_partial(img_l, y * W + x0, n, 0.0f) - load16_partial(img_l, py * W + x0, n, 0.0f)),
+                       (float16)(tau_so)) == (int16)(0);
+    *p1a = select((float16)(p1_small), (float16)(p1_one), big_l); /* D2 small */
+    *p1b = select((float16)(p1_one), (float16)(p1_both), big_l);  /* D2 large */
+    *p2a = select((float16)(p2_small), (float16)(p2_one), big_l);
+    *p2b = select((float16)(p2_one), (float16)(p2_both), big_l);
+}
+
+/* Vertical D2 flags (sgm_columns, sgm_paired): bigr[t] = D2 large (-1) or
+ * not (0) at right pixel x' = xw - MAX_DISP + t, D2 = |I^R(x', y) -
+ * I^R(x', py)|, for t_lo <= t < t_end (multiples of 16); pixels outside the
+ * row read as 0 (their flags are never used). */
+static inline __attribute__((always_inline)) void vertical_gradients(
+    __global const float *img_r, const int W, const int y, const int py, const int xw, const int t_lo,
+    const int t_end, const float tau_so, int *bigr)
+{
+    for (int t0 = t_lo; t0 < t_end; t0 += VW) {
+        const int x1 = xw - MAX_DISP + t0;
+        float16 a, b;
+        if (x1 >= 0 && x1 + VW <= W) {
+            a = vload16(0, img_r + y * W + x1);
+            b = vload16(0, img_r + py * W + x1);
+        } else {
+            float ta[VW], tb[VW];
+            for (int i = 0; i < VW; ++i) {
+                const int in = x1 + i >= 0 && x1 + i < W;
+                ta[i] = in ? img_r[y * W + x1 + i] : 0.0f;
+                tb[i] = in ? img_r[py * W + x1 + i] : 0.0f;
+            }
+            a = vload16(0, ta);
+            b = vload16(0, tb);
+        }
+        vstore16(isless(fabs(a - b), (float16)(tau_so)) == (int16)(0), 0, bigr + t0);
+    }
+}
+
 /* Vertical paths: one row y of the path for the columns xw .. xw + SGM_COLS - 1
  * (groups g of VW columns on float16 lanes over x; groups past the image are
  * skipped), levels d = 0 .. dmax.  C_r(p - r, d) is read from the state row d
@@ -247,34 +294,11 @@ __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume 
             const int py = y - dy;
             __attribute__((opencl_unroll_hint))
             for (int g = 0; g < SGM_G; ++g) {
-                const int x0 = xw + g * VW, n = clamp(W - x0, 0, VW);
-                int16 big_l = (int16)(0);
-                if (n > 0)
-                    big_l = isless(fabs(load16_partial(img_l, y * W + x0, n, 0.0f) - load16_partial(img_l, py * W + x0, n, 0.0f)),
-                                   (float16)(tau_so)) == (int16)(0);
-                p1a[g] = select((float16)(p1_small), (float16)(p1_one), big_l); /* D2 small */
-                p1b[g] = select((float16)(p1_one), (float16)(p1_both), big_l);  /* D2 large */
-                p2a[g] = select((float16)(p2_small), (float16)(p2_one), big_l);
-                p2b[g] = select((float16)(p2_one), (float16)(p2_both), big_l);
+                const int x0 = xw + g * VW;
+                vertical_penalties(img_l, W, y, py, x0, clamp(W - x0, 0, VW), tau_so, p1_small, p1_one, p1_both,
+                                   p2_small, p2_one, p2_both, &p1a[g], &p1b[g], &p2a[g], &p2b[g]);
             }
-            for (int t0 = t_lo; t0 < MAX_DISP + SGM_COLS; t0 += VW) {
-                const int x1 = xw - MAX_DISP + t0;
-                float16 a, b;
-                if (x1 >= 0 && x1 + VW <= W) {
-                    a = vload16(0, img_r + y * W + x1);
-                    b = vload16(0, img_r + py * W + x1);
-                } else {
-                    float ta[VW], tb[VW];
-                    for (int i = 0; i < VW; ++i) {
-                        const int in = x1 + i >= 0 && x1 + i < W;
-                        ta[i] = in ? img_r[y * W + x1 + i] : 0.0f;
-                        tb[i] = in ? img_r[py * W + x1 + i] : 0.0f;
-                    }
-                    a = vload16(0, ta);
-                    b = vload16(0, tb);
-                }
-                vstore16(isless(fabs(a - b), (float16)(tau_so)) == (int16)(0), 0, bigr + t0);
-            }
+            vertical_gradients(img_r, W, y, py, xw, t_lo, MAX_DISP + SGM_COLS, tau_so, bigr);
 #if SGM_SPECIALIZE
             COL_ROW_MODES(0);
 #endif
@@ -452,6 +476,26 @@ static inline __attribute__((always_inline)) void row_chunk(
     }
 }
 
+/* Loads one 16 x 16 tile of the cost volume (sgm_rows, sgm_paired): r[i] =
+ * level d0 + i of row y at the columns x0 .. x0 + n - 1; levels beyond dmax
+ * and columns beyond n read as 0. */
+static inline __attribute__((always_inline)) void load_tile(
+    float16 *r, __global const vol_t *cost, const int y, const int x0, const int d0, const int n, const int dmax,
+    const int H, const int W)
+{
+    if (SGM_WHOLE_TILES && n == VW && d0 + VW - 1 <= dmax) { /* plain loads, one plane apart */
+        __global const vol_t *src = cost + VIDX(d0, y, x0, H, W);
+        const size_t plane = (size_t)H * (size_t)W;
+        __attribute__((opencl_unroll_hint))
+        for (int i = 0; i < VW; ++i)
+            r[i] = VOL_LOAD16(src + i * plane);
+    } else {
+        __attribute__((opencl_unroll_hint))
+        for (int i = 0; i < VW; ++i)
+            r[i] = d0 + i <= dmax ? vol_load16_partial(cost, VIDX(d0 + i, y, x0, H, W), n, 0.0f) : (float16)(0.0f);
+    }
+}
+
 /* Writes (mode 0) or combines (modes 1 and 2, SGM_COMBINE) one 16 x 16 tile
  * of C_r into the output (sgm_rows, sgm_paired): r[i] holds level d0 + i at
  * the columns x0 .. x0 + n - 1 of one row, plus, when add is not 0, add's
@@ -577,17 +621,7 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
             const int ntiles = dmaxc / VW + 1;
             for (int g = 0; g < ntiles; ++g) { /* load the chunk, transposed; d > dmaxc read as 0 */
                 const int d0 = g * VW;
-                if (SGM_WHOLE_TILES && n == VW && d0 + VW - 1 <= dmaxc) { /* plain loads, one plane apart */
-                    __global const vol_t *src = cost + VIDX(d0, y, x0, H, W);
-                    __attribute__((opencl_unroll_hint))
-                    for (int i = 0; i < VW; ++i)
-                        r[i] = VOL_LOAD16(src + i * plane);
-                } else {
-                    __attribute__((opencl_unroll_hint))
-                    for (int i = 0; i < VW; ++i)
-                        r[i] = d0 + i <= dmaxc ? vol_load16_partial(cost, VIDX(d0 + i, y, x0, H, W), n, 0.0f)
-                                               : (float16)(0.0f);
-                }
+                load_tile(r, cost, y, x0, d0, n, dmaxc, H, W);
                 transpose16(r);
                 for (int k = 0; k < VW; ++k)
                     vstore16(r[k], 0, blk + k * MAX_DISP + d0);
@@ -693,8 +727,6 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
         const int py = vfirst ? y : y - dir; /* previous row of the vertical path */
         __global const float *il = img_l + y * W;
         __global const float *ir = img_r + y * W;
-        __global const float *ilp = img_l + py * W;
-        __global const float *irp = img_r + py * W;
         float *prev = buf_a; /* horizontal C_r(p - r, d) at prev[d + 1] */
         float *cur = buf_b;
         for (int i = 0; i < MAX_DISP + 2 + VW; ++i) {
@@ -709,24 +741,7 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
             const int dmaxc = min(D - 1, x0 + n - 1);
             const int ntiles = dmaxc / VW + 1;
             if (!vfirst) /* vertical D2 at right pixels x0 - MAX_DISP + t, t >= MAX_DISP - dmaxc */
-                for (int t0 = (MAX_DISP - dmaxc) / VW * VW; t0 < MAX_DISP + PCW; t0 += VW) {
-                    const int x1 = x0 - MAX_DISP + t0;
-                    float16 a, b;
-                    if (x1 >= 0 && x1 + VW <= W) {
-                        a = vload16(0, ir + x1);
-                        b = vload16(0, irp + x1);
-                    } else {
-                        float ta[VW], tb[VW];
-                        for (int i = 0; i < VW; ++i) {
-                            const int in = x1 + i >= 0 && x1 + i < W;
-                            ta[i] = in ? ir[x1 + i] : 0.0f;
-                            tb[i] = in ? irp[x1 + i] : 0.0f;
-                        }
-                        a = vload16(0, ta);
-                        b = vload16(0, tb);
-                    }
-                    vstore16(isless(fabs(a - b), (float16)(tau_so)) == (int16)(0), 0, bigv + t0);
-                }
+                vertical_gradients(img_r, W, y, py, x0, (MAX_DISP - dmaxc) / VW * VW, MAX_DISP + PCW, tau_so, bigv);
             for (int gx = 0; gx * VW < n; ++gx) { /* 16-column groups: vertical path, transpose into blk */
                 const int xg = x0 + gx * VW, ng = min(VW, n - gx * VW);
                 __global float *sg = st + (size_t)(xg / VW) * (D + 2) * VW; /* the group's state, [D + 2][16] */
@@ -742,12 +757,8 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
                     pd = mv;
                     pm1 = mv;
                 } else {
-                    const int16 big_l = isless(fabs(load16_partial(il, xg, ng, 0.0f) - load16_partial(ilp, xg, ng, 0.0f)),
-                                               (float16)(tau_so)) == (int16)(0);
-                    p1a = select((float16)(pv1_small), (float16)(pv1_one), big_l); /* D2 small */
-                    p1b = select((float16)(pv1_one), (float16)(pv1_both), big_l);  /* D2 large */
-                    p2a = select((float16)(pv2_small), (float16)(pv2_one), big_l);
-                    p2b = select((float16)(pv2_one), (float16)(pv2_both), big_l);
+                    vertical_penalties(img_l, W, y, py, xg, ng, tau_so, pv1_small, pv1_one, pv1_both, pv2_small,
+                                       pv2_one, pv2_both, &p1a, &p1b, &p2a, &p2b);
                     mv = vload16(0, sg + (D + 1) * VW);
                     pd = vload16(0, sg);
                     pm1 = (float16)(INFINITY);
@@ -755,17 +766,7 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
                 float16 newmv = (float16)(INFINITY);
                 for (int g = 0; g < ntiles; ++g) {
                     const int d0 = g * VW;
-                    if (SGM_WHOLE_TILES && ng == VW && d0 + VW - 1 <= dmaxg) {
-                        __global const vol_t *src = cost + VIDX(d0, y, xg, H, W);
-                        __attribute__((opencl_unroll_hint))
-                        for (int i = 0; i < VW; ++i)
-                            r[i] = VOL_LOAD16(src + i * plane);
-                    } else {
-                        __attribute__((opencl_unroll_hint))
-                        for (int i = 0; i < VW; ++i)
-                            r[i] = d0 + i <= dmaxg ? vol_load16_partial(cost, VIDX(d0 + i, y, xg, H, W), ng, 0.0f)
-                                                   : (float16)(0.0f);
-                    }
+                    load_tile(r, cost, y, xg, d0, ng, dmaxg, H, W);
                     const int iend = min(VW, dmaxg + 1 - d0);
                     __attribute__((opencl_unroll_hint))
                     for (int i = 0; i < VW; ++i) { /* a constant trip count keeps r[] in registers */

@@ -97,19 +97,20 @@ transposes: the classic unpack / 128-bit-lane form and four 8 x 8 float8
 transposes (LLVM 15 in PoCL emits the same permutes for the former; both
 cut the kernel's arithmetic when its memory accesses are stubbed out,
 150 -> 128-141 ms, but not the real call: 199 -> 203 and 221 ms); on
-Intel's runtime the unpack form is faster (154 -> 135 ms), not used.  Also tried: reading the right reference's volume
-mirrored straight from the left one (bit-identical, saves the 33 ms
-mirror copy, but the call took 298-318 ms instead of 193-203, even with
-whole-tile loads for the diagonal tiles), prefetching 2 or 3 chunks ahead
-(no change).  Tried and slower: 32-, 64- or
-128-column chunks (257-283 ms, although a bare load/add/store walk gets
-faster with wider runs per plane), bands of 4-16 rows walked chunk by chunk
-(285-328 ms: each chunk then touches D pages per row of the band, more than
-the TLB holds), prefetching the state's lines (+5 ms).
+Intel's runtime the unpack form is faster (154 -> 135 ms), not used.
+Tried and slower or no better: reading the right reference's volume
+mirrored straight from the left one (bit-identical, saves the 33 ms mirror
+copy, but the call took 298-318 ms instead of 193-203, even with whole-tile
+loads for the diagonal tiles); prefetching 2 or 3 chunks ahead (no
+change); 32-, 64- or 128-column chunks (257-283 ms, although a bare
+load/add/store walk gets faster with wider runs per plane); bands of 4-16
+rows walked chunk by chunk (285-328 ms: each chunk then touches D pages per
+row of the band, more than the TLB holds); prefetching the state's lines
+(+5 ms).
 
 Defaults of the one-direction kernels by device type (results identical
-bit for bit, tested): CPU devices walk 128 columns per ``sgm_columns`` work-item (32 elsewhere, for
-W / 32 work-items), work-groups of 1 (PoCL runs each group on one thread:
+bit for bit, tested): CPU devices walk 128 columns per ``sgm_columns``
+work-item (32 elsewhere, for W / 32 work-items), work-groups of 1 (PoCL runs each group on one thread:
 few large work-items in groups of 8 left a core idle), fused row passes,
 and the whole image as one band (bands of rows, meant to keep a band in the
 cache for the vertical path, measured slower on PoCL: the row launches get
@@ -186,12 +187,13 @@ COLS_CPU = 128
 LLVMPIPE_LOOP_LIMIT = 65535
 
 
-def llvmpipe_column_band(max_disp, cols) -> int:
+def llvmpipe_column_band(max_disp, cols, limit=LLVMPIPE_LOOP_LIMIT) -> int:
     """Rows of the vertical path per sgm_columns launch under a loop limit of
-    LLVMPIPE_LOOP_LIMIT iterations per work-item: an upper estimate of the
-    iterations per row (3.5x or more the most measured, see above)."""
+    ``limit`` iterations per work-item: from an upper estimate of the
+    iterations per row (3.5x or more the most measured on llvmpipe, see
+    above)."""
     per_row = int(max_disp) * (8 * (int(cols) // 16) + 32) + 40 * ((int(max_disp) + int(cols)) // 16) + 128
-    return max(1, LLVMPIPE_LOOP_LIMIT // per_row)
+    return max(1, int(limit) // per_row)
 
 
 def llvmpipe_row_iterations(max_disp, W, both=False) -> int:
@@ -313,8 +315,9 @@ class SGM:
     def scratch_bytes(D, W, cols=COLS_CPU, paired=False) -> int:
         """Device scratch besides the cost and output volumes: the vertical
         paths' state, (D + 2) rows of W (rounded up to ``cols``) floats; with
-        ``paired``, two such states (W rounded up to 16) and two chunk
-        buffers of MAX_DISP x 16 floats."""
+        ``paired``, two such states (W rounded up to PAIR_CW).  Under a loop
+        limit (Rusticl) ``sgm_rows`` may also keep (MAX_DISP + 19) floats per
+        row between launches, not counted here (~1 KB per row)."""
         if paired:
             return 4 * 2 * (int(D) + 2) * round_up(int(W), PAIR_CW)
         return 4 * (int(D) + 2) * round_up(int(W), int(cols))
@@ -332,17 +335,15 @@ class SGM:
             self._kernels[(max_disp, names)] = k
         return k
 
-    def _row_state_buffer(self, nbytes):
-        if self._rstate is None or self._rstate.size < nbytes:
-            self._rstate = None
-            self._rstate = self.ctx.empty(nbytes, "SGM row path state")
-        return self._rstate
-
-    def _state_buffer(self, nbytes):
-        if self._state is None or self._state.size < nbytes:
-            self._state = None
-            self._state = self.ctx.empty(nbytes, "SGM path state")
-        return self._state
+    def _scratch(self, attr, nbytes, what):
+        """The device buffer kept in ``self.<attr>``, replaced by a larger one
+        when it holds fewer than ``nbytes`` bytes."""
+        buf = getattr(self, attr)
+        if buf is None or buf.size < nbytes:
+            setattr(self, attr, None)  # release the old buffer before the new one is allocated
+            buf = self.ctx.empty(nbytes, what)
+            setattr(self, attr, buf)
+        return buf
 
     def __call__(self, d_cost, d_img_left, d_img_right, D, H, W, pi1=1.0, pi2=32.0, tau_so=0.0625,
                  q1=4.0, q2=10.0, v=2.0, variant="paper", p2_times_pi1=False, outside_large=True,
@@ -365,11 +366,12 @@ class SGM:
             if self._loop_limit is not None and \
                     3 * (H + 1) // 2 * llvmpipe_row_iterations(_max_disp(D), W) // 2 > self._loop_limit:
                 # a paired work-item walks half the rows whole (about 1.5x a row pass per row)
-                raise InputError(f"SGM paired sweeps over {D} x {H} x {W} exceed llvmpipe's loop limit "
-                                 f"(Rusticl, LLVMPIPE_LOOP_LIMIT): use paired=False there")
+                raise InputError(f"SGM paired sweeps over {D} x {H} x {W} exceed the loop limit of "
+                                 f"{self._loop_limit} iterations per work-item (loop_limit; llvmpipe's on "
+                                 f"Rusticl): use paired=False there")
             ((k_pair, _),) = self._kernel(D, ("sgm_paired",))
             ws = round_up(W, PAIR_CW)
-            state = self._state_buffer(self.scratch_bytes(D, W, paired=True))
+            state = self._scratch("_state", self.scratch_bytes(D, W, paired=True), "SGM path state")
             for launch_no in (0, 1):
                 launch(self.ctx, "SGM (paired sweeps)", k_pair, (2,), (1,), *bufs, state,
                        np.int32(ws), *dims, np.int32(H // 2), np.int32(launch_no), *pen_h[0], *pen_h[1],
@@ -377,7 +379,7 @@ class SGM:
             return out
         (k_rows, l_rows), (k_cols, l_cols) = self._kernel(D, ("sgm_rows", "sgm_columns"))
         ws = round_up(W, self.cols)
-        state = self._state_buffer(self.scratch_bytes(D, W, self.cols))
+        state = self._scratch("_state", self.scratch_bytes(D, W, self.cols), "SGM path state")
         g_cols = (round_up(ws // self.cols, l_cols),)
 
         nchunks = -(-W // 16)
@@ -399,13 +401,14 @@ class SGM:
         vband = H
         fused = self.fused_rows
         if self._loop_limit is not None:
-            vband = llvmpipe_column_band(_max_disp(D), self.cols)
+            vband = llvmpipe_column_band(_max_disp(D), self.cols, self._loop_limit)
             if llvmpipe_row_iterations(_max_disp(D), W, self.fused_rows) > self._loop_limit:
                 # walk the rows in ranges of chunks, one direction per launch
                 fused = False
                 hband = max(1, self._loop_limit // llvmpipe_row_iterations(_max_disp(D), 16))
                 if hband < nchunks:
-                    rstate = self._row_state_buffer(4 * H * (_max_disp(D) + 19))
+                    # SGM_RST = MAX_DISP + 19 floats per row (sgm.cl)
+                    rstate = self._scratch("_rstate", 4 * H * (_max_disp(D) + 19), "SGM row path state")
 
         def columns_banded(dy, mode, j0, nj):
             for j in range(j0, j0 + nj, vband):
