@@ -1,29 +1,58 @@
 """The weights file format shared by the torch side and the OpenCL side.
 
-Format ``mccnn_cl.weights`` version 1 is a NumPy ``.npz`` archive (readable
-without torch and without pickle) holding:
+Format ``mccnn_cl.weights`` is a NumPy ``.npz`` archive (readable without
+torch and without pickle).  Version 2 names one of three architectures
+(``ARCHITECTURES``), whose layer counts, widths and kernel sizes are read from
+the arrays, never from constants:
+
+``mccnn-paper``
+    the CVPR 2015 network: conv layers with ReLU after each (tied between the
+    two patches), the two feature vectors concatenated, fc layers with ReLU
+    between them, 2 outputs and a softmax; cost = P(bad match) = softmax[0].
+``mccnn-fst``
+    JMLR 2016 MC-CNN-fst: conv layers with ReLU *between* them (none after
+    the last), L2-normalised features, no fc layers; cost
+    C(p, d) = -f_L(p) . f_R(p - d), in [-1, 1].
+``mccnn-acrt``
+    JMLR 2016 MC-CNN-acrt: conv layers with ReLU after each, concatenation,
+    fc layers with ReLU between them, 1 output through a sigmoid, as in the
+    released code; ``fc0`` splits like the paper's L4.  The cost is the
+    sigmoid output itself: the released code trains it towards 0 on matching
+    pairs and 1 on mismatches (``main.lua``: positive target 0), so it is a
+    probability of a bad match in [0, 1], like the paper network's.
+
+Version 1 files (no ``architecture`` other than ``mccnn-paper``) keep loading
+as ``mccnn-paper``.  The archive holds:
 
 ``__meta__``
     a 0-d unicode array with a JSON object::
 
-        {"format": "mccnn_cl.weights", "version": 1,
-         "architecture": "mccnn-paper",          # the CVPR 2015 8-layer net
+        {"format": "mccnn_cl.weights", "version": 2,
+         "architecture": "mccnn-paper",          # or "mccnn-fst", "mccnn-acrt"
          "input_channels": 1,                     # gray patches
          "conv_layers": [[32, 5], [200, 5], [200, 1]],   # [maps, kernel] L1-L3
          "fc_layers": [300, 300, 300, 300, 2],    # L4..L8 (L4 sees 2*maps_L3)
          "patch_size": 9,                         # sum(k - 1) + 1
          "normalisation": "per_image_mean_std",   # (I - mean(I)) / std(I)
-         "bad_match_class": 0,                    # cost = softmax()[0]
+         "bad_match_class": 0,                    # paper: cost = softmax()[0]
+         "stereo": {"sgm_pi2": 55.72, ...},       # optional: Hyperparameters
+                                                  # the net was tuned with
+         "source": "...", "licence": "...",       # optional: converted files
          "training": {...}}                       # free-form provenance
+
+``stereo`` holds :class:`mccnn_cl.pipeline.Hyperparameters` field names and
+values: the stereo-method settings the network was tuned with, which
+``StereoMatcher(weights=...)`` uses unless the caller overrides them by name.
 
 ``conv{i}.weight`` / ``conv{i}.bias``
     float32, shapes ``(out, in, k, k)`` / ``(out,)``: the siamese layers L1..L3
     (ReLU after each; tied between the left and right patch).
 ``fc{i}.weight`` / ``fc{i}.bias``
     float32, shapes ``(out, in)`` / ``(out,)``: L4..L8 (ReLU after each but the
-    last; the last has 2 outputs fed to a softmax).  ``fc0.weight`` has
-    ``in = 2 * maps_L3``: columns ``[:maps]`` act on the left features, columns
-    ``[maps:]`` on the right ones (the L4 split used at inference).
+    last; the last has 2 outputs fed to a softmax, 1 output and a sigmoid for
+    acrt, none at all for fst).  ``fc0.weight`` has ``in = 2 * maps``:
+    columns ``[:maps]`` act on the left features, columns ``[maps:]`` on the
+    right ones (the L4 split used at inference).
 """
 
 from __future__ import annotations
@@ -39,7 +68,11 @@ import numpy as np
 from .errors import WeightsError
 
 FORMAT = "mccnn_cl.weights"
-VERSION = 1
+VERSION = 2
+PAPER, FST, ACRT = "mccnn-paper", "mccnn-fst", "mccnn-acrt"
+ARCHITECTURES = (PAPER, FST, ACRT)
+#: outputs of the last fc layer per architecture (fst has no fc layers)
+FC_OUTPUTS = {PAPER: 2, ACRT: 1}
 PAPER_CONV = [[32, 5], [200, 5], [200, 1]]
 PAPER_FC = [300, 300, 300, 300, 2]
 DEFAULT_WEIGHTS_NAME = "mccnn_kitti_mb_v1.npz"
@@ -50,8 +83,20 @@ class Weights:
     """Network weights plus metadata (see module docstring for the format)."""
 
     conv: list  # [(W (out,in,k,k), b (out,)), ...]
-    fc: list  # [(W (out,in), b (out,)), ...]
+    fc: list  # [(W (out,in), b (out,)), ...]; [] for mccnn-fst
     meta: dict = field(default_factory=dict)
+    architecture: str = PAPER
+
+    # -- architecture facts ----------------------------------------------
+    @property
+    def relu_after_last_conv(self) -> bool:
+        """ReLU after the last conv layer: paper and acrt yes, fst no."""
+        return self.architecture != FST
+
+    @property
+    def stereo(self) -> dict:
+        """Hyperparameters the network was tuned with (``meta["stereo"]``; may be empty)."""
+        return dict(self.meta.get("stereo") or {})
 
     # -- shape facts ---------------------------------------------------
     @property
@@ -82,9 +127,17 @@ class Weights:
 
     # -- validation ----------------------------------------------------
     def validate(self, source: str = "weights") -> "Weights":
-        """Check that the layer shapes chain into a valid MC-CNN network."""
-        if not self.conv or not self.fc:
-            raise WeightsError(f"{source}: needs at least one conv and one fc layer")
+        """Check that the layer shapes chain into a valid network of ``architecture``."""
+        arch = self.architecture
+        if arch not in ARCHITECTURES:
+            raise WeightsError(f"{source}: architecture {arch!r} is not supported "
+                               f"(expected one of {', '.join(ARCHITECTURES)})")
+        if not self.conv:
+            raise WeightsError(f"{source}: needs at least one conv layer")
+        if arch == FST and self.fc:
+            raise WeightsError(f"{source}: an {FST} network has no fc layers, found {len(self.fc)}")
+        if arch != FST and not self.fc:
+            raise WeightsError(f"{source}: an {arch} network needs at least one fc layer")
         cin = None
         for i, (w, b) in enumerate(self.conv):
             if w.ndim != 4 or w.shape[2] != w.shape[3] or b.shape != (w.shape[0],):
@@ -97,8 +150,12 @@ class Weights:
             if w.ndim != 2 or b.shape != (w.shape[0],) or w.shape[1] != fin:
                 raise WeightsError(f"{source}: fc{i} has shapes {w.shape}/{b.shape}, expected (*, {fin})")
             fin = w.shape[0]
-        if fin != 2:
-            raise WeightsError(f"{source}: last layer has {fin} outputs, expected 2 (softmax over good/bad)")
+        if arch != FST and fin != FC_OUTPUTS[arch]:
+            what = "softmax over good/bad" if arch == PAPER else "sigmoid"
+            raise WeightsError(f"{source}: last layer has {fin} outputs, expected {FC_OUTPUTS[arch]} "
+                               f"({what}) for {arch}")
+        if not isinstance(self.meta.get("stereo", {}), dict):
+            raise WeightsError(f"{source}: metadata 'stereo' must be an object of hyperparameters")
         for w, b in self.conv + self.fc:
             if w.dtype != np.float32 or b.dtype != np.float32:
                 raise WeightsError(f"{source}: arrays must be float32")
@@ -111,14 +168,15 @@ class Weights:
         meta = {
             "format": FORMAT,
             "version": VERSION,
-            "architecture": "mccnn-paper",
+            "architecture": self.architecture,
             "input_channels": self.input_channels,
             "conv_layers": self.conv_layers(),
             "fc_layers": self.fc_layers(),
             "patch_size": self.patch_size,
             "normalisation": "per_image_mean_std",
-            "bad_match_class": 0,
         }
+        if self.architecture == PAPER:
+            meta["bad_match_class"] = 0
         meta.update({k: v for k, v in self.meta.items() if k not in meta})
         return meta
 
@@ -163,26 +221,39 @@ class Weights:
         if int(meta.get("version", -1)) > VERSION:
             raise WeightsError(f"{path}: format version {meta.get('version')} is newer than this "
                                f"mccnn_cl understands ({VERSION}); upgrade mccnn_cl")
-        if meta.get("architecture") != "mccnn-paper":
-            raise WeightsError(f"{path}: architecture {meta.get('architecture')!r} is not supported")
+        arch = meta.get("architecture", PAPER)
+        if arch not in ARCHITECTURES:
+            raise WeightsError(f"{path}: architecture {arch!r} is not supported "
+                               f"(expected one of {', '.join(ARCHITECTURES)})")
         conv, fc = [], []
         try:
             for i in range(len(meta["conv_layers"])):
                 conv.append((files[f"conv{i}.weight"], files[f"conv{i}.bias"]))
-            for i in range(len(meta["fc_layers"])):
+            for i in range(len(meta.get("fc_layers", []))):
                 fc.append((files[f"fc{i}.weight"], files[f"fc{i}.bias"]))
         except KeyError as exc:
             raise WeightsError(f"{path}: missing array {exc}") from exc
-        w = cls(conv=conv, fc=fc, meta=meta).validate(path)
+        w = cls(conv=conv, fc=fc, meta=meta, architecture=arch).validate(path)
         if w.conv_layers() != meta["conv_layers"] or w.fc_layers() != meta["fc_layers"]:
             raise WeightsError(f"{path}: arrays disagree with the metadata's layer sizes")
         return w
 
     @classmethod
-    def random(cls, conv_layers=None, fc_layers=None, input_channels=1, seed=0) -> "Weights":
-        """Random weights (He-style scale, small random biases) for tests and benchmarks."""
-        conv_layers = conv_layers or PAPER_CONV
-        fc_layers = fc_layers or PAPER_FC
+    def random(cls, conv_layers=None, fc_layers=None, input_channels=1, seed=0,
+               architecture: str = PAPER) -> "Weights":
+        """Random weights (He-style scale, small random biases) for tests and benchmarks.
+
+        Defaults per architecture: the paper's layers; fst 4 conv 3x3 of 64
+        maps (KITTI); acrt 4 conv 3x3 of 112 maps and fc [384] * 4 + [1]."""
+        if architecture == FST:
+            conv_layers = conv_layers or [[64, 3]] * 4
+            fc_layers = []
+        elif architecture == ACRT:
+            conv_layers = conv_layers or [[112, 3]] * 4
+            fc_layers = fc_layers or [384, 384, 384, 384, 1]
+        else:
+            conv_layers = conv_layers or PAPER_CONV
+            fc_layers = fc_layers or PAPER_FC
         rng = np.random.default_rng(seed)
         conv, fc = [], []
         cin = input_channels
@@ -196,7 +267,8 @@ class Weights:
             fc.append((rng.normal(0, np.sqrt(2.0 / fin), (out, fin)).astype(np.float32),
                        rng.normal(0, 0.1, out).astype(np.float32)))
             fin = out
-        return cls(conv=conv, fc=fc, meta={"training": {"note": f"random, seed {seed}"}}).validate()
+        return cls(conv=conv, fc=fc, meta={"training": {"note": f"random, seed {seed}"}},
+                   architecture=architecture).validate()
 
 
 def default_weights_path() -> str:
