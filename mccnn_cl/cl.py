@@ -392,6 +392,20 @@ class ClContext:
         self._exit.close()
 
 
+def launch(ctx, stage: str, kernel, global_size, *args, local_size=None) -> None:
+    """Set ``kernel``'s arguments and enqueue it on ``ctx``'s queue over
+    ``global_size`` (work-group ``local_size``, or the runtime's choice when
+    None); an OpenCL error is raised as :class:`OpenCLError` naming ``stage``."""
+    from .errors import OpenCLError
+
+    try:
+        kernel.set_args(*args)
+        ctx.cl.enqueue_nd_range_kernel(ctx.queue, kernel, tuple(int(g) for g in global_size),
+                                       None if local_size is None else tuple(int(n) for n in local_size))
+    except ctx.cl.Error as exc:
+        raise OpenCLError(f"{stage}: OpenCL error {exc}") from exc
+
+
 def round_up(n: int, m: int) -> int:
     """Smallest multiple of ``m`` that is >= ``n``."""
     return ((int(n) + m - 1) // m) * m

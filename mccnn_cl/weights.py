@@ -275,3 +275,32 @@ def default_weights_path() -> str:
     """Path of the weights shipped inside the package."""
     ref = resources.files("mccnn_cl.models") / DEFAULT_WEIGHTS_NAME
     return str(ref)
+
+
+def shipped_models() -> dict:
+    """Shipped networks: name (the file's stem) -> path, from ``mccnn_cl/models``."""
+    root = resources.files("mccnn_cl.models")
+    return {os.path.splitext(f.name)[0]: str(f) for f in sorted(root.iterdir(), key=lambda f: f.name)
+            if f.name.endswith(".npz")}
+
+
+def resolve(spec=None) -> Weights:
+    """Weights from what a user may name: None (the default shipped network),
+    a :class:`Weights`, a shipped model's name (:func:`shipped_models`), an
+    ``.npz`` in this format, or a published network to convert on the fly
+    (``.t7`` Torch7, ``.pt`` PyTorch checkpoint; :mod:`mccnn_cl.importers`)."""
+    if spec is None or isinstance(spec, Weights):
+        return Weights.load() if spec is None else spec
+    text = os.fspath(spec)
+    models = shipped_models()
+    if text in models and not os.path.exists(text):
+        return Weights.load(models[text])
+    ext = os.path.splitext(text)[1].lower()
+    if ext in (".t7", ".pt", ".pth"):
+        from .importers import convert  # torch only for .pt
+
+        return convert(text)
+    if not os.path.exists(text) and not ext:
+        raise WeightsError(f"no weights file or shipped model named {text!r} "
+                           f"(shipped: {', '.join(models) or 'none'})")
+    return Weights.load(text)
