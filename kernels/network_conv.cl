@@ -1,6 +1,7 @@
-/* network_conv.cl - the per-pixel layers of the MC-CNN network (L1-L3 and the
- * L4 split), driven by mccnn_cl/stages/network.py (NetworkCost.features and
- * NetworkCost.split_l4).
+/* network_conv.cl - the per-pixel layers of every network: the tied conv
+ * stack (mccnn_cl/stages/features.py, ConvStack; any depth, maps, kernel
+ * size; RELU per layer, so the fst stack runs its last layer with RELU 0) and
+ * the L4 split of the fc networks (mccnn_cl/stages/network.py, split_l4).
  *
  * One kernel, network_conv, computes a valid KS x KS convolution of a
  * channel-last map as a GEMM over output pixels:

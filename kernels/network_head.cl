@@ -1,13 +1,14 @@
-/* network_head.cl - the per-disparity layers of the MC-CNN network (L4-L8 and
- * the softmax), driven by mccnn_cl/stages/network.py (NetworkCost.__call__).
+/* network_head.cl - the per-disparity layers of the fc networks (L4-L8 and
+ * the output), driven by mccnn_cl/stages/network.py (PaperCost, AcrtCost).
  *
  * With the L4 split precomputed once per pixel by network_conv.cl,
  *   A(p) = W4a . f_L(p) + b4,    B(q) = W4b . f_R(q),
  * a cell (d, y, x) of the cost volume C_CNN is
  *   h_0 = ReLU(A(x, y) + B(x - d, y))                     (L4)
  *   h_l = ReLU(W_l h_{l-1} + b_l),  l = 1 .. NHID         (L5 .. L7)
- *   z   = W_8 h_NHID + b_8                                (L8, 2 logits)
- *   C   = softmax(z)[0] = 1 / (1 + exp(z_1 - z_0))        (bad-match class)
+ *   z   = W_8 h_NHID + b_8                                (L8, NOUT outputs)
+ *   NOUT 2 (paper): C = softmax(z)[0] = 1 / (1 + exp(z_1 - z_0))  (bad match)
+ *   NOUT 1 (acrt):  C = sigmoid(z_0)  = 1 / (1 + exp(-z_0))
  *
  * network_head fuses that whole chain for a tile of TM cells of one
  * disparity: the activations of the tile live in local memory (ping-pong,
@@ -51,6 +52,12 @@
 #endif
 #ifndef ROWS_FASTEST
 #error "ROWS_FASTEST (1: consecutive work-items take consecutive row groups) must be defined"
+#endif
+#ifndef NOUT
+#define NOUT 2
+#endif
+#if NOUT != 1 && NOUT != 2
+#error "NOUT (outputs of the last layer) must be 1 (sigmoid) or 2 (softmax)"
 #endif
 
 #include "vector.h"
@@ -112,8 +119,8 @@ __kernel void network_head(
     __global const float *fb,   /* B = W4b f_R, [H * W][HP] */
     __global const float *wh,   /* hidden layers L5.., [NHID][HP][HP], k-major */
     __global const float *bh,   /* their biases, [NHID][HP] */
-    __global const float *w8,   /* last layer, [2][HP] (row = logit) */
-    __global const float *b8,   /* its bias, [2] */
+    __global const float *w8,   /* last layer, [NOUT][HP] (row = output) */
+    __global const float *b8,   /* its bias, [NOUT] */
     __global vol_t *cost,       /* cost volume, [D][H][W] */
     int h,                      /* H: cropped height (volume rows) */
     int w,                      /* W: cropped width (volume columns) */
@@ -164,23 +171,33 @@ __kernel void network_head(
         barrier(CLK_LOCAL_MEM_FENCE);
     }
 
-    /* L8 and softmax: C = P(bad match) = 1 / (1 + exp(z1 - z0)) */
+    /* L8 and softmax (C = P(bad match) = 1 / (1 + exp(z1 - z0))) or sigmoid */
     __local const float *fin = act + (NHID & 1) * (TM * HP);
     for (int r = lid; r < TM; r += nwi) {
         const int m = first + r;
         if (m >= n_valid)
             continue;
-        VT s0 = (VT)(0.0f), s1 = (VT)(0.0f);
+        VT s0 = (VT)(0.0f);
+#if NOUT == 2
+        VT s1 = (VT)(0.0f);
+#endif
         for (int kv = 0; kv < NCG; ++kv) {
             const VT a = VLOAD(fin + r * HP + kv * RN);
             s0 = fma(a, VLOAD(w8 + kv * RN), s0);
+#if NOUT == 2
             s1 = fma(a, VLOAD(w8 + HP + kv * RN), s1);
+#endif
         }
         const float z0 = vsum(s0) + b8[0];
+#if NOUT == 2
         const float z1 = vsum(s1) + b8[1];
+        const float c = 1.0f / (1.0f + exp(z1 - z0));
+#else
+        const float c = 1.0f / (1.0f + exp(-z0));
+#endif
         const int y = m / nx;
         const int x = d + (m - y * nx);
-        VOL_SET(cost, VIDX(d, y0 + y, x, h, w), 1.0f / (1.0f + exp(z1 - z0)));
+        VOL_SET(cost, VIDX(d, y0 + y, x, h, w), c);
     }
 }
 

@@ -1,33 +1,29 @@
-"""The MC-CNN network as OpenCL kernels: the matching cost C_CNN.
+"""The fc networks as OpenCL kernels: :class:`PaperCost` (CVPR 2015, C_CNN)
+and :class:`AcrtCost` (JMLR 2016 MC-CNN-acrt).
 
-Drives ``kernels/network_conv.cl`` (L1-L3 and the L4 split, per pixel) and
-``kernels/network_head.cl`` (L4-L8 and the softmax, per pixel and disparity).
-
-Following the paper's "Matching cost" section, the siamese layers L1-L3 run
-once per image, fully convolutionally (valid convolutions: an image of
-H_img x W_img gives features on (H_img - 8) x (W_img - 8) pixels for the
-paper's 9x9 patches).  L4 acts on the concatenation [f_L(p); f_R(p - d)], so
-with W4 = [W4a | W4b] it splits into two per-pixel terms computed once,
+Both run the tied conv stack once per image (:class:`.features.ConvStack`,
+``kernels/network_conv.cl``; ReLU after every conv layer, the last too), then
+the fc head per pixel and disparity.  Following the paper's "Matching cost"
+section, the first fc layer (L4) acts on the concatenation
+[f_L(p); f_R(p - d)], so with W4 = [W4a | W4b] it splits into two per-pixel
+terms computed once,
 
     A(p) = W4a f_L(p) + b4,      B(q) = W4b f_R(q),
 
-and the only per-disparity work is ReLU(A(p) + B(p - d)) followed by L5-L8
-and the softmax, fused in one kernel (see ``network_head.cl``).
+and the only per-disparity work is ReLU(A(p) + B(p - d)) followed by the
+hidden layers (ReLU) and the output layer, fused in one kernel
+(``network_head.cl``).  The output layer is the one difference: the paper's
+has 2 logits and a softmax, cost = P(bad match) = softmax[0] (``NOUT=2``);
+acrt's has 1 output through a sigmoid, cost = that output (``NOUT=1``; the
+released code trains it towards 0 on matches).  Both costs lie in [0, 1].
 
-Cost volume: float32 ``[D][H][W]`` with ``H = H_img - 8``, ``W = W_img - 8``;
-cell ``(d, y, x)`` is the softmax probability of the bad-match class (index 0)
-for the left patch centred at image ``(x + 4, y + 4)`` and the right patch
-centred at ``(x + 4 - d, y + 4)``; cells with ``x - d < 0`` hold NaN.
-
-Memory: the volume is one buffer of D*H*W floats; everything else is
-scratch bounded by ``BAND_BYTES``: the image is processed in bands of volume
-rows (A and B of one band at most ``BAND_BYTES`` each), and each band's
-disparities in chunks of about ``CHUNK_CELLS`` cells per launch.
-
-Device buffer layouts (all float32, channel-last, pixel-major):
-``features`` -> ``[(H_img-8) * (W_img-8)][NP]`` (L3 output, NP = maps padded
-to the vector width, padded channels 0); ``split_l4`` -> ``[pixels][HP]``
-(HP = hidden width padded, padded units 0).
+Volume: ``[D][H][W]`` with H = H_img - 2m, W = W_img - 2m (m the margin);
+cell (d, y, x) compares the left patch centred at image (x + m, y + m) with
+the right one at (x + m - d, y + m); NaN where x - d < 0.  Memory: the image
+is processed in bands of volume rows (A and B of one band at most
+``BAND_BYTES`` each), each band's disparities in chunks of about
+``CHUNK_CELLS`` cells per launch.  The cost interface shared with census and
+fst: :mod:`mccnn_cl.stages.costs`.
 """
 
 from __future__ import annotations
@@ -38,12 +34,12 @@ import math
 import numpy as np
 
 from ..cl import round_up
-from ..errors import InputError, OpenCLError
-from ..weights import Weights
+from ..errors import InputError, OpenCLError, WeightsError
+from ..weights import ACRT, PAPER, Weights
+from .features import ConvStack, check_pair, default_tiles, normalise  # noqa: F401 (normalise re-exported)
 
 log = logging.getLogger(__name__)
 
-CONV_CL = "network_conv.cl"
 HEAD_CL = "network_head.cl"
 
 # Cells (pixel-disparity pairs) per head launch, roughly: disparities are
@@ -56,75 +52,35 @@ CHUNK_CELLS = 1 << 20
 BAND_BYTES = 256 << 20
 
 
-def normalise(img) -> np.ndarray:
-    """Per-image standardisation used by the network: ``(I - mean(I)) / std(I)``.
-
-    Mean and standard deviation are taken over the whole image (all channels),
-    in float64; the result is float32.  A constant image has std 0: it is then
-    divided by 1 instead (it becomes all zeros), so no NaN or inf appears.
-    """
-    a = np.asarray(img, dtype=np.float64)
-    mean = a.mean()
-    std = a.std()
-    if not std > 0:
-        std = 1.0
-    return ((a - mean) / std).astype(np.float32)
-
-
-def _as_image(img, name: str, channels: int, patch: int) -> np.ndarray:
-    """Validate one input image; returns it as float64 H x W x C."""
-    try:
-        a = np.asarray(img)
-    except Exception as exc:  # noqa: BLE001 - anything numpy cannot take
-        raise InputError(f"{name} image: not an array ({exc})") from exc
-    if a.dtype.kind not in "buif":
-        raise InputError(f"{name} image: dtype {a.dtype} is not numeric")
-    if a.ndim == 2:
-        a = a[:, :, None]
-    elif a.ndim != 3:
-        raise InputError(f"{name} image: expected a 2-D gray image (H x W), got shape {a.shape}")
-    if a.shape[2] != channels:
-        raise InputError(f"{name} image has {a.shape[2]} channels, the network expects {channels}"
-                         + (" (a 2-D gray image)" if channels == 1 else ""))
-    if a.shape[0] < patch or a.shape[1] < patch:
-        raise InputError(f"{name} image is {a.shape[0]}x{a.shape[1]}, smaller than the network's "
-                         f"{patch}x{patch} patch")
-    a = a.astype(np.float64)
-    if not np.isfinite(a).all():
-        raise InputError(f"{name} image contains NaN or infinite pixels")
-    return a
-
-
-def _default_tiles(ctx) -> dict:
-    """Starting tile sizes for a device (refined against its limits in NetworkCost)."""
-    cl = ctx.cl
-    dev = ctx.device
-    if dev.type & cl.device_type.CPU:
-        width = max(int(dev.preferred_vector_width_float), int(dev.native_vector_width_float), 1)
-        rn = 16 if width >= 16 else 8 if width >= 8 else 4
-        return dict(TM=64, RM=8, RN=rn, ROWS_FASTEST=1, CONV_RM=8)
-    return dict(TM=32, RM=4, RN=4, ROWS_FASTEST=0, CONV_RM=4)
-
-
-class NetworkCost:
-    """C_CNN on the device: ``NetworkCost(ctx, weights)(left, right, D) -> d_cost``.
+class PaperCost:
+    """The paper's network on the device: ``PaperCost(ctx, weights)(left, right, D) -> d_cost``.
 
     Parameters
     ----------
     ctx : ClContext
     weights : Weights
-        Any network of the paper's family (sizes are read from it): conv
-        layers, then fc layers ending in 2 outputs.
+        A network of the paper's family (sizes are read from it): conv
+        layers, then fc layers ending in 2 outputs (:class:`AcrtCost`: 1).
     tiles : dict, optional
         Overrides of the tile sizes (``TM`` cells per head work-group, ``RM``
         x ``RN`` register micro-tile, ``ROWS_FASTEST`` work-item order,
         ``CONV_RM`` pixels per work-item of the conv kernel); by default they
         are chosen from the device type and shrunk until the head kernel's
         local memory and work-group size fit the device.
+    half : bool
+        float16 volume storage.
     """
+
+    architecture = PAPER
+    #: per-tile cost (see mccnn_cl.stages.costs): False, the volume is
+    #: computed once for the whole image (into host memory when tiled)
+    local = False
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False):
         weights.validate()
+        if weights.architecture != self.architecture:
+            raise WeightsError(f"{type(self).__name__} runs {self.architecture} networks, "
+                               f"these weights are {weights.architecture}")
         self.ctx = ctx
         self.half = bool(half)
         self.vdtype = np.dtype(np.float16 if half else np.float32)  # volume storage (kernels/common.h)
@@ -132,29 +88,12 @@ class NetworkCost:
         self.patch = weights.patch_size
         self.margin = weights.margin
         self.channels = weights.input_channels
-        t = _default_tiles(ctx)
+        t = default_tiles(ctx)
         t.update(tiles or {})
         self.tiles = t
-        rn = int(t["RN"])
-        if rn not in (1, 2, 4, 8, 16):
-            raise InputError(f"tile RN must be 1, 2, 4, 8 or 16, got {rn}")
-        self.rn = rn
-
-        # -- conv layers L1..L3: k-major weights, outputs padded to RN ---------
-        self._conv = []  # (kernel, d_w, d_b, kernel size, padded outputs)
-        cs = self.channels  # the image is uploaded with C channels, stride C
-        for W, b in weights.conv:
-            cout, cin, ks, _ = W.shape
-            npad = round_up(cout, rn)
-            wt = np.zeros((ks * ks * cin, npad), np.float32)
-            wt[:, :cout] = W.transpose(2, 3, 1, 0).reshape(ks * ks * cin, cout)
-            bp = np.zeros(npad, np.float32)
-            bp[:cout] = b
-            kern = ctx.kernel(CONV_CL, "network_conv", KS=ks, CIN=cin, CS=cs, NP=npad,
-                              RM=int(t["CONV_RM"]), RN=rn, RELU=1)
-            self._conv.append((kern, ctx.to_device(wt), ctx.to_device(bp), ks, npad))
-            cs = npad
-        self.feat_stride = cs
+        self.stack = ConvStack(ctx, weights, int(t["RN"]), int(t["CONV_RM"]))
+        rn = self.rn = self.stack.rn
+        cs = self.feat_stride = self.stack.stride
         maps = weights.feature_maps
 
         # -- fc layers: L4 split, hidden layers, last layer ------------------
@@ -170,8 +109,7 @@ class NetworkCost:
         wb[:, :n4] = W4[:, maps:].T
         ba = np.zeros(hp, np.float32)
         ba[:n4] = b4
-        self._split_kernel = ctx.kernel(CONV_CL, "network_conv", KS=1, CIN=maps, CS=cs, NP=hp,
-                                        RM=int(t["CONV_RM"]), RN=rn, RELU=0)
+        self._split_kernel = self.stack.kernel(1, maps, cs, hp, relu=0)
         self._d_wa, self._d_wb = ctx.to_device(wa), ctx.to_device(wb)
         self._d_ba, self._d_bzero = ctx.to_device(ba), ctx.to_device(np.zeros(hp, np.float32))
         wh = np.zeros((max(nhid, 1), hp, hp), np.float32)
@@ -180,7 +118,8 @@ class NetworkCost:
             wh[l, :W.shape[1], :W.shape[0]] = W.T
             bh[l, :W.shape[0]] = b
         W8, b8 = fc[-1]
-        w8 = np.zeros((2, hp), np.float32)
+        self.nout = nout = W8.shape[0]  # 2: softmax (paper), 1: sigmoid (acrt)
+        w8 = np.zeros((nout, hp), np.float32)
         w8[:, :W8.shape[1]] = W8
         self._d_wh, self._d_bh = ctx.to_device(wh), ctx.to_device(bh)
         self._d_w8, self._d_b8 = ctx.to_device(w8), ctx.to_device(np.asarray(b8, np.float32))
@@ -193,7 +132,7 @@ class NetworkCost:
         while True:
             if 2 * tm * hp * 4 <= ctx.local_mem:
                 kern = ctx.kernel(HEAD_CL, "network_head", HP=hp, NHID=nhid, TM=tm, RM=rm, RN=rn,
-                                  ROWS_FASTEST=int(t["ROWS_FASTEST"]), VOL_HALF=int(half))
+                                  ROWS_FASTEST=int(t["ROWS_FASTEST"]), VOL_HALF=int(half), NOUT=nout)
                 max_wg = ctx.work_group_size(kern)
                 kl = int(kern.get_work_group_info(ctx.cl.kernel_work_group_info.LOCAL_MEM_SIZE,
                                                   ctx.device))
@@ -213,34 +152,16 @@ class NetworkCost:
         self.nwi = nrg * min(ncg, max_wg // nrg)  # work-items: all row groups x column groups
         self._head = kern
         self._mark = ctx.kernel(HEAD_CL, "network_mark_invalid", HP=hp, NHID=nhid, TM=tm, RM=rm,
-                                RN=rn, ROWS_FASTEST=int(t["ROWS_FASTEST"]), VOL_HALF=int(half))
+                                RN=rn, ROWS_FASTEST=int(t["ROWS_FASTEST"]), VOL_HALF=int(half), NOUT=nout)
         log.info("network: HP=%d NHID=%d TM=%d RM=%d RN=%d (%d work-items, %d B local)",
                  hp, nhid, tm, rm, rn, self.nwi, 2 * tm * hp * 4)
 
     # ---------------------------------------------------------------------
-    def _conv_launch(self, kern, d_in, w_in, d_w, d_b, d_out, w_out, m_total, npad):
-        rmc = int(self.tiles["CONV_RM"])
-        gsize = (npad // self.rn, math.ceil(m_total / rmc))
-        kern(self.ctx.queue, gsize, None, d_in, np.int32(w_in), d_w, d_b, d_out,
-             np.int32(w_out), np.int32(m_total))
-
     def features(self, d_img, H: int, W: int):
-        """L1..L3 (with ReLU) over a whole image, fully convolutionally.
-
-        ``d_img``: device buffer of the normalised image, float32 ``[H][W][C]``.
-        Returns a new device buffer ``[(H-P+1) * (W-P+1)][feat_stride]`` of the
-        L3 features (P = patch size; channels beyond the map count are 0).
-        """
-        ctx = self.ctx
-        d_in, h, w = d_img, int(H), int(W)
-        for kern, d_w, d_b, ks, npad in self._conv:
-            ho, wo = h - ks + 1, w - ks + 1
-            d_out = ctx.empty(ho * wo * npad * 4, "network feature map")
-            self._conv_launch(kern, d_in, w, d_w, d_b, d_out, wo, ho * wo, npad)
-            if d_in is not d_img:
-                d_in.release()
-            d_in, h, w = d_out, ho, wo
-        return d_in
+        """The conv layers (ReLU after each) over an uploaded image, fully
+        convolutionally: a new buffer ``[(H-P+1) * (W-P+1)][feat_stride]``
+        (see :class:`.features.ConvStack`)."""
+        return self.stack(d_img, H, W)
 
     def split_l4(self, d_feat, n_pixels: int, left: bool):
         """The L4 split of L3 features: ``A = W4a f + b4`` (left) or ``B = W4b f`` (right).
@@ -250,7 +171,7 @@ class NetworkCost:
         """
         d_out = self.ctx.empty(int(n_pixels) * self.hp * 4, "network L4 split")
         d_w, d_b = (self._d_wa, self._d_ba) if left else (self._d_wb, self._d_bzero)
-        self._conv_launch(self._split_kernel, d_feat, n_pixels, d_w, d_b, d_out, n_pixels,
+        self.stack.launch(self._split_kernel, d_feat, n_pixels, d_w, d_b, d_out, n_pixels,
                           n_pixels, self.hp)
         return d_out
 
@@ -258,9 +179,7 @@ class NetworkCost:
         """Upload a normalised float32 image band (rows x W x C) and run it through
         L1-L3 and its half of L4; returns the ``[pixels][hp]`` buffer A or B."""
         H, W = band.shape[:2]
-        d_img = self.ctx.to_device(np.ascontiguousarray(band, dtype=np.float32))
-        d_feat = self.features(d_img, H, W)
-        d_img.release()
+        d_feat = self.stack.run_image(band)
         n = (H - self.patch + 1) * (W - self.patch + 1)
         d_half = self.split_l4(d_feat, n, left=left)
         d_feat.release()
@@ -272,12 +191,7 @@ class NetworkCost:
         layers and the L4 split, both images), ``head`` (per valid cell
         x >= d: L4 add, the hidden layers, the last layer), ``total``."""
         wts = self.weights
-        hh, ww = int(height), int(width)
-        feat = 0
-        for W, _ in wts.conv:  # valid convolutions, both images
-            cout, cin, ks, _ = W.shape
-            hh, ww = hh - ks + 1, ww - ks + 1
-            feat += 2 * 2 * hh * ww * ks * ks * cin * cout
+        feat, hh, ww = self.stack.flops(height, width, wts)  # valid convolutions, both images
         n4 = wts.fc[0][0].shape[0]
         feat += 2 * 2 * hh * ww * wts.feature_maps * n4           # A and B
         per_cell = n4 + sum(2 * W.shape[0] * W.shape[1] for W, _ in wts.fc[1:])
@@ -292,7 +206,7 @@ class NetworkCost:
         of the widest layer over the band's image rows (input and output of a
         convolution)."""
         rows = self.band_rows(h, w)
-        widest = max([conv[4] for conv in self._conv] + [self.hp])
+        widest = max(self.stack.widest, self.hp)
         return 2 * rows * w * self.hp * 4 + 2 * (rows + self.patch) * (w + self.patch - 1) * widest * 4
 
     def band_rows(self, h: int, w: int) -> int:
@@ -337,17 +251,7 @@ class NetworkCost:
         return d_cost
 
     def _check(self, left, right, max_disparity):
-        L = _as_image(left, "left", self.channels, self.patch)
-        R = _as_image(right, "right", self.channels, self.patch)
-        if L.shape != R.shape:
-            raise InputError(f"left and right images differ in size: {L.shape[:2]} vs {R.shape[:2]}")
-        if isinstance(max_disparity, (bool, np.bool_)) or not isinstance(max_disparity, (int, np.integer)):
-            raise InputError(f"max_disparity must be an integer, got {max_disparity!r}")
-        D = int(max_disparity)
-        if D < 1:
-            raise InputError(f"max_disparity must be >= 1, got {D}")
-        P = self.patch
-        return L, R, D, L.shape[0] - P + 1, L.shape[1] - P + 1
+        return check_pair(left, right, max_disparity, self.channels, self.patch)
 
     def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
         """C_CNN as a host array (``[D][H_img-8][W_img-8]``, float32 or float16
@@ -426,3 +330,15 @@ class NetworkCost:
         out = self.ctx.from_device(d, (int(max_disparity), h, w), self.vdtype)
         d.release()
         return out
+
+
+class AcrtCost(PaperCost):
+    """MC-CNN-acrt (JMLR 2016) on the device: the paper's structure (ReLU after
+    every conv layer, L4 split, hidden fc layers with ReLU) with 1 output
+    through a sigmoid; cost = that output, P(bad match) in [0, 1]."""
+
+    architecture = ACRT
+
+
+#: the name this stage had before fst and acrt existed
+NetworkCost = PaperCost

@@ -1,0 +1,179 @@
+"""The siamese conv stack shared by every network: :class:`ConvStack`.
+
+All three architectures (paper, fst, acrt) start with the same tower: valid
+KS x KS convolutions of the standardised gray image, run once per image,
+fully convolutionally (``kernels/network_conv.cl``, one register-blocked GEMM
+per layer over output pixels).  The towers differ only in whether a ReLU
+follows the last layer (paper and acrt: yes; fst: no, its features are
+L2-normalised next).  Layer count, maps and kernel sizes are read from the
+weights.
+
+Layouts: the image is float32 ``[H][W][C]``; each layer's output is
+channel-last, pixel-major ``[(H - ks + 1) * (W - ks + 1)][NP]`` with NP the
+layer's maps padded to the vector width RN (padded channels hold exactly 0:
+zero weights, zero bias).  The stack's output is the last layer's map on
+``(H - P + 1) x (W - P + 1)`` pixels, P = the patch size.
+
+Also here: :func:`normalise`, the per-image standardisation the networks see
+(and that the stereo method's thresholds compare with
+``intensity_scale="standardised"``), and the input checks shared by the
+network costs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..cl import round_up
+from ..errors import InputError
+
+CONV_CL = "network_conv.cl"
+
+
+def normalise(img) -> np.ndarray:
+    """Per-image standardisation used by the network: ``(I - mean(I)) / std(I)``.
+
+    Mean and standard deviation are taken over the whole image (all channels),
+    in float64; the result is float32.  A constant image has std 0: it is then
+    divided by 1 instead (it becomes all zeros), so no NaN or inf appears.
+    """
+    a = np.asarray(img, dtype=np.float64)
+    mean = a.mean()
+    std = a.std()
+    if not std > 0:
+        std = 1.0
+    return ((a - mean) / std).astype(np.float32)
+
+
+def as_image(img, name: str, channels: int, patch: int) -> np.ndarray:
+    """Validate one input image; returns it as float64 H x W x C."""
+    try:
+        a = np.asarray(img)
+    except Exception as exc:  # noqa: BLE001 - anything numpy cannot take
+        raise InputError(f"{name} image: not an array ({exc})") from exc
+    if a.dtype.kind not in "buif":
+        raise InputError(f"{name} image: dtype {a.dtype} is not numeric")
+    if a.ndim == 2:
+        a = a[:, :, None]
+    elif a.ndim != 3:
+        raise InputError(f"{name} image: expected a 2-D gray image (H x W), got shape {a.shape}")
+    if a.shape[2] != channels:
+        raise InputError(f"{name} image has {a.shape[2]} channels, the network expects {channels}"
+                         + (" (a 2-D gray image)" if channels == 1 else ""))
+    if a.shape[0] < patch or a.shape[1] < patch:
+        raise InputError(f"{name} image is {a.shape[0]}x{a.shape[1]}, smaller than the network's "
+                         f"{patch}x{patch} patch")
+    a = a.astype(np.float64)
+    if not np.isfinite(a).all():
+        raise InputError(f"{name} image contains NaN or infinite pixels")
+    return a
+
+
+def check_pair(left, right, max_disparity, channels: int, patch: int):
+    """Both images and D checked; returns (L, R, D, h, w) with h x w the volume's domain."""
+    L = as_image(left, "left", channels, patch)
+    R = as_image(right, "right", channels, patch)
+    if L.shape != R.shape:
+        raise InputError(f"left and right images differ in size: {L.shape[:2]} vs {R.shape[:2]}")
+    if isinstance(max_disparity, (bool, np.bool_)) or not isinstance(max_disparity, (int, np.integer)):
+        raise InputError(f"max_disparity must be an integer, got {max_disparity!r}")
+    D = int(max_disparity)
+    if D < 1:
+        raise InputError(f"max_disparity must be >= 1, got {D}")
+    return L, R, D, L.shape[0] - patch + 1, L.shape[1] - patch + 1
+
+
+def default_tiles(ctx) -> dict:
+    """Starting tile sizes for a device (refined against its limits by the costs)."""
+    cl = ctx.cl
+    dev = ctx.device
+    if dev.type & cl.device_type.CPU:
+        width = max(int(dev.preferred_vector_width_float), int(dev.native_vector_width_float), 1)
+        rn = 16 if width >= 16 else 8 if width >= 8 else 4
+        return dict(TM=64, RM=8, RN=rn, ROWS_FASTEST=1, CONV_RM=8)
+    return dict(TM=32, RM=4, RN=4, ROWS_FASTEST=0, CONV_RM=4)
+
+
+class ConvStack:
+    """The tied conv layers on the device: ``ConvStack(ctx, weights, rn, conv_rm)``.
+
+    ``relu_after_last`` defaults to ``weights.relu_after_last_conv``.
+    :meth:`__call__` maps an uploaded image to its last layer's features;
+    :meth:`gemm` runs one extra 1x1 layer (the L4 split of the fc networks).
+    """
+
+    def __init__(self, ctx, weights, rn: int, conv_rm: int, relu_after_last: bool | None = None):
+        if rn not in (1, 2, 4, 8, 16):
+            raise InputError(f"tile RN must be 1, 2, 4, 8 or 16, got {rn}")
+        if int(conv_rm) < 1:
+            raise InputError(f"tile CONV_RM must be >= 1, got {conv_rm}")
+        self.ctx, self.rn, self.conv_rm = ctx, int(rn), int(conv_rm)
+        relu_last = weights.relu_after_last_conv if relu_after_last is None else bool(relu_after_last)
+        self.relu_after_last = relu_last
+        self.layers = []  # (kernel, d_w, d_b, kernel size, padded outputs)
+        cs = weights.input_channels  # the image is uploaded with C channels, stride C
+        n = len(weights.conv)
+        for i, (W, b) in enumerate(weights.conv):
+            cout, cin, ks, _ = W.shape
+            npad = round_up(cout, self.rn)
+            wt = np.zeros((ks * ks * cin, npad), np.float32)
+            wt[:, :cout] = W.transpose(2, 3, 1, 0).reshape(ks * ks * cin, cout)
+            bp = np.zeros(npad, np.float32)
+            bp[:cout] = b
+            relu = int(i < n - 1 or relu_last)
+            kern = self.kernel(ks, cin, cs, npad, relu)
+            self.layers.append((kern, ctx.to_device(wt), ctx.to_device(bp), ks, npad))
+            cs = npad
+        self.stride = cs            # channels per pixel of the output (maps padded)
+        self.maps = weights.feature_maps
+        self.patch = weights.patch_size
+        self.widest = max(l[4] for l in self.layers)
+
+    def kernel(self, ks, cin, cs, npad, relu):
+        return self.ctx.kernel(CONV_CL, "network_conv", KS=ks, CIN=cin, CS=cs, NP=npad,
+                               RM=self.conv_rm, RN=self.rn, RELU=int(relu))
+
+    def launch(self, kern, d_in, w_in, d_w, d_b, d_out, w_out, m_total, npad):
+        gsize = (npad // self.rn, math.ceil(m_total / self.conv_rm))
+        kern(self.ctx.queue, gsize, None, d_in, np.int32(w_in), d_w, d_b, d_out,
+             np.int32(w_out), np.int32(m_total))
+
+    def __call__(self, d_img, H: int, W: int):
+        """All conv layers over an uploaded image ``[H][W][C]`` (float32).
+
+        Returns a new device buffer ``[(H-P+1) * (W-P+1)][stride]``; the
+        intermediate maps are released as soon as the next layer has run."""
+        ctx = self.ctx
+        d_in, h, w = d_img, int(H), int(W)
+        for kern, d_w, d_b, ks, npad in self.layers:
+            ho, wo = h - ks + 1, w - ks + 1
+            d_out = ctx.empty(ho * wo * npad * 4, "network feature map")
+            self.launch(kern, d_in, w, d_w, d_b, d_out, wo, ho * wo, npad)
+            if d_in is not d_img:
+                d_in.release()
+            d_in, h, w = d_out, ho, wo
+        return d_in
+
+    def run_image(self, band: np.ndarray):
+        """Upload a standardised float32 image (rows x W x C) and run the stack."""
+        H, W = band.shape[:2]
+        d_img = self.ctx.to_device(np.ascontiguousarray(band, dtype=np.float32))
+        d_feat = self(d_img, H, W)
+        d_img.release()
+        return d_feat
+
+    def scratch_bytes(self, rows: int, w: int) -> int:
+        """Bytes of two maps of the widest layer over ``rows`` feature rows of width ``w``
+        (input and output of one convolution, image margins included)."""
+        return 2 * (rows + self.patch) * (w + self.patch - 1) * self.widest * 4
+
+    def flops(self, height: int, width: int, weights) -> tuple:
+        """(FLOP of the stack on both images, feature height, feature width)."""
+        hh, ww, total = int(height), int(width), 0
+        for W, _ in weights.conv:
+            cout, cin, ks, _ = W.shape
+            hh, ww = hh - ks + 1, ww - ks + 1
+            total += 2 * 2 * hh * ww * ks * ks * cin * cout
+        return total, hh, ww
