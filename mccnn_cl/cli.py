@@ -49,7 +49,9 @@ def _matcher_options(p, default_disp_help):
     p.add_argument("--cost", choices=("cnn", "census"), default="cnn",
                    help="matching cost: the MC-CNN network (default) or census (no network)")
     p.add_argument("--weights", metavar="FILE", default=None,
-                   help="network weights (.npz, mccnn_cl format); default: the shipped model")
+                   help="network weights: a .npz (mccnn_cl format), a published .t7/.pt network "
+                        "(converted on the fly) or a shipped model's name (mccnn-cl models); "
+                        "default: the shipped model")
     p.add_argument("--device", metavar="SPEC", default=None,
                    help="OpenCL device: gpu, cpu, PLATFORM[:DEVICE] name parts, or P:D indices "
                         "(default: $PYOPENCL_CTX, else GPU > accelerator > CPU)")
@@ -74,16 +76,11 @@ def _load_weights(args):
     """The Weights the matcher will use (checked now, so a bad file fails before any OpenCL work)."""
     if args.cost != "cnn":
         return None
-    from .weights import Weights, default_weights_path
+    from .weights import default_weights_path, resolve
     if args.weights is None and not os.path.exists(default_weights_path()):
         raise WeightsError(f"the shipped weights are not installed ({default_weights_path()}); "
                            "pass --weights FILE or use --cost census")
-    if args.weights is not None and os.path.isfile(args.weights):
-        import zipfile
-        if not zipfile.is_zipfile(args.weights):  # numpy's own message would talk about pickles
-            raise WeightsError(f"{args.weights}: not a readable mccnn_cl weights file (not an .npz "
-                               "archive: truncated, or another kind of file)")
-    return Weights.load(args.weights)
+    return resolve(args.weights)  # .npz, .t7/.pt (converted), or a shipped model's name
 
 
 def _make_matcher(args, max_disparity, weights, progress=False, ctx=None):
@@ -772,6 +769,9 @@ def build_parser() -> argparse.ArgumentParser:
     dm.add_argument("--force", action="store_true", help="overwrite OUT.png if it exists")
     _matcher_options(dm, "default: 32 (the demo's ndisp)")
     dm.set_defaults(func=cmd_demo)
+
+    from .importers.commands import add_parsers  # convert-weights, models
+    add_parsers(sub, [verbose])
     return p
 
 
