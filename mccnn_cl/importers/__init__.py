@@ -58,7 +58,7 @@ def convert(path, dataset: str | None = None) -> Weights:
     elif ext in (".pt", ".pth"):
         weights = _from_pt(path)
     else:
-        raise WeightsError(f"{path}: cannot convert a {ext or 'extension-less'} file "
+        raise WeightsError(f"{path}: cannot convert a file named {ext or 'without an extension'} "
                            "(expected a Torch7 .t7 or a PyTorch .pt/.pth network)")
     from ..settings import authors_settings
 
