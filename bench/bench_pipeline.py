@@ -31,9 +31,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("MCCNN_SHARED_DATA", REPO.parent / "shared" / "data"))
 
-# Pipeline stage names (StereoResult.timings keys) -> row of the paper's table.
-GROUPS = {"C_CNN": "matching cost", "cross": "CBCA", "C_CBCA": "CBCA", "C": "CBCA", "C_SGM": "SGM",
-          "cross_R": "CBCA", "C_R": "CBCA", "C_R_SGM": "SGM"}
+# Groups of mccnn_cl.bench.STAGE_GROUP (the one stage-name table) -> rows of the paper's table.
+ROWS = {"cost": "matching cost", "CBCA": "CBCA", "SGM": "SGM", "rest": "everything else"}
 
 
 def kitti_pair(height=376, width=1240):
@@ -166,9 +165,9 @@ def main(argv=None):
             best = (total, res.timings)
     total, stages = best
 
-    groups = {"matching cost": 0.0, "SGM": 0.0, "CBCA": 0.0, "everything else": 0.0}
-    for name, t in stages.items():
-        groups[GROUPS.get(name, "everything else")] += t
+    from mccnn_cl.bench import group_timings
+
+    groups = {ROWS[g]: t for g, t in group_timings(stages).items()}
     groups["everything else"] += total - sum(stages.values())  # uploads, the final copy
 
     cnn = None

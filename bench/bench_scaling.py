@@ -71,9 +71,7 @@ QUICK = {
     "network_disp": ("network", "disparity", [(64, 20, 4), (64, 20, 8), (64, 20, 16)]),
 }
 
-# StereoResult.timings keys -> group; anything else (WTA ... bilateral) is "rest".
-GROUP = {"C_CNN": "cost", "cross": "CBCA", "C_CBCA": "CBCA", "C": "CBCA", "cross_R": "CBCA",
-         "C_R": "CBCA", "C_SGM": "SGM", "C_R_SGM": "SGM"}
+# StereoResult.timings keys -> group: mccnn_cl.bench.STAGE_GROUP (WTA ... bilateral are "rest").
 STEREO_QUANTITIES = ("CBCA", "SGM", "rest", "total_excl_cost")
 NETWORK_QUANTITIES = ("network",)
 
@@ -136,10 +134,9 @@ def time_stereo(ctx, left, right, W, H, D, repeat):
         return time.perf_counter() - t0, res.timings
 
     total, stages = best_of(run, repeat)
-    g = {"cost": 0.0, "CBCA": 0.0, "SGM": 0.0}
-    for name, sec in stages.items():
-        if name in GROUP:
-            g[GROUP[name]] += sec
+    from mccnn_cl.bench import group_timings
+
+    g = group_timings(stages)
     out = {"CBCA": g["CBCA"], "SGM": g["SGM"], "total_excl_cost": total - g["cost"]}
     out["rest"] = out["total_excl_cost"] - g["CBCA"] - g["SGM"]
     out["cost"], out["total"] = g["cost"], total

@@ -4,6 +4,9 @@ Sub-commands: ``match`` (one pair or a batch → disparity files, colour
 pictures, depth, point clouds), ``evaluate`` (a dataset, beside OpenCV
 SGBM), ``devices`` (OpenCL devices and the choice), ``bench`` (per-stage
 timings) and ``demo`` (the bundled Middlebury Cones pair).  See docs/cli.md.
+This module parses and dispatches; ``bench`` and ``demo`` are implemented in
+:mod:`mccnn_cl.bench` and :mod:`mccnn_cl.demo_cmd`, input checks in
+:mod:`mccnn_cl.validate`.
 
 Exit status: 0 success, 2 bad usage or input (:class:`~mccnn_cl.errors.InputError`
 and argparse's errors), 1 runtime failure (OpenCL, anything unexpected).
@@ -22,8 +25,6 @@ import sys
 import time
 import traceback
 import warnings
-from contextlib import ExitStack
-from importlib import resources
 
 import numpy as np
 
@@ -75,6 +76,9 @@ def _positive(name, value):
 def _load_weights(args):
     """The Weights the matcher will use (checked now, so a bad file fails before any OpenCL work)."""
     if args.cost != "cnn":
+        if getattr(args, "weights", None) is not None:
+            raise InputError(f"--weights is for --cost cnn; --cost {args.cost} uses no network "
+                             f"(drop --weights {args.weights} or the --cost option)")
         return None
     from .weights import default_weights_path, resolve
     if args.weights is None and not os.path.exists(default_weights_path()):
@@ -128,17 +132,9 @@ def _hyperparameters(items) -> dict:
 
 
 def _check_pair(left, right, max_disparity, weights, names=("left", "right")):
-    """Clear errors for inputs the pipeline cannot match."""
-    if left.shape[:2] != right.shape[:2]:
-        raise InputError(f"{names[0]} ({left.shape[1]}x{left.shape[0]}) and {names[1]} "
-                         f"({right.shape[1]}x{right.shape[0]}) images differ in size")
-    h, w = left.shape[:2]
-    patch = max(weights.patch_size if weights is not None else 1, 9)  # 9: census window, paper patch
-    if h < patch or w < patch:
-        raise InputError(f"image {w}x{h} is smaller than the {patch}x{patch} patch the matching cost needs")
-    if max_disparity >= w:
-        raise InputError(f"disparity range {max_disparity} is not smaller than the image width {w}; "
-                         "pass a smaller --max-disp")
+    """Clear errors for inputs the pipeline cannot match (:func:`mccnn_cl.validate.check_pair`)."""
+    from .validate import check_pair, patch_size
+    check_pair(left, right, max_disparity, patch_size(weights), names)
 
 
 def _check_outputs(paths, force):
@@ -425,266 +421,16 @@ def cmd_devices(args):
     return 0
 
 
-# -- bench -------------------------------------------------------------------
-
-def synthetic_pair(width, height, max_disparity, seed=0):
-    """A textured left image and a right image shifted by a slanted disparity field (uint8 gray)."""
-    import cv2
-    rng = np.random.default_rng(seed)
-    noise = rng.random((height, width + max_disparity)).astype(np.float32)
-    tex = cv2.GaussianBlur(noise, (0, 0), 1.5)
-    tex = (tex - tex.min()) / max(float(np.ptp(tex)), 1e-6)
-    big = (tex * 255).astype(np.uint8)
-    left = big[:, max_disparity:].copy()
-    xs, ys = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
-    d = (0.15 + 0.6 * ys / max(height - 1, 1)) * (max_disparity - 1)
-    # right(x) = left(x + d): sample the wide texture at x + d (+ the offset of `left`)
-    right = cv2.remap(big, xs + d + max_disparity, ys, cv2.INTER_LINEAR)
-    return left, right
-
-
-# StereoMatcher's stage names (pipeline.py) -> the bench's groups; unknown names go by substring.
-_STAGE_OF = {"C_CNN": "network", "cross": "CBCA", "C_CBCA": "CBCA", "C": "CBCA", "C_SGM": "SGM",
-             # right-reference volume (right_reference="aggregated"): the same stages again
-             "cross_R": "CBCA", "C_R_SGM": "SGM", "C_R": "CBCA", "right_volume": "rest"}
-_STAGE_GROUPS = (("network", ("network", "cnn", "census", "conv")),
-                 ("CBCA", ("cbca", "cross", "aggregat")),
-                 ("SGM", ("sgm", "semiglobal")))
-
-
-def _group_timings(timings: dict) -> dict:
-    """Seconds per group: network (matching cost), CBCA (cross arms + both aggregations), SGM, rest."""
-    out = {"network": 0.0, "CBCA": 0.0, "SGM": 0.0, "rest": 0.0}
-    for name, sec in timings.items():
-        group = _STAGE_OF.get(name)
-        if group is None:
-            low = name.lower()
-            group = next((g for g, keys in _STAGE_GROUPS if any(k in low for k in keys)), "rest")
-        out[group] += float(sec)
-    return out
-
-
-def _numpy_gemm_rate(n=131072, k=300, repeat=3) -> float:
-    """FLOP/s of numpy's float32 GEMM on the head's shape (n x k) @ (k x k), best of ``repeat``."""
-    rng = np.random.default_rng(0)
-    a = rng.random((n, k), dtype=np.float32)
-    b = rng.random((k, k), dtype=np.float32)
-    a @ b  # warm-up (thread pool start)
-    best = float("inf")
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        a @ b
-        best = min(best, time.perf_counter() - t0)
-    return 2.0 * n * k * k / best
-
-
-def _copy_bandwidth(ctx, repeat=3) -> float:
-    """Bytes/s of a device buffer-to-buffer copy (read + write counted), best of
-    ``repeat``, of 256 MiB (beyond any cache) or the max allocation if smaller."""
-    nbytes = int(min(256 << 20, ctx.max_alloc))
-    src, dst = ctx.empty(nbytes, "bench copy source"), ctx.empty(nbytes, "bench copy target")
-    ctx.fill(src, 0.5, nbytes)  # real pages: an untouched buffer may read as the shared zero page
-    ctx.fill(dst, 0.25, nbytes)
-    ctx.cl.enqueue_copy(ctx.queue, dst, src, byte_count=nbytes)
-    ctx.finish()
-    best = float("inf")
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        ctx.cl.enqueue_copy(ctx.queue, dst, src, byte_count=nbytes)
-        ctx.finish()
-        best = min(best, time.perf_counter() - t0)
-    src.release()
-    dst.release()
-    return 2.0 * nbytes / best
-
-
-def _bench_rates(matcher, shape, groups, total, sgbm_time, vol):
-    """Second table of ``bench``: each stage's achieved rate beside a baseline
-    measured in this run, and its time over the floor that baseline implies.
-
-    Network: FLOP (NetworkCost.flops) / numpy's float32 GEMM rate on the
-    head's shape.  CBCA, SGM, the rest: the volume traffic the method needs
-    at least, over the device's buffer-copy bandwidth: one read and one
-    write of the D x H x W volume per CBCA round (its iterations can run in
-    one pass, as the fused kernel does; a round of 0 iterations moves
-    nothing): the left reference's two rounds and the right reference's
-    round after SGM (its first round is the left one, shifted); per SGM
-    call, per reference; the right-reference volume, read + write; each
-    WTA, one read."""
-    p = matcher.params
-    nref = 2 if p.right_reference == "aggregated" else 1
-    copy_bw = _copy_bandwidth(matcher.ctx)
-    rounds = int(p.cbca_iterations > 0) + nref * int(p.cbca_iterations_after > 0)
-    traffic = {"CBCA": rounds * 2 * vol,
-               "SGM": nref * 2 * vol,
-               "rest": (2 * vol if nref == 2 else 0) + 2 * vol}
-    rows, floor = [], 0.0
-    if matcher.cost_name == "cnn":
-        gemm = _numpy_gemm_rate()
-        flop = matcher.cost.flops(shape[0], shape[1], matcher.max_disparity)["total"]
-        t = groups["network"]
-        rows.append(("matching cost (network)", f"{flop / t / 1e9:.1f} GFLOP/s", f"numpy GEMM {gemm / 1e9:.1f} GFLOP/s",
-                     t / (flop / gemm)))
-        floor += flop / gemm
-    stereo_t = stereo_b = 0.0
-    for name, title in (("CBCA", "CBCA (arms + aggregation)"), ("SGM", "SGM"), ("rest", "the rest (WTA ... bilateral)")):
-        t, b = groups[name], traffic[name]
-        stereo_t, stereo_b = stereo_t + t, stereo_b + b
-        rows.append((title, f"{b / t / 1e9:.2f} GB/s ({b / vol:.0f} V)", f"copy {copy_bw / 1e9:.2f} GB/s",
-                     t / (b / copy_bw) if b > 0 else None))
-    rows.append(("stereo method (after cost)", f"{stereo_b / stereo_t / 1e9:.2f} GB/s ({stereo_b / vol:.0f} V)",
-                 f"copy {copy_bw / 1e9:.2f} GB/s", stereo_t / (stereo_b / copy_bw)))
-    floor += stereo_b / copy_bw
-    _say(f"rates beside baselines measured in this run (V = one volume read or written; ratio = time / floor):")
-    _say(f"{'stage':<28} {'achieved':>24} {'baseline':>26} {'ratio':>8}")
-    for title, got, base, ratio in rows:
-        _say(f"{title:<28} {got:>24} {base:>26} " + (f"{ratio:>7.2f}x" if ratio is not None else f"{'-':>8}"))
-    what = "network FLOP / GEMM + volume traffic / copy" if matcher.cost_name == "cnn" else "volume traffic / copy"
-    _say(f"{'whole pipeline':<28} {f'floor {floor:.3f} s':>24} {what:>26} {total / floor:>7.2f}x")
-    _say(f"{'whole pipeline vs SGBM':<28} {f'{total:.3f} s':>24} {f'OpenCV SGBM {sgbm_time:.3f} s':>26} "
-         f"{total / sgbm_time:>7.1f}x")
-
+# -- bench and demo (implementations: mccnn_cl.bench, mccnn_cl.demo_cmd) ----
 
 def cmd_bench(args):
-    from .baseline import sgbm
-    from .io import read_image
-    _positive("--max-disp", args.max_disp)
-    _positive("--repeat", args.repeat)
-    max_disp = args.max_disp or 228
-    if args.left or args.right:
-        if not (args.left and args.right):
-            raise InputError("bench needs both --left and --right (or neither for a synthetic pair)")
-        left, right = _gray(read_image(args.left)), _gray(read_image(args.right))
-        what = f"{args.left} / {args.right}"
-    else:
-        try:
-            w, h = (int(v) for v in args.size.lower().split("x"))
-        except ValueError:
-            raise InputError(f"--size must look like 1242x375, got {args.size!r}") from None
-        if w < 1 or h < 1:
-            raise InputError(f"--size must be positive, got {args.size!r}")
-        left, right = synthetic_pair(w, h, max_disp)
-        what = f"synthetic textured pair {w}x{h}"
-    weights = _load_weights(args)
-    _check_pair(left, right, max_disp, weights)
-    matcher = _make_matcher(args, max_disp, weights)
-    h, w = left.shape
-    margin = int(matcher.margin)
-    vol = max_disp * (h - 2 * margin) * (w - 2 * margin) * 4
-    _say(f"bench: {what}, {max_disp} disparities, cost {args.cost}"
-         + (f" ({weights.num_parameters():,} weights)" if weights is not None else ""))
-    _say(f"device: {matcher.ctx.describe()}")
-    if not args.no_warmup:
-        matcher.compute(left, right)  # warm-up: lazy kernel builds, first allocations
-    runs = []
-    for _ in range(args.repeat):
-        t0 = time.perf_counter()
-        res = matcher.compute(left, right, timings=True)
-        total = time.perf_counter() - t0
-        runs.append((total, _group_timings(res.timings), res.timings))
-    total, groups, raw = min(runs, key=lambda r: r[0])
-    base_times = [sgbm(left, right, max_disp, return_time=True)[1] for _ in range(args.repeat)]
-    rest = total - sum(groups.values())
-    _say(f"{'stage':<28} {'seconds':>9} {'share':>7}")
-    titles = {"network": "matching cost (" + ("network" if args.cost == "cnn" else "census") + ")",
-              "CBCA": "CBCA (arms + aggregation)", "SGM": "SGM", "rest": "the rest (WTA ... bilateral)"}
-    for name, sec in groups.items():
-        _say(f"{titles[name]:<28} {sec:>9.3f} {sec / total:>7.1%}")
-    _say(f"{'(host, copies, untimed)':<28} {max(rest, 0.0):>9.3f} {max(rest, 0.0) / total:>7.1%}")
-    _say(f"{'total (' + ('MC-CNN' if args.cost == 'cnn' else 'census') + ' pipeline)':<28} {total:>9.3f}")
-    _say(f"{'OpenCV SGBM (same range)':<28} {min(base_times):>9.3f}")
-    _say(f"cost volume: {max_disp} x {h - 2 * margin} x {w - 2 * margin} float32 = {vol / 2**20:.0f} MiB each")
-    _bench_rates(matcher, left.shape, groups, total, min(base_times), vol)
-    plan = res.plan
-    _say(f"device memory: peak {res.peak_device_bytes / 2**20:.0f} MiB measured (buffers held at once), "
-         f"{plan.peak_bytes / 2**20:.0f} MiB planned, limit {plan.budget / 2**20:.0f} MiB; "
-         f"device {matcher.ctx.global_mem / 2**20:.0f} MiB, max allocation {matcher.ctx.max_alloc / 2**20:.0f} MiB")
-    if plan.tiled:
-        _say(f"tiles: {plan.describe()}")
-    else:
-        _say(f"tiles: none (the whole image at once: {plan.volumes} volumes)")
-    if args.verbose:
-        for name, sec in raw.items():
-            _say(f"  {name:<26} {float(sec):>9.4f}")
-    return 0
-
-
-# -- demo --------------------------------------------------------------------
-
-def demo_dir():
-    """Context manager yielding the folder of the bundled demo pair."""
-    return resources.as_file(resources.files("mccnn_cl") / "demo")
+    from .bench import run
+    return run(args)
 
 
 def cmd_demo(args):
-    from .baseline import sgbm
-    from .datasets import load_middlebury
-    from .evaluate import training_status
-    from .io import write_image
-    from .metrics import evaluate_disparity, fill_invalid
-    from .visualize import colorize, label, legend_bar
-    from .weights import default_weights_path
-    out = args.output
-    if not out.lower().endswith((".png", ".jpg", ".jpeg", ".bmp")):
-        raise InputError(f"{out}: the demo writes a picture; use a .png or .jpg name")
-    _check_outputs([out], args.force)
-    with ExitStack() as stack:
-        pair = load_middlebury(stack.enter_context(demo_dir()))
-    max_disp = args.max_disp or pair.ndisp or 32
-    weights = _load_weights(args)
-    left, right = pair.gray()
-    _check_pair(left, right, max_disp, weights)
-    status = training_status(weights.meta, "middlebury/Cones", "Cones") if weights is not None else "n/a"
-    t0 = time.perf_counter()
-    matcher = _make_matcher(args, max_disp, weights, progress=_tty())
-    t_setup = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    ours = matcher.compute(left, right)
-    t_ours = time.perf_counter() - t0
-    base, t_base = sgbm(left, right, max_disp, return_time=True)
-    m_ours = evaluate_disparity(fill_invalid(ours), pair.disp, pair.valid_noc, pair.valid_all)
-    m_base = evaluate_disparity(fill_invalid(base), pair.disp, pair.valid_noc, pair.valid_all)
-    n_gt = int(pair.valid_all.sum())
-    h, w = left.shape
-    _say(f"demo pair: Middlebury Cones at 1/8 size ({w}x{h}), {max_disp} disparities, "
-         "ground truth from structured light")
-    if weights is None:
-        _say("cost:      census (no network)")
-    else:
-        name = (os.path.basename(args.weights) if args.weights else
-                os.path.basename(default_weights_path()) + " (shipped)")
-        phrase = {"held out": "Cones was held out of their training",
-                  "trained": "Cones was one of their TRAINING pairs",
-                  "unknown": "they do not record their training pairs"}[status]
-        _say(f"weights:   {name}; {phrase}")
-    _say(f"{'method':<22} {'3-px err':>9} {'bad-2.0':>9} {'EPE':>8} {'time':>8}")
-    label_ours = "MC-CNN (OpenCL)" if args.cost == "cnn" else "census+SGM (OpenCL)"
-    for name, m, t in ((label_ours, m_ours, t_ours), ("OpenCV SGBM", m_base, t_base)):
-        _say(f"{name:<22} {m['bad3_all']:>8.2f}% {m['bad2_all']:>8.2f}% {m['epe_all']:>6.2f}px "
-             f"{t:>7.3f}s")
-    _say(f"(errors in % of the {n_gt} pixels with ground truth; SGBM's holes filled as the KITTI devkit "
-         f"does; OpenCL set-up before matching: {t_setup:.1f} s on {matcher.ctx.device.name.strip()})")
-    # picture: left | GT on top, MC-CNN | SGBM below, one legend
-    vmax = max_disp - 1
-    import cv2
-    def tile(img, caption):  # 2x, nearest: crisp pixels, room for the caption
-        big = cv2.resize(img, None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST)
-        return label(big, caption, height=24, scale=0.5)
-
-    tiles = [tile(cv2.cvtColor(left, cv2.COLOR_GRAY2BGR) if pair.left.ndim == 2 else pair.left, "left image"),
-             tile(colorize(pair.disp, 0, vmax), "ground truth (black: unknown)"),
-             tile(colorize(ours, 0, vmax),
-                  f"{label_ours}: 3-px {m_ours['bad3_all']:.1f} %, bad-2 {m_ours['bad2_all']:.1f} %"),
-             tile(colorize(base, 0, vmax),
-                  f"OpenCV SGBM: 3-px {m_base['bad3_all']:.1f} %, bad-2 {m_base['bad2_all']:.1f} %")]
-    gap = np.full((tiles[0].shape[0], 6, 3), 255, np.uint8)
-    top = np.hstack([tiles[0], gap, tiles[1]])
-    bottom = np.hstack([tiles[2], gap, tiles[3]])
-    sep = np.full((6, top.shape[1], 3), 255, np.uint8)
-    picture = np.vstack([top, sep, bottom, sep, legend_bar(top.shape[1], 0, vmax, height=40, scale=0.5)])
-    write_image(out, picture)
-    _say(f"wrote {out}")
-    return 0
+    from .demo_cmd import run
+    return run(args)
 
 
 # -- parser and main ---------------------------------------------------------

@@ -33,7 +33,8 @@ import numpy as np
 
 from .cl import BufferPool, ClContext
 from .errors import InputError, WeightsError
-from .stages.census import CensusCost
+from .stages.costs import make_cost
+from .stages.features import normalise
 from .stages.cross import CrossArms, max_arm
 from .stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpixel, WinnerTakeAll
 from .stages.refine import BilateralFilter, Enlarge, MedianFilter
@@ -102,7 +103,10 @@ class MemoryPlan:
 class Hyperparameters:
     """Stereo-method hyperparameters; defaults are the paper's KITTI values.
 
-    Images are gray in [0, 1] (``cbca_tau``, ``sgm_tau_so`` on that scale);
+    ``intensity_scale`` says what ``cbca_tau`` and ``sgm_tau_so`` compare:
+    "unit" gray in [0, 1], or "standardised" each image as (I - mean) / std,
+    the network's own normalisation (the released code's scale; see
+    docs/method.md, "Intensity scale");
     ``blur_tau`` is on the 0..255 scale (the paper's tau_BF = 5) when
     ``bilateral_guide="image"``, in pixels when ``"disparity"``.
 
@@ -148,10 +152,13 @@ class Hyperparameters:
     blur_tau: float = 5.0             # tau_BF (0..255 scale for the image guide)
     blur_radius: int | None = None    # None: ceil(3 sigma)
     bilateral_guide: str = "image"    # "image" (paper) | "disparity" (code)
+    intensity_scale: str = "unit"     # "unit" | "standardised": the images cbca_tau, sgm_tau_so compare
 
     def __post_init__(self):
         if self.interpolation not in ("paper", "code"):
             raise InputError(f"interpolation must be 'paper' or 'code', not {self.interpolation!r}")
+        if self.intensity_scale not in ("unit", "standardised"):
+            raise InputError(f"intensity_scale must be 'unit' or 'standardised', not {self.intensity_scale!r}")
         if self.right_reference not in ("derived", "aggregated"):
             raise InputError(f"right_reference must be 'derived' or 'aggregated', not {self.right_reference!r}")
         if self.sgm_variant not in ("paper", "code"):
@@ -230,13 +237,30 @@ def to_gray(img, name: str) -> np.ndarray:
     return (a.astype(np.float32) / np.float32(scale)).astype(np.float32)
 
 
+def _resolve_weights(spec) -> Weights:
+    """Weights for ``cost="cnn"`` through :func:`mccnn_cl.weights.resolve` (None: the shipped network)."""
+    from .weights import resolve
+
+    try:
+        return resolve(spec)
+    except WeightsError as exc:
+        if spec is None:
+            raise WeightsError(f"no trained weights available ({exc}); pass weights=<path or "
+                               "Weights> or use cost='census'") from exc
+        raise
+
+
 class StereoMatcher:
     """MC-CNN stereo matcher (the paper's stereo method on the OpenCL device).
 
     Parameters
     ----------
-    weights : None, path or Weights
-        The network for ``cost="cnn"``; None loads the shipped model.
+    weights : None, name, path or Weights
+        The network for ``cost="cnn"`` (:func:`mccnn_cl.weights.resolve`:
+        None the shipped model, a shipped name, .npz, .t7, .pt); any
+        architecture (paper, fst, acrt).  Its ``Weights.stereo`` settings are
+        applied first, the ``hyperparameters`` given here override them;
+        :attr:`params` shows the result.
     max_disparity : int
         D, the number of disparity levels (disparities 0 .. D-1); 228 = KITTI.
     device : None, str or ClContext
@@ -271,7 +295,14 @@ class StereoMatcher:
         if unknown:
             raise TypeError(f"unknown hyperparameter(s) {', '.join(unknown)}; valid names: "
                             + ", ".join(Hyperparameters.names()))
-        self.params = Hyperparameters(**hyperparameters)
+        # the network's own settings (Weights.stereo), then the caller's explicit overrides
+        self.weights = _resolve_weights(weights) if cost == "cnn" else None
+        settings = self.weights.stereo if self.weights is not None else {}
+        bad = sorted(set(settings) - set(Hyperparameters.names()))
+        if bad:
+            raise WeightsError(f"the weights' stereo settings name unknown hyperparameter(s) {', '.join(bad)}")
+        settings.update(hyperparameters)
+        self.params = Hyperparameters(**settings)
         if isinstance(max_disparity, (bool, np.bool_)) or not isinstance(max_disparity, (int, np.integer)):
             raise InputError(f"max_disparity must be an integer, not {max_disparity!r}")
         if max_disparity < 1:
@@ -296,24 +327,9 @@ class StereoMatcher:
         self.memory_limit = int(memory_limit) if memory_limit is not None else int(0.75 * self.ctx.global_mem)
         self.tile_overlap = int(tile_overlap)
 
-        if cost == "cnn":
-            from .stages.network import NetworkCost
-
-            if weights is None:
-                try:
-                    weights = Weights.load()
-                except WeightsError as exc:
-                    raise WeightsError(f"no trained weights available ({exc}); pass weights=<path or "
-                                       "Weights> or use cost='census'") from exc
-            elif not isinstance(weights, Weights):
-                weights = Weights.load(weights)
-            self.weights = weights
-            self.cost = NetworkCost(self.ctx, weights, half=self.half)
-            self.margin = weights.margin
-        else:
-            self.weights = None
-            self.cost = CensusCost(self.ctx, half=self.half)
-            self.margin = CensusCost.margin
+        # the cost stage (mccnn_cl.stages.costs): chosen from the architecture here, once
+        self.cost = make_cost(self.ctx, self.weights if cost == "cnn" else "census", half=self.half)
+        self.margin = self.cost.margin
 
         from .stages.cbca import CBCA
         from .stages.sgm import SGM
@@ -383,8 +399,9 @@ class StereoMatcher:
         H, W = Hi - 2 * m, Wi - 2 * m
         rec.plan = plan
         d_I_L = ctx.to_device(I_L)                    # I^L, image size (bilateral)
-        J_L = I_L[m:m + H, m:m + W]                   # I^L, I^R on the cost volume's domain
-        J_R = I_R[m:m + H, m:m + W]
+        S_L, S_R = self._threshold_images(I_L, I_R)
+        J_L = S_L[m:m + H, m:m + W]                   # I^L, I^R on the cost volume's domain
+        J_R = S_R[m:m + H, m:m + W]
         rec.start()
         if not plan.tiled:
             C_CNN = rec("C_CNN", self._matching_cost(I_L, I_R, D, out=self._take_volume(D, H, W)), (D, H, W),
@@ -393,6 +410,14 @@ class StereoMatcher:
         else:
             D_SE = ctx.to_device(self._tiled_volume_stages(I_L, I_R, J_L, J_R, plan, rec))
         return self._map_stages(D_SE, d_I_L, Hi, Wi, rec)
+
+    def _threshold_images(self, I_L, I_R):
+        """The images the cross arms and SGM compare with cbca_tau / sgm_tau_so:
+        as given (gray in [0, 1]) or each standardised over the whole image
+        (``intensity_scale``; before any tiling, so tiles share one scale)."""
+        if self.params.intensity_scale == "standardised":
+            return normalise(I_L), normalise(I_R)
+        return I_L, I_R
 
     def _tiled_volume_stages(self, I_L, I_R, J_L, J_R, plan, rec):
         """D_SE (host, H x W) of an image too large for one device volume: the
@@ -403,7 +428,7 @@ class StereoMatcher:
         ctx, m, D = self.ctx, self.margin, self.max_disparity
         H, W = J_L.shape
         host = None
-        if self.cost_name == "cnn":
+        if not self.cost.local:
             host = rec("C_CNN", self._matching_cost(I_L, I_R, D, to_host=plan.tile_budget))
         D_SE = np.empty((H, W), np.float32)
         for i, (c0, c1, e0, e1) in enumerate(plan.tiles):
@@ -439,9 +464,8 @@ class StereoMatcher:
         # CBCA aggregates in place (out=its input): a recorded volume is copied
         # to the host before the next stage overwrites it.
         arm = max_arm(p.cbca_eta, p.cross_include_neighbor)
-        arms_L = self.cross(d_J_L, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
-        arms_R = rec("cross", self.cross(d_J_R, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor))
-        C_CBCA = rec("C_CBCA", self.cbca(C_CNN, arms_L, arms_R, D, H, W, p.cbca_iterations, arm, out=C_CNN), vol, self.vdtype)
+        arms_L, arms_R = self._arms(d_J_L, d_J_R, H, W, rec, "cross")
+        C_CBCA = rec("C_CBCA", self._cbca(C_CNN, arms_L, arms_R, D, H, W, p.cbca_iterations, arm), vol, self.vdtype)
         if p.right_reference == "aggregated":
             # The right reference's first CBCA is this one, shifted: its support
             # regions are the left ones moved by -d (docs/method.md, 5.)
@@ -450,7 +474,7 @@ class StereoMatcher:
                                       p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
                                       p.sgm_outside_large, out=self._take_volume(D, H, W)), vol, self.vdtype)
         self._pool.give(C_CBCA)  # C_CNN's buffer, aggregated in place; free for the right SGM
-        C = rec("C", self.cbca(C_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm, out=C_SGM), vol, self.vdtype)
+        C = rec("C", self._cbca(C_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm), vol, self.vdtype)
         D_L = rec("D_L", self.wta.left(C, D, H, W), crop, np.int32)
         if p.right_reference == "derived":
             D_R = rec("D_R", self.wta.right(C, D, H, W), crop, np.int32)
@@ -461,6 +485,21 @@ class StereoMatcher:
         D_SE = rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp), crop)
         self._pool.give(C)  # the in-order queue runs any later user after subpixel
         return D_SE
+
+    def _arms(self, d_left, d_right, H, W, rec, name):
+        """Cross arms of both images, or (None, None) when no CBCA runs
+        (``cbca_iterations == cbca_iterations_after == 0``, the fst settings)."""
+        p = self.params
+        if p.cbca_iterations == 0 and p.cbca_iterations_after == 0:
+            return None, None
+        arms_L = self.cross(d_left, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
+        return arms_L, rec(name, self.cross(d_right, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor))
+
+    def _cbca(self, d_cost, arms_L, arms_R, D, H, W, iterations, arm):
+        """CBCA in place, ``iterations`` times (none: the volume as it is)."""
+        if iterations == 0:
+            return d_cost
+        return self.cbca(d_cost, arms_L, arms_R, D, H, W, iterations, arm, out=d_cost)
 
     def _map_stages(self, D_SE, d_I_L, Hi, Wi, rec):
         """D_SE (device, cropped domain) -> enlarged, median, bilateral: D_BF (host)."""
@@ -484,13 +523,12 @@ class StereoMatcher:
         d_K_L = ctx.to_device(np.ascontiguousarray(J_R[:, ::-1]))  # mirrored right image
         d_K_R = ctx.to_device(np.ascontiguousarray(J_L[:, ::-1]))  # mirrored left image
         arm = max_arm(p.cbca_eta, p.cross_include_neighbor)
-        arms_L = self.cross(d_K_L, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor)
-        arms_R = rec("cross_R", self.cross(d_K_R, H, W, p.cbca_tau, p.cbca_eta, p.cross_include_neighbor))
+        arms_L, arms_R = self._arms(d_K_L, d_K_R, H, W, rec, "cross_R")
         C_R_SGM = rec("C_R_SGM", self.sgm(C_R, d_K_L, d_K_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                           p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
                                           p.sgm_outside_large, out=self._take_volume(D, H, W)))
         self._pool.give(C_R)
-        C_R = rec("C_R", self.cbca(C_R_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm, out=C_R_SGM),
+        C_R = rec("C_R", self._cbca(C_R_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm),
                   (D, H, W), self.vdtype)
         D_R = self.right_ref.mirror(self.wta.left(C_R, D, H, W), H, W)
         self._pool.give(C_R)
@@ -539,7 +577,7 @@ class StereoMatcher:
             return MemoryPlan(row * H, nvol, whole, budget, [(0, H, 0, H)], overlap, 0, budget, False)
         # device bytes per tile row: the volumes, and census's bits (computed per
         # tile; the network runs once, before the tiles, into host memory)
-        per_row = nvol * row + (0 if self.cost_name == "cnn" else self.cost.scratch_bytes(1, W))
+        per_row = nvol * row + (self.cost.scratch_bytes(1, W) if self.cost.local else 0)
         ext = min(max_alloc // row, max(0, budget - maps) // per_row)
         core = H if ext >= H else ext - 2 * overlap
         if core < MIN_TILE_ROWS:
@@ -556,7 +594,7 @@ class StereoMatcher:
         ext_max = max(e1 - e0 for _, _, e0, e1 in tiles)
         peak = per_row * ext_max + maps
         host, band_budget = 0, 0
-        if self.cost_name == "cnn":  # the network's phase: one band volume + its scratch, before the tiles
+        if not self.cost.local:  # the network's phase: one band volume + its scratch, before the tiles
             host = row * H
             band_budget = max(row, budget - maps - scratch)
             peak = max(peak, min(band_budget, row * H) + scratch + maps)

@@ -159,6 +159,16 @@ def test_input_errors(crops, tmp_path):
         (("evaluate", tmp_path, "--cost", "census"), ("no stereo pairs",)),
         (("match", l, r, "-o", o, "--cost", "census", "--max-disp", 16, "--set", "no_such=1"),
          ("unknown hyperparameter", "no_such")),
+        (("match", l, r, "-o", o, "--cost", "census", "--max-disp", 16, "--set", "sgm_pi2=-1"),
+         ("sgm_pi2 must be >= 0",)),
+        (("match", l, r, "-o", o, "--cost", "census", "--max-disp", 16, "--set", "sgm_q1=0"),
+         ("sgm_q1 must be > 0",)),
+        (("bench", "--cost", "census", "--size", "64x32", "--max-disp", 8, "--set", "cbca_tau=-0.5"),
+         ("cbca_tau must be >= 0",)),
+        (("match", l, r, "-o", o, "--cost", "census", "--max-disp", 16, "--weights", tmp_path / "w.npz"),
+         ("--weights is for --cost cnn", "census")),
+        (("demo", "--cost", "census", "--weights", tmp_path / "w.npz", "-o", tmp_path / "d.png"),
+         ("--weights is for --cost cnn",)),
     ]
     for args, words in cases:
         rc, so, se = run(*args)

@@ -16,6 +16,11 @@ patch would leave the image) are NaN.
 patch does not depend on which patch it is paired with, so it is computed once
 per patch, and the head runs on the full concatenation (no L4 split).
 
+:func:`fst_cost_volume` is MC-CNN-fst's cost: the tower without the ReLU
+after its last layer, each feature vector divided by sqrt(|f|^2 + 1e-5),
+then C(d, y, x) = -f_L(x, y) . f_R(x - d, y) (an explicit loop over d).
+:func:`cost_volume` covers acrt too: its head ends in 1 output and a sigmoid.
+
 :func:`cost_volume_torch` is the same computation the way the OpenCL stage
 does it (L1..L3 fully convolutionally, L4 split, per-disparity head), with
 ``mccnn_cl.train.model.MCCNN`` in float32; used by the tests and ``bench/``.
@@ -36,26 +41,33 @@ def _patches(img: np.ndarray, P: int) -> np.ndarray:
 
 
 def tower(weights: Weights, patches: np.ndarray) -> np.ndarray:
-    """L1..L3 with ReLU on patches (N, C, P, P) -> feature vectors (N, maps), float64."""
+    """The conv layers on patches (N, C, P, P) -> feature vectors (N, maps), float64:
+    ReLU after each layer, the last only when ``weights.relu_after_last_conv``."""
     x = np.asarray(patches, dtype=np.float64)
     n = x.shape[0]
-    for W, b in weights.conv:
+    last = len(weights.conv) - 1
+    for i, (W, b) in enumerate(weights.conv):
         cout, cin, k, _ = W.shape
         win = np.lib.stride_tricks.sliding_window_view(x, (k, k), axis=(2, 3))  # (N, C, s, s, k, k)
         s = win.shape[2]
         cols = win.transpose(0, 2, 3, 1, 4, 5).reshape(n * s * s, cin * k * k)
         y = cols @ W.reshape(cout, cin * k * k).astype(np.float64).T + b.astype(np.float64)
-        x = np.maximum(y, 0.0).reshape(n, s, s, cout).transpose(0, 3, 1, 2)
+        if i < last or weights.relu_after_last_conv:
+            y = np.maximum(y, 0.0)
+        x = y.reshape(n, s, s, cout).transpose(0, 3, 1, 2)
     return x.reshape(n, -1)
 
 
 def head(weights: Weights, fl: np.ndarray, fr: np.ndarray) -> np.ndarray:
-    """L4..L8 and softmax on pairs of feature vectors (N, maps) x2 -> P(bad match) (N,)."""
+    """L4..L8 and softmax on pairs of feature vectors (N, maps) x2 -> P(bad match) (N,).
+    A last layer of 1 output (acrt) goes through a sigmoid instead."""
     x = np.concatenate([fl, fr], axis=1)
     for i, (W, b) in enumerate(weights.fc):
         x = x @ W.astype(np.float64).T + b.astype(np.float64)
         if i < len(weights.fc) - 1:
             x = np.maximum(x, 0.0)
+    if x.shape[1] == 1:
+        return 1.0 / (1.0 + np.exp(-x[:, 0]))
     z = x - x.max(axis=1, keepdims=True)  # stable softmax
     e = np.exp(z)
     return e[:, 0] / e.sum(axis=1)
@@ -82,6 +94,35 @@ def cost_volume(weights: Weights, left, right, max_disparity: int) -> np.ndarray
         a = fl[:, d:, :].reshape(-1, fl.shape[2])
         b = fr[:, :w - d, :].reshape(-1, fr.shape[2])
         out[d, :, d:] = head(weights, a, b).reshape(h, w - d)
+    return out
+
+
+def image_features(weights: Weights, img) -> np.ndarray:
+    """The tower at every patch of a standardised image: (H-P+1, W-P+1, maps), float64."""
+    P = weights.patch_size
+    I = normalise(img).astype(np.float64)
+    if I.ndim == 2:
+        I = I[:, :, None]
+    p = _patches(I, P)
+    h, w = p.shape[:2]
+    return tower(weights, p.reshape(h * w, *p.shape[2:])).reshape(h, w, -1)
+
+
+def fst_features(weights: Weights, img) -> np.ndarray:
+    """fst's normalised features: f / sqrt(sum f^2 + 1e-5) per pixel (released code's Normalize2)."""
+    f = image_features(weights, img)
+    return f / np.sqrt((f * f).sum(axis=2, keepdims=True) + 1e-5)
+
+
+def fst_cost_volume(weights: Weights, left, right, max_disparity: int) -> np.ndarray:
+    """MC-CNN-fst's volume, float32 ``[D][H_img-P+1][W_img-P+1]``:
+    C(d, y, x) = -f_L(x, y) . f_R(x - d, y), NaN where x - d < 0."""
+    fl, fr = fst_features(weights, left), fst_features(weights, right)
+    h, w = fl.shape[:2]
+    D = int(max_disparity)
+    out = np.full((D, h, w), np.nan, np.float32)
+    for d in range(min(D, w)):
+        out[d, :, d:] = -np.einsum("yxk,yxk->yx", fl[:, d:], fr[:, :w - d])
     return out
 
 

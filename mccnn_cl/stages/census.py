@@ -9,7 +9,8 @@ volumes are interchangeable), NaN where x - d < 0.
 ``CensusCost(ctx)(left, right, max_disparity) -> d_cost`` takes host gray
 float32 images (any scale; only the order of intensities matters) or device
 buffers with ``shape=(H_img, W_img)``.  Numpy twin:
-:func:`mccnn_cl.reference.disparity.census_cost`.
+:func:`mccnn_cl.reference.disparity.census_cost`.  The cost interface it
+shares with the networks: :mod:`mccnn_cl.stages.costs`.
 """
 
 from __future__ import annotations
@@ -27,10 +28,12 @@ class CensusCost:
     """Census + Hamming cost volume (float32, D x (H_img - 8) x (W_img - 8))."""
 
     margin = MARGIN
+    local = True  # a row tile's volume needs only the tile's rows (mccnn_cl.stages.costs)
 
     def __init__(self, ctx, half: bool = False):
         self.ctx = ctx
         self.half = bool(half)
+        self.vdtype = np.dtype(np.float16 if half else np.float32)
         self.k_transform = ctx.kernel("census.cl", "census_transform")
         self.k_cost = ctx.kernel("census.cl", "census_cost", VOL_HALF=int(half))
 
@@ -39,6 +42,25 @@ class CensusCost:
         """Device bytes a call allocates besides the volume: the two images'
         census bits (3 words per pixel) on the H x W cost-volume domain."""
         return 2 * 3 * int(H) * int(W) * 4
+
+    @staticmethod
+    def flops(height: int, width: int, max_disparity: int) -> dict:
+        """Operations of one volume, counted as 2 per census comparison and 2 per
+        Hamming word (popcount + add) per cell: a rough figure for reports."""
+        h, w, D = int(height) - 2 * MARGIN, int(width) - 2 * MARGIN, int(max_disparity)
+        transform = 2 * 2 * h * w * (WINDOW * WINDOW - 1)
+        volume = 2 * 3 * D * h * w
+        return {"transform": transform, "volume": volume, "total": transform + volume}
+
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
+        """The volume as a host array (computed on the device, then copied)."""
+        if not isinstance(left, np.ndarray):
+            raise InputError("census to_host needs host images")
+        d = self(left, right, max_disparity)
+        H, W = left.shape[0] - 2 * MARGIN, left.shape[1] - 2 * MARGIN
+        out = self.ctx.from_device(d, (int(max_disparity), H, W), self.vdtype)
+        d.release()
+        return out
 
     def __call__(self, left, right, max_disparity, shape=None, out=None, progress=None):
         """Cost volume of ``left`` vs ``right`` (host arrays or device buffers).

@@ -1,0 +1,114 @@
+/* fst.cl - the MC-CNN-fst matching cost after the conv stack, driven by
+ * mccnn_cl/stages/fst.py (FstCost).
+ *
+ * fst_normalise: the conv stack's last map (pixel-major [m][CS], NK maps
+ * used) -> L2-normalised features in a planar layout, one plane per map and
+ * row:  out[(y NK + k) WP + PADL + x] = f_k(x, y) / sqrt(|f(x, y)|^2 + EPS)
+ * (EPS = 1e-5 as in the released code's Normalize2).  The PADL columns
+ * left of x = 0 and the columns from x = w to WP - PADL hold 0, so the volume
+ * kernel reads whole 16-wide vectors without bounds tests.
+ *
+ * fst_volume: the cosine volume  C(d, y, x) = -f_L(x, y) . f_R(x - d, y),
+ * NaN where x - d < 0.  One work-item per 16 consecutive pixels of a row
+ * (float16 lanes), looping over the disparities in blocks of RD: per block
+ * and map k it loads the left vector once and RD shifted right vectors
+ * (contiguous, unaligned: x - d .. x - d + 15 of plane k) and does RD
+ * vector FMAs; each disparity's 16 costs are one contiguous store.  Blocks
+ * whose 16 pixels are all left of d are not computed: their cells (and every
+ * later disparity's) get NaN.  The right vectors of a computed block start at
+ * x - d >= -15 - (RD - 1), hence PADL >= 15 + RD.  Every cell of the band's
+ * rows is written (valid or NaN).
+ */
+#include "common.h"
+
+#ifndef NK
+#error "NK (feature maps) must be defined"
+#endif
+#ifndef CS
+#error "CS (channel stride of the conv stack's output) must be defined"
+#endif
+#ifndef PADL
+#error "PADL (zero columns left of x = 0 in the planar features) must be defined"
+#endif
+#ifndef RD
+#define RD 4
+#endif
+#if PADL < 15 + RD
+#error "PADL must be at least 15 + RD"
+#endif
+
+#define EPS 1e-5f
+
+__kernel void fst_normalise(
+    __global const float *feat, /* conv stack output, [hb * w][CS] */
+    __global float *out,        /* planar features, [hb][NK][wp] */
+    int w,                      /* pixels per row */
+    int wp)                     /* row stride of a plane (PADL + w rounded up to 16) */
+{
+    const int xp = get_global_id(0);            /* 0 .. wp-1 */
+    const int y = get_global_id(1);
+    if (xp >= wp)
+        return;
+    const int x = xp - PADL;
+    __global float *o = out + (size_t)y * NK * (size_t)wp + xp;
+    if (x < 0 || x >= w) {
+        for (int k = 0; k < NK; ++k)
+            o[(size_t)k * wp] = 0.0f;
+        return;
+    }
+    __global const float *f = feat + ((size_t)y * (size_t)w + (size_t)x) * CS;
+    float s = 0.0f;
+    for (int k = 0; k < NK; ++k)
+        s = fma(f[k], f[k], s);
+    const float inv = 1.0f / sqrt(s + EPS);
+    for (int k = 0; k < NK; ++k)
+        o[(size_t)k * wp] = f[k] * inv;
+}
+
+__kernel void fst_volume(
+    __global const float *fl,   /* left planar features, [hb][NK][wp] */
+    __global const float *fr,   /* right planar features, [hb][NK][wp] */
+    __global vol_t *cost,       /* cost volume, [D][h][w] */
+    int h,                      /* rows of the volume */
+    int w,                      /* columns */
+    int y0,                     /* volume row of the band's first row */
+    int D,                      /* disparities 0 .. D-1 */
+    int wp)                     /* plane row stride */
+{
+    const int x0 = get_global_id(0) * 16;
+    const int yb = get_global_id(1);             /* row within the band */
+    if (x0 >= w)
+        return;
+    const int n = min(16, w - x0);
+    const int y = y0 + yb;
+    __global const float *L = fl + (size_t)yb * NK * (size_t)wp + PADL + x0;
+    __global const float *R = fr + (size_t)yb * NK * (size_t)wp + PADL + x0;
+    const int16 xs = LANES + (int16)(x0);
+    for (int d0 = 0; d0 < D; d0 += RD) {
+        if (x0 + 15 < d0) {                      /* every later cell is invalid */
+            for (int d = d0; d < D; ++d)
+                vol_store16_partial((float16)(INVALID_COST), cost + VIDX(d, y, x0, h, w), n);
+            return;
+        }
+        float16 acc[RD];
+#pragma unroll
+        for (int j = 0; j < RD; ++j)
+            acc[j] = (float16)(0.0f);
+        for (int k = 0; k < NK; ++k) {
+            const size_t o = (size_t)k * (size_t)wp;
+            const float16 l = vload16(0, L + o);
+            __global const float *r = R + o - d0;
+#pragma unroll
+            for (int j = 0; j < RD; ++j)
+                acc[j] = fma(l, vload16(0, r - j), acc[j]);
+        }
+#pragma unroll
+        for (int j = 0; j < RD; ++j) {
+            const int d = d0 + j;
+            if (d < D) {
+                const float16 v = select(-acc[j], (float16)(INVALID_COST), xs < (int16)(d));
+                vol_store16_partial(v, cost + VIDX(d, y, x0, h, w), n);
+            }
+        }
+    }
+}

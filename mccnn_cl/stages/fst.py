@@ -1,0 +1,175 @@
+"""MC-CNN-fst (JMLR 2016) on the device: :class:`FstCost`.
+
+The tied conv stack (:class:`.features.ConvStack`) with ReLU *between* the
+layers and none after the last, then each pixel's feature vector
+L2-normalised, f / sqrt(|f|^2 + 1e-5) as in the released code, then the
+cosine volume
+
+    C(d, y, x) = -f_L(x, y) . f_R(x - d, y)      in [-1, 1],
+
+NaN where x - d < 0 (``kernels/fst.cl``).  The released code runs its test
+network with padding 1 so the features are image-sized; here the
+convolutions are valid and the volume lives on the cropped domain (margin
+m = (P - 1) / 2), like every other cost, so the pipeline treats all costs
+alike.
+
+Memory: the image is processed in bands of volume rows whose feature
+buffers (both images, pixel-major and planar) take at most ``BAND_BYTES``;
+the cost interface (``margin``, ``scratch_bytes``, ``__call__``,
+``to_host``, ``flops``) is the one of :mod:`mccnn_cl.stages.costs`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..cl import round_up
+from ..errors import InputError, OpenCLError, WeightsError
+from ..weights import FST, Weights
+from .features import ConvStack, check_pair, default_tiles, normalise
+
+FST_CL = "fst.cl"
+#: bytes of one band's feature buffers (both images)
+BAND_BYTES = 256 << 20
+#: disparities per block of the volume kernel; PADL zero columns left of x = 0
+RD = 4
+PADL = 32
+
+
+class FstCost:
+    """Cosine cost volume of the fst network: ``FstCost(ctx, weights)(left, right, D)``."""
+
+    architecture = FST
+    local = False  # see mccnn_cl.stages.costs
+
+    def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False):
+        weights.validate()
+        if weights.architecture != FST:
+            raise WeightsError(f"FstCost runs {FST} networks, these weights are {weights.architecture}")
+        self.ctx = ctx
+        self.weights = weights
+        self.half = bool(half)
+        self.vdtype = np.dtype(np.float16 if half else np.float32)
+        self.patch = weights.patch_size
+        self.margin = weights.margin
+        self.channels = weights.input_channels
+        t = default_tiles(ctx)
+        t.update(tiles or {})
+        self.tiles = t
+        self.stack = ConvStack(ctx, weights, int(t["RN"]), int(t["CONV_RM"]))
+        self.nk = weights.feature_maps
+        defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL, RD=RD)
+        self._norm = ctx.kernel(FST_CL, "fst_normalise", **defs)
+        self._vol = ctx.kernel(FST_CL, "fst_volume", VOL_HALF=int(half), **defs)
+
+    def _wp(self, w: int) -> int:
+        return PADL + round_up(w, 16)
+
+    def _row_bytes(self, w: int) -> int:
+        """Feature bytes per volume row, both images (pixel-major of one at a time + planar)."""
+        return (w * self.stack.stride + 2 * self.nk * self._wp(w)) * 4
+
+    def band_rows(self, h: int, w: int) -> int:
+        row = self._row_bytes(w)
+        self.ctx.check_alloc(self.nk * self._wp(w) * 4, f"fst features of one row ({w} x {self.nk})")
+        return max(1, min(h, min(BAND_BYTES // row, self.ctx.max_alloc // (self.nk * self._wp(w) * 4))))
+
+    def scratch_bytes(self, h: int, w: int) -> int:
+        """Upper bound of the device bytes a call allocates besides the volume, for
+        an h x w volume: one band's planar features of both images, one
+        pixel-major map, and the conv stack's two widest maps over the band."""
+        rows = self.band_rows(h, w)
+        return rows * self._row_bytes(w) + self.stack.scratch_bytes(rows, w)
+
+    def flops(self, height: int, width: int, max_disparity: int) -> dict:
+        """Arithmetic of one volume for images of ``height`` x ``width`` (2 FLOP
+        per multiply-add): ``features`` (the conv stack, both images),
+        ``volume`` (a dot product of the maps per valid cell), ``total``."""
+        feat, hh, ww = self.stack.flops(height, width, self.weights)
+        valid = hh * sum(max(ww - d, 0) for d in range(int(max_disparity)))
+        vol = 2 * self.nk * valid
+        return {"features": feat, "volume": vol, "total": feat + vol, "valid_cells": valid}
+
+    def features(self, img, left: bool = True):
+        """Host copy of the normalised features of a whole image (h x w x maps,
+        float32), for tests: the conv stack and fst_normalise."""
+        I = check_pair(img, img, 1, self.channels, self.patch)[0]
+        h, w = I.shape[0] - self.patch + 1, I.shape[1] - self.patch + 1
+        d = self._features(normalise(I), h, w)
+        wp = self._wp(w)
+        out = self.ctx.from_device(d, (h, self.nk, wp))
+        d.release()
+        return out[:, :, PADL:PADL + w].transpose(0, 2, 1).copy()
+
+    def _features(self, band, hb, w):
+        d_feat = self.stack.run_image(band)
+        wp = self._wp(w)
+        d_out = self.ctx.empty(hb * self.nk * wp * 4, "fst planar features")
+        self._norm(self.ctx.queue, (wp, hb), None, d_feat, d_out, np.int32(w), np.int32(wp))
+        d_feat.release()
+        return d_out
+
+    def __call__(self, left, right, max_disparity, out=None, progress=None):
+        """Cost volume on the device (``[D][H_img-2m][W_img-2m]``); ``out``: a
+        buffer of at least the volume's bytes to write into; ``progress``:
+        ``callable(done, D)`` after each band."""
+        ctx = self.ctx
+        L, R, D, h, w = check_pair(left, right, max_disparity, self.channels, self.patch)
+        nbytes = D * h * w * self.vdtype.itemsize
+        ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
+        if out is None:
+            out = ctx.empty(nbytes, "cost volume")
+        elif out.size < nbytes:
+            raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
+        try:
+            self._enqueue(L, R, D, h, w, self.band_rows(h, w), out, progress)
+        except ctx.cl.Error as exc:
+            raise OpenCLError(f"fst cost ({D} x {h} x {w}) failed on {ctx.describe()}: {exc}") from exc
+        return out
+
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
+        """The volume as a host array, computed band by band into one device
+        buffer of at most ``max_bytes`` (default: the max allocation); values
+        identical to :meth:`__call__`'s."""
+        ctx = self.ctx
+        L, R, D, h, w = check_pair(left, right, max_disparity, self.channels, self.patch)
+        row = D * w * self.vdtype.itemsize
+        limit = ctx.max_alloc if max_bytes is None else min(int(max_bytes), ctx.max_alloc)
+        if row > limit:
+            raise InputError(f"one row of the cost volume ({D} x {w} {self.vdtype.name}, {row / 2**20:.1f} MiB) "
+                             f"does not fit in {limit / 2**20:.1f} MiB of device memory; reduce the "
+                             "disparity range or the image width")
+        rows = min(self.band_rows(h, w), limit // row)
+        host = np.empty((D, h, w), self.vdtype)
+        d_band = ctx.empty(D * rows * w * self.vdtype.itemsize, "cost volume band")
+        try:
+            self._enqueue(L, R, D, h, w, rows, d_band, progress, host=host)
+        except ctx.cl.Error as exc:
+            raise OpenCLError(f"fst cost ({D} x {h} x {w}, bands of {rows} rows) failed on "
+                              f"{ctx.describe()}: {exc}") from exc
+        finally:
+            d_band.release()
+        return host
+
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
+        q, P, i32 = self.ctx.queue, self.patch, np.int32
+        Ln, Rn = normalise(L), normalise(R)
+        wp = self._wp(w)
+        bands = range(0, h, rows)
+        for i, y0 in enumerate(bands):
+            hb = min(rows, h - y0)
+            d_l = self._features(Ln[y0:y0 + hb + P - 1], hb, w)
+            d_r = self._features(Rn[y0:y0 + hb + P - 1], hb, w)
+            vh, vy0 = (h, y0) if host is None else (hb, 0)
+            self._vol(q, (-(-w // 16), hb), None, d_l, d_r, d_cost, i32(vh), i32(w), i32(vy0),
+                      i32(D), i32(wp))
+            if progress is not None or host is not None:
+                q.finish()
+            d_l.release()
+            d_r.release()
+            if host is not None:
+                band = np.empty((D, hb, w), self.vdtype)
+                self.ctx.cl.enqueue_copy(q, band, d_cost)
+                host[:, y0:y0 + hb, :] = band
+            if progress is not None:
+                progress(D * (i + 1) // len(bands), D)

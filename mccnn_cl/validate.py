@@ -1,0 +1,88 @@
+"""Input checks shared by the command line and :class:`~mccnn_cl.pipeline.StereoMatcher`.
+
+One place says what pair of images and which disparity range the method can
+match, so ``mccnn-cl match`` (on the images as read, before any OpenCL work)
+and ``StereoMatcher.compute`` (on the gray images) reject the same inputs with
+the same one-line :class:`~mccnn_cl.errors.InputError`.  The smallest image is
+the matching cost's patch (9 x 9 for census and the paper's networks; a
+network's own ``patch_size`` when larger); the disparity range must be smaller
+than the image width (disparities 0 .. D-1 need a right pixel x - d).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError
+
+#: The paper's network patch and the census window: the smallest image.
+PATCH = 9
+
+
+def patch_size(weights=None) -> int:
+    """The patch a matching cost needs: the network's (``weights.patch_size``), at least :data:`PATCH`."""
+    return max(int(weights.patch_size) if weights is not None else 1, PATCH)
+
+
+def check_disparity_range(max_disparity) -> int:
+    """D as an int: an integer >= 1 (not a bool)."""
+    if isinstance(max_disparity, (bool, np.bool_)) or not isinstance(max_disparity, (int, np.integer)):
+        raise InputError(f"max_disparity must be an integer, not {max_disparity!r}")
+    if max_disparity < 1:
+        raise InputError(f"max_disparity must be >= 1, not {max_disparity}")
+    return int(max_disparity)
+
+
+def check_pair(left, right, max_disparity: int, patch: int = PATCH, names=("left", "right")) -> None:
+    """Clear errors for a pair the method cannot match with ``max_disparity`` levels.
+
+    ``left``, ``right``: arrays H x W or H x W x C (only the first two axes are
+    looked at); ``patch``: the matching cost's patch side (see :func:`patch_size`);
+    ``names``: what to call the two images in the messages (file names)."""
+    (h, w), (hr, wr) = np.shape(left)[:2], np.shape(right)[:2]
+    if (h, w) != (hr, wr):
+        raise InputError(f"{names[0]} ({w}x{h}) and {names[1]} ({wr}x{hr}) images differ in size")
+    patch = max(int(patch), PATCH)
+    if h < patch or w < patch:
+        raise InputError(f"image {w}x{h} is smaller than the {patch}x{patch} patch the matching cost needs")
+    if max_disparity >= w:
+        raise InputError(f"disparity range {max_disparity} (max_disparity, --max-disp) is not smaller than "
+                         f"the image width {w}")
+
+
+#: Valid range of every numeric :class:`~mccnn_cl.pipeline.Hyperparameters`
+#: field: name -> (integer?, lower bound, bound included?).  Penalties,
+#: thresholds and counts may be 0; divisors and sigma must be positive.
+#: ``blur_radius`` may also be None (ceil(3 sigma)); ``median_size`` must be odd too.
+HYPERPARAMETER_RANGES = {
+    "cbca_eta": (True, 0, True), "cbca_tau": (False, 0.0, True),
+    "cbca_iterations": (True, 0, True), "cbca_iterations_after": (True, 0, True),
+    "sgm_pi1": (False, 0.0, True), "sgm_pi2": (False, 0.0, True), "sgm_tau_so": (False, 0.0, True),
+    "sgm_q1": (False, 0.0, False), "sgm_q2": (False, 0.0, False), "sgm_v": (False, 0.0, False),
+    "lr_threshold": (False, 0.0, True), "subpixel_min_denominator": (False, 0.0, True),
+    "median_size": (True, 1, True), "blur_sigma": (False, 0.0, False), "blur_tau": (False, 0.0, True),
+    "blur_radius": (True, 0, True),
+}
+
+
+def check_number(name: str, value, integer: bool, low, inclusive: bool) -> None:
+    """One field against its range: a real number (an integer when ``integer``), finite, >= / > ``low``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise InputError(f"{name} must be a number, not {value!r}")
+    if not np.isfinite(value):
+        raise InputError(f"{name} must be finite, not {value}")
+    if integer and int(value) != value:
+        raise InputError(f"{name} must be an integer, not {value}")
+    if not (value >= low if inclusive else value > low):
+        raise InputError(f"{name} must be {'>=' if inclusive else '>'} {low}, not {value}")
+
+
+def check_hyperparameters(params) -> None:
+    """Every numeric field of a Hyperparameters in its range (:data:`HYPERPARAMETER_RANGES`)."""
+    for name, (integer, low, inclusive) in HYPERPARAMETER_RANGES.items():
+        value = getattr(params, name)
+        if name == "blur_radius" and value is None:
+            continue
+        check_number(name, value, integer, low, inclusive)
+    if int(params.median_size) % 2 == 0:
+        raise InputError(f"median_size must be a positive odd number, not {params.median_size}")
