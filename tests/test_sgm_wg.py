@@ -1,0 +1,225 @@
+"""SGMWorkGroup (kernels/sgm_wg.cl, one work-group per path line) against
+mccnn_cl.reference.aggregation.sgm and against SGM's one-direction kernels.
+
+Tolerance as tests/test_sgm.py: 2e-5 of (cost range + Pi2) against the
+float64 reference (float32 path values re-based every step; an off-by-one
+in a minimum, a wrong penalty or an invalid cell in a minimum moves values
+by >= P1 / 40 = 0.025 at the defaults); NaN positions exactly.  Against
+SGM(paired=False) bit for bit: both accumulate the directions in the same
+order with the same float operations per cell (add, subtract, fmin: exactly
+rounded), so any difference is a defect of one of them.  Half storage: the
+bound of tests/test_half.py (7 x 2^-11 of the largest |C_r|).
+
+Work-group sizes 1, 4, 16, 64 and the kernel's maximum on this device, with
+D below, at and above the group size, odd D, odd H and W; every output is
+poisoned first, so a cell left unwritten fails.  On CPU implementations
+(PoCL, Intel, Oclgrind in tests/test_oclgrind.py) these prove the barrier
+and local-memory logic that a GPU runs.
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import POISON
+from mccnn_cl.errors import InputError
+from mccnn_cl.reference.aggregation import SGM_DIRECTIONS, sgm, sgm_direction
+from mccnn_cl.stages.sgm import SGM
+from mccnn_cl.stages.sgm_wg import SGMWorkGroup
+
+F16_POISON = np.float16(-65504.0)
+GROUP_SIZES = (1, 4, 16, 64, "max")
+
+
+# -- small helpers (as tests/test_cbca.py and tests/test_sgm.py) ----------------
+def invalid_mask(D, H, W):
+    return np.broadcast_to(np.arange(W)[None, None, :] < np.arange(D)[:, None, None], (D, H, W))
+
+
+def random_volume(rng, D, H, W, scale=1.0):
+    c = (scale * rng.random((D, H, W))).astype(np.float32)
+    c[invalid_mask(D, H, W)] = np.nan
+    return c
+
+
+def blocky_image(rng, H, W, block=3, noise=0.02):
+    """Piecewise-constant image with a little noise: small and large gradients."""
+    img = np.repeat(np.repeat(rng.random((H // block + 1, W // block + 1)), block, 0), block, 1)[:H, :W]
+    return (img + noise * rng.random((H, W))).astype(np.float32)
+
+
+def ad_volume(img_l, img_r, D):
+    H, W = img_l.shape
+    c = np.full((D, H, W), np.nan, np.float32)
+    for d in range(D):
+        c[d, :, d:] = np.abs(img_l[:, d:] - img_r[:, :W - d])
+    return c
+
+
+def kitti_crop(shared_data, y0, x0, H, W):
+    """The H x W crop at (y0, x0) of KITTI 2015 training 000000, left and right, gray in [0, 1]."""
+    imgs = []
+    for rel in ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png"):
+        img = cv2.imread(str(shared_data / rel), cv2.IMREAD_GRAYSCALE)
+        assert img is not None, rel
+        imgs.append(img[y0:y0 + H, x0:x0 + W].astype(np.float32) / 255.0)
+    return imgs
+
+
+def group_size(ctx, L):
+    return ctx.work_group_size(SGMWorkGroup(ctx).kernel()) if L == "max" else L
+
+
+def run(ctx, stage, cost, img_l, img_r, dtype=np.float32, **kw):
+    D, H, W = cost.shape
+    nbytes = cost.size * np.dtype(dtype).itemsize
+    d_out = ctx.empty(nbytes)
+    ctx.fill(d_out, POISON if dtype == np.float32 else F16_POISON, nbytes, dtype=dtype)
+    d_cost = ctx.to_device(cost)
+    stage(d_cost, ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=d_out, **kw)
+    np.testing.assert_array_equal(ctx.from_device(d_cost, cost.shape, dtype).view(np.uint8),
+                                  cost.view(np.uint8))  # input untouched
+    return ctx.from_device(d_out, cost.shape, dtype)
+
+
+def check_reference(got, cost, want, pi2=32.0):
+    np.testing.assert_array_equal(np.isnan(got), invalid_mask(*cost.shape))
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    scale = np.nanmax(cost) - np.nanmin(cost) + pi2
+    np.testing.assert_allclose(got, want, rtol=0, atol=2e-5 * scale)
+
+
+def check_all(ctx, cost, img_l, img_r, sizes=GROUP_SIZES, **kw):
+    """Every work-group size against the reference and, bit for bit, SGM's
+    one-direction kernels; returns the result."""
+    want = sgm(cost, img_l, img_r, **kw)
+    cpu_path = run(ctx, SGM(ctx, paired=False), cost, img_l, img_r, **kw)
+    for L in sizes:
+        L = group_size(ctx, L)
+        st = SGMWorkGroup(ctx, local_size=L)
+        got = run(ctx, st, cost, img_l, img_r, **kw)
+        assert st.work_group_size(cost.shape[0]) == L
+        check_reference(got, cost, want, kw.get("pi2", 32.0))
+        np.testing.assert_array_equal(got.view(np.uint32), cpu_path.view(np.uint32), err_msg=f"work-group {L}")
+    return got
+
+
+@pytest.mark.parametrize("D", [16, 20, 70])
+def test_random_odd_size_every_group_size(ctx, D):
+    """37 x 53, D = 16, 20 (levels below and above 16 and 4; not a multiple of
+    16 or 64) and 70 (more levels than 64 work-items: several per work-item,
+    unevenly); the smoothing really changed the costs."""
+    rng = np.random.default_rng(D)
+    H, W = 37, 53
+    cost = random_volume(rng, D, H, W, scale=2.0)
+    img_l, img_r = blocky_image(rng, H, W, 4, 0.05), blocky_image(rng, H, W, 4, 0.05)
+    got = check_all(ctx, cost, img_l, img_r)
+    valid = ~np.isnan(got)
+    assert np.abs(got[valid] - cost[valid]).max() > 0.5
+
+
+def test_default_group_size(ctx):
+    """The default size: within the kernel's limit, covering D when it can."""
+    rng = np.random.default_rng(3)
+    D, H, W = 37, 9, 45
+    cost = random_volume(rng, D, H, W, scale=3.0)
+    img_l, img_r = blocky_image(rng, H, W), blocky_image(rng, H, W)
+    st = SGMWorkGroup(ctx)
+    L = st.work_group_size(D)
+    kmax = ctx.work_group_size(st.kernel())
+    assert 1 <= L <= kmax and (L >= D or L == kmax)
+    got = run(ctx, st, cost, img_l, img_r)
+    check_reference(got, cost, sgm(cost, img_l, img_r))
+
+
+def test_variants_and_parameters(ctx):
+    """Both penalty variants, P2 = Pi1 Pi2, the outside-the-image choice, other
+    q1, q2, v and tau_so, at group sizes 4 and 16."""
+    rng = np.random.default_rng(12)
+    D, H, W = 11, 17, 23
+    cost = random_volume(rng, D, H, W, scale=5.0)
+    img_l, img_r = blocky_image(rng, H, W, 3, 0.1), blocky_image(rng, H, W, 3, 0.1)
+    a = check_all(ctx, cost, img_l, img_r, sizes=(4, 16), variant="code", pi1=2.0, pi2=7.0, p2_times_pi1=True)
+    b = check_all(ctx, cost, img_l, img_r, sizes=(4, 16), outside_large=False, pi1=2.0, pi2=14.0, q1=3.0,
+                  q2=5.0, v=4.0, tau_so=0.1)
+    assert np.nanmax(np.abs(a - b)) > 0.01
+
+
+@pytest.mark.parametrize("D,H,W", [(20, 7, 12), (5, 1, 40), (4, 30, 1), (1, 1, 1), (3, 2, 2), (40, 3, 5),
+                                   (17, 4, 33), (65, 3, 70)])
+def test_degenerate_and_d_at_least_w(ctx, D, H, W):
+    """One row, one column, one pixel, D > W, D = 65 just over 64 work-items."""
+    rng = np.random.default_rng(D * 100 + H * 10 + W)
+    cost = random_volume(rng, D, H, W)
+    check_all(ctx, cost, blocky_image(rng, H, W), blocky_image(rng, H, W), sizes=(1, 4, 64))
+
+
+def test_largest_group_size_on_many_levels(ctx):
+    """The kernel's maximum work-group size (4096 on PoCL) with D = 130: most
+    work-items own no level, the reduction runs through every tree level."""
+    rng = np.random.default_rng(5)
+    D, H, W = 130, 5, 141
+    cost = random_volume(rng, D, H, W, scale=2.0)
+    check_all(ctx, cost, blocky_image(rng, H, W), blocky_image(rng, H, W), sizes=("max", 128, 7))
+
+
+def test_kitti_crop_against_reference_and_sgm(ctx, shared_data):
+    """A real KITTI crop (AD costs, D = 30 over 70 columns), both penalty
+    variants and the outside-the-image choice."""
+    H, W, D = 20, 70, 30
+    imgs = kitti_crop(shared_data, 180, 400, H, W)
+    assert imgs[0].std() > 0.02
+    cost = ad_volume(imgs[0], imgs[1], D)
+    a = check_all(ctx, cost, imgs[0], imgs[1], sizes=(16, 64))
+    b = check_all(ctx, cost, imgs[0], imgs[1], sizes=(4, 32), variant="code", outside_large=False, pi1=2.0,
+                  pi2=14.0)
+    assert np.nanmax(np.abs(a - b)) > 0.01
+
+
+@pytest.mark.parametrize("L", [1, 16, 64])
+def test_half_storage(ctx, shared_data, L):
+    """Half volumes (VOL_HALF=1): bit for bit SGM(half=True, paired=False) (the
+    same in-place accumulation in half) and within test_half's bound of the
+    reference on the half input."""
+    L_img, R_img = kitti_crop(shared_data, 150, 60, 20, 45)
+    D, H, W = 24, 20, 45
+    C = ad_volume(L_img, R_img, D).astype(np.float16)
+    C32 = C.astype(np.float32)
+    got = run(ctx, SGMWorkGroup(ctx, half=True, local_size=L), C, L_img, R_img, dtype=np.float16)
+    cpu_path = run(ctx, SGM(ctx, half=True, paired=False), C, L_img, R_img, dtype=np.float16)
+    np.testing.assert_array_equal(got.view(np.uint16), cpu_path.view(np.uint16))
+    got = got.astype(np.float32)
+    want = sgm(C32, L_img, R_img)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    M = max(np.nanmax(np.abs(sgm_direction(C32, L_img, R_img, r))) for r in SGM_DIRECTIONS)
+    np.testing.assert_allclose(got, want, rtol=0, atol=7 * 2 ** -11 * M)
+    assert np.nanmax(np.abs(got - want)) > 0  # rounding happened: the half path ran
+
+
+def test_allocates_output_and_reuses_stage(ctx):
+    """out=None allocates; one stage object serves several D (a new local size each)."""
+    rng = np.random.default_rng(8)
+    st = SGMWorkGroup(ctx)
+    for D, H, W in ((6, 5, 9), (33, 4, 40)):
+        cost = random_volume(rng, D, H, W)
+        img = blocky_image(rng, H, W)
+        d_out = st(ctx.to_device(cost), ctx.to_device(img), ctx.to_device(img), D, H, W)
+        check_reference(ctx.from_device(d_out, cost.shape), cost, sgm(cost, img, img))
+    assert SGMWorkGroup.scratch_bytes(33, 40) == 0
+
+
+def test_bad_input(ctx):
+    cost = np.zeros((2, 3, 4), np.float32)
+    d_cost = ctx.to_device(cost)
+    d_img = ctx.to_device(np.zeros((3, 4), np.float32))
+    with pytest.raises(InputError):
+        SGMWorkGroup(ctx)(d_cost, d_img, d_img, 2, 3, 4, out=d_cost)
+    with pytest.raises(InputError):
+        SGMWorkGroup(ctx)(d_cost, d_img, d_img, 2, 3, 4, variant="other")
+    with pytest.raises(InputError):
+        SGMWorkGroup(ctx)(d_cost, d_img, d_img, 0, 3, 4)
+    with pytest.raises(InputError):
+        SGMWorkGroup(ctx, local_size=0)
+    too_big = ctx.work_group_size(SGMWorkGroup(ctx).kernel()) + 1
+    with pytest.raises(InputError):
+        SGMWorkGroup(ctx, local_size=too_big)(d_cost, d_img, d_img, 2, 3, 4)
