@@ -33,6 +33,7 @@ import numpy as np
 
 from .cl import BufferPool, ClContext
 from .errors import InputError, WeightsError
+from .validate import PATCH, check_disparity_range, check_hyperparameters, check_pair  # noqa: F401 (PATCH re-exported)
 from .stages.costs import make_cost
 from .stages.features import normalise
 from .stages.cross import CrossArms, max_arm
@@ -42,7 +43,6 @@ from .weights import Weights
 
 log = logging.getLogger(__name__)
 
-PATCH = 9  # the paper's network patch and the census window: the smallest image
 #: Image-sized buffers the method keeps at most (images, cross arms of both
 #: references, disparity maps and labels), counted in float32 images: an
 #: upper bound used by :meth:`StereoMatcher.memory_plan`.
@@ -165,13 +165,10 @@ class Hyperparameters:
             raise InputError(f"sgm_variant must be 'paper' or 'code', not {self.sgm_variant!r}")
         if self.bilateral_guide not in ("image", "disparity"):
             raise InputError(f"bilateral_guide must be 'image' or 'disparity', not {self.bilateral_guide!r}")
-        if int(self.median_size) < 1 or int(self.median_size) % 2 == 0:
-            raise InputError(f"median_size must be a positive odd number, not {self.median_size}")
-        for name in ("cbca_eta", "cbca_iterations", "cbca_iterations_after"):
-            if int(getattr(self, name)) < 0:
-                raise InputError(f"{name} must be >= 0, not {getattr(self, name)}")
-        if not self.blur_sigma > 0:
-            raise InputError(f"blur_sigma must be > 0, not {self.blur_sigma}")
+        for name in ("cross_include_neighbor", "sgm_p2_times_pi1", "sgm_outside_large", "subpixel_clamp"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise InputError(f"{name} must be true or false, not {getattr(self, name)!r}")
+        check_hyperparameters(self)  # every numeric field in its range (validate.HYPERPARAMETER_RANGES)
 
     @classmethod
     def names(cls) -> list:
@@ -303,11 +300,7 @@ class StereoMatcher:
             raise WeightsError(f"the weights' stereo settings name unknown hyperparameter(s) {', '.join(bad)}")
         settings.update(hyperparameters)
         self.params = Hyperparameters(**settings)
-        if isinstance(max_disparity, (bool, np.bool_)) or not isinstance(max_disparity, (int, np.integer)):
-            raise InputError(f"max_disparity must be an integer, not {max_disparity!r}")
-        if max_disparity < 1:
-            raise InputError(f"max_disparity must be >= 1, not {max_disparity}")
-        self.max_disparity = int(max_disparity)
+        self.max_disparity = check_disparity_range(max_disparity)
         if cost not in ("cnn", "census"):
             raise InputError(f"cost must be 'cnn' or 'census', not {cost!r}")
         self.cost_name = cost
@@ -361,15 +354,7 @@ class StereoMatcher:
     # -- input checks ------------------------------------------------------
     def _inputs(self, left, right):
         I_L, I_R = to_gray(left, "left"), to_gray(right, "right")
-        if I_L.shape != I_R.shape:
-            raise InputError(f"left and right images differ in size: {I_L.shape[1]}x{I_L.shape[0]} vs "
-                             f"{I_R.shape[1]}x{I_R.shape[0]}")
-        Hi, Wi = I_L.shape
-        patch = 2 * self.margin + 1
-        if Hi < max(patch, PATCH) or Wi < max(patch, PATCH):
-            raise InputError(f"image is {Wi}x{Hi}, smaller than the {patch}x{patch} patch")
-        if self.max_disparity >= Wi:
-            raise InputError(f"max_disparity {self.max_disparity} must be smaller than the image width {Wi}")
+        check_pair(I_L, I_R, self.max_disparity, 2 * self.margin + 1)
         return I_L, I_R
 
     # -- the method ----------------------------------------------------------
