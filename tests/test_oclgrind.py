@@ -300,6 +300,37 @@ def case_sgm(ctx, rng, chk):
                   sgm(C, img_l, img_r, **kw), atol=2e-5 * (1.0 + 32.0))
 
 
+def case_sgm_wg(ctx, rng, chk):
+    """sgm_wg.cl (one work-group per path line, levels across its work-items,
+    local-memory tree reduction with barriers): work-groups of 4, 16 and 5
+    work-items (levels several per work-item, fewer levels than work-items,
+    a group size that is not a power of two) so that Oclgrind's race and
+    barrier checks see the local memory shared; float32 and half."""
+    from mccnn_cl.reference.aggregation import sgm
+    from mccnn_cl.stages.sgm_wg import SGMWorkGroup
+
+    for (D, H, W), kw, L, half in (((9, 4, 13), {}, 4, False),
+                                   ((7, 5, 6), {"variant": "code", "outside_large": False}, 16, False),
+                                   ((11, 3, 14), {}, 5, False),
+                                   ((6, 4, 9), {}, 4, True)):
+        img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
+        C = _volume(rng, D, H, W)
+        if half:
+            C = C.astype(np.float16)
+            out = ctx.empty(2 * D * H * W, "test output")
+            ctx.fill(out, -65504.0, 2 * D * H * W, np.float16)
+        else:
+            out = _poisoned(ctx, 4 * D * H * W)
+        SGMWorkGroup(ctx, half=half, local_size=L)(ctx.to_device(C), ctx.to_device(img_l), ctx.to_device(img_r),
+                                                   D, H, W, out=out, **kw)
+        got = ctx.from_device(out, (D, H, W), np.float16 if half else np.float32).astype(np.float32)
+        # float32: as tests/test_sgm_wg.py; half: the four partial sums rounded
+        # to half in place (tests/test_half.py's bound, costs < 1 + 4 P2)
+        atol = 7 * 2 ** -11 * (1.0 + 4 * 32.0) if half else 2e-5 * (1.0 + 32.0)
+        chk.close(f"SGM work-group D={D} {H}x{W} L={L} half={half} {kw}", got,
+                  sgm(C.astype(np.float32), img_l, img_r, **kw), atol=atol)
+
+
 def case_half(ctx, rng, chk):
     """Half-precision volume storage (VOL_HALF=1) in every kernel that reads or
     writes a volume: the network head and its NaN marking, then the whole
@@ -358,6 +389,7 @@ CASES = {
     "cross": case_cross,
     "cbca": case_cbca,
     "sgm": case_sgm,
+    "sgm_wg": case_sgm_wg,
     "disparity": case_disparity,
     "refine": case_refine,
     "half": case_half,
@@ -371,6 +403,7 @@ CASE_KERNELS = {
     "cbca": {"cbca_rows", "cbca_columns", "cbca_rows_short", "cbca_columns_short", "cbca_fused_short",
              "cbca_fused_multi_short"},
     "sgm": {"sgm_rows", "sgm_columns", "sgm_paired"},
+    "sgm_wg": {"sgm_wg_path"},
     "disparity": {"disparity_wta_left", "disparity_wta_right", "disparity_lr_check",
                   "disparity_right_volume", "disparity_mirror", "interpolate_fill", "subpixel_refine"},
     "refine": {"refine_enlarge", "refine_median", "refine_median16", "refine_bilateral"},
