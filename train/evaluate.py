@@ -108,17 +108,35 @@ def make_validation(pairs, patch_size: int, n_examples: int = 4000, n_pixels: in
 
 @torch.no_grad()
 def patch_metrics(model, batch: Batch, device, chunk: int = 4096) -> dict:
-    """Mean cross-entropy and accuracy of ``model`` on the patch pairs of ``batch``."""
+    """Mean training loss and accuracy of ``model`` on the patch pairs of ``batch``.
+
+    ``batch`` holds n positives then n negatives, paired by position.  The
+    loss is the architecture's (:meth:`MCCNN.loss`: per example for paper
+    and acrt, per pair for fst).  Accuracy: paper, the argmax class; acrt,
+    the sigmoid on the right side of 0.5; fst (a score, no threshold), the
+    fraction of pairs where the positive scores above the negative.
+    """
     model.eval()
-    loss_sum, correct, n = 0.0, 0, len(batch.labels)
+    outs = []
+    n = len(batch.labels)
     for s in range(0, n, chunk):
         left = torch.from_numpy(batch.left[s:s + chunk]).to(device)
         right = torch.from_numpy(batch.right[s:s + chunk]).to(device)
-        lab = torch.from_numpy(batch.labels[s:s + chunk]).to(device)
-        logits = model(left, right)
-        loss_sum += float(F.cross_entropy(logits, lab, reduction="sum"))
-        correct += int((logits.argmax(1) == lab).sum())
-    return {"loss": loss_sum / n, "accuracy": correct / n, "n": n}
+        outs.append(model(left, right))
+    out = torch.cat(outs)
+    lab = torch.from_numpy(batch.labels).to(device)
+    half = n // 2
+    if not (bool((lab[:half] == 1).all()) and bool((lab[half:] == 0).all())):
+        raise InputError("patch batch must hold positives first, then as many negatives")
+    arch = getattr(model, "architecture", "mccnn-paper")
+    if arch == "mccnn-fst":
+        loss = float(model.loss(out[:half], out[half:], reduction="sum")) / half
+        correct, total = int((out[:half] > out[half:]).sum()), half
+    else:
+        loss = float(model.loss(out[:half], out[half:], reduction="sum")) / n
+        good = out.argmax(1) == 1 if out.dim() == 2 else out < 0
+        correct, total = int((good == (lab == 1)).sum()), n
+    return {"loss": loss, "accuracy": correct / total, "n": n}
 
 
 @torch.no_grad()
@@ -140,7 +158,7 @@ def wta_costs(model, left_feat: torch.Tensor, right_feat: torch.Tensor, xv: torc
     """C_CNN for pixels at cropped-domain columns ``xv`` and disparities 0..ndisp-1.
 
     ``left_feat``/``right_feat``: (N, maps, Wc) features of each pixel's row.
-    Returns (N, ndisp) costs (softmax probability of the bad-match class),
+    Returns (N, ndisp) costs (:meth:`MCCNN.cost`: paper softmax[bad], fst -f_L.f_R, acrt sigmoid),
     +inf where ``d > xv`` (right pixel outside the cropped domain).
     """
     n, maps, wc = left_feat.shape
@@ -155,8 +173,7 @@ def wta_costs(model, left_feat: torch.Tensor, right_feat: torch.Tensor, xv: torc
         xr = (x[:, None] - d[None, :])                       # (m, D)
         valid = xr >= 0
         fr = rf[torch.arange(m)[:, None], :, xr.clamp(min=0)]  # (m, D, maps)
-        logits = model.head(fl[:, None, :].expand(-1, ndisp, -1), fr)
-        cost = torch.softmax(logits, dim=-1)[..., 0]
+        cost = model.cost(model.head(fl[:, None, :].expand(-1, ndisp, -1), fr))
         out[s:s + chunk] = torch.where(valid, cost, torch.full_like(cost, float("inf")))
     return out
 

@@ -42,10 +42,11 @@ import torch.nn.functional as F
 
 from mccnn_cl.datasets import discover
 from mccnn_cl.errors import InputError
-from mccnn_cl.weights import PAPER_CONV, PAPER_FC
+from mccnn_cl.weights import ACRT, FST, PAPER, PAPER_CONV, PAPER_FC
 
+from .crops import KITTI_AUGMENT, MIDDLEBURY_AUGMENT, CropSampler, crop_loss
 from .evaluate import make_validation, validate
-from .model import MCCNN
+from .model import DEFAULT_LAYERS, MCCNN
 from .patches import PatchSampler
 
 __all__ = ["TrainConfig", "train", "select_pairs", "lr_at", "augment_batch", "main"]
@@ -55,6 +56,7 @@ __all__ = ["TrainConfig", "train", "select_pairs", "lr_at", "augment_batch", "ma
 class TrainConfig:
     """Every knob of a run (the CLI flags map one to one; see ``--help``)."""
 
+    arch: str = "paper"                     # paper | fst | acrt
     epochs: int = 16
     examples_per_epoch: int | None = None   # patch pairs (pos + neg); None: all GT pixels x2
     batch_size: int = 128                   # pos + neg; must be even
@@ -71,11 +73,31 @@ class TrainConfig:
     augment: bool = False
     conv_layers: list = field(default_factory=lambda: [list(c) for c in PAPER_CONV])
     fc_layers: list = field(default_factory=lambda: list(PAPER_FC))
+    margin: float = 0.2                     # fst hinge margin
+    sampler: str = "patch"                  # "patch" (one patch pair per example) or "crop"
+    crop: tuple = (47, 47)                  # crop sampler: left feature-map size (h, w), odd
+    spread: int = 32                        # crop sampler: extra right columns each side
+    per_crop: int = 1024                    # crop sampler: GT pixels per crop at most
+    crops_per_step: int = 2                 # crop sampler: crops per SGD step
+    negatives: int = 1                      # crop sampler: negatives per GT pixel
+    subpixel: bool = False                  # crop sampler: exact GT d, continuous offsets, bilinear
+    steps_per_epoch: int = 500              # crop sampler: SGD steps between validations
+    checkpoint_minutes: float = 5.0         # also checkpoint mid-epoch this often (wall clock)
     seed: int = 0
     val_examples: int = 4000
     val_pixels: int = 3000
     val_ndisp: int | None = None            # D for the WTA error; None: pair's ndisp or 228 (KITTI)
     progress: bool = True
+
+
+ARCHS = {"paper": PAPER, "fst": FST, "acrt": ACRT}
+#: per-architecture recipe defaults (released code, KITTI): lr, offsets, layers
+ARCH_DEFAULTS = {
+    "paper": dict(lr=0.01, n_lo=4, n_hi=8, p_hi=1, conv_layers=PAPER_CONV, fc_layers=PAPER_FC),
+    "fst": dict(lr=0.002, n_lo=4, n_hi=10, p_hi=1, conv_layers=DEFAULT_LAYERS[FST][0], fc_layers=[]),
+    "acrt": dict(lr=0.003, n_lo=4, n_hi=10, p_hi=1, conv_layers=DEFAULT_LAYERS[ACRT][0],
+                 fc_layers=DEFAULT_LAYERS[ACRT][1]),
+}
 
 
 def lr_at(cfg: TrainConfig, it: int, total: int) -> float:
@@ -205,109 +227,218 @@ def _machine(device) -> str:
     return f"{cpu}, {torch.get_num_threads()} torch thread(s)"
 
 
+def _export(model, path: Path, meta: dict) -> None:
+    """Write the weights .npz atomically (a reader never sees half a file)."""
+    tmp = path.with_name(path.name + ".tmp.npz")
+    was = next(model.parameters()).device
+    model.cpu().to_weights(meta).save(tmp)
+    model.to(was)
+    os.replace(tmp, path)
+
+
 def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None, log=print,
-          stop_after: int | None = None) -> dict:
+          stop_after: int | None = None, stop_after_steps: int | None = None) -> dict:
     """Train on ``train_pairs`` (StereoPairs with GT), validate on ``val_pairs`` each epoch.
 
-    Writes ``checkpoint.pt``, ``history.json`` and ``training.png`` in
-    ``out_dir``.  ``resume``: a checkpoint path to continue from.
-    ``stop_after``: run at most this many epochs in this call (the schedule
-    still spans ``cfg.epochs``; continue later with ``resume``).  Returns
-    ``{"model": MCCNN (on device), "history": [...], "provenance": {...}}``.
+    Writes ``checkpoint.pt`` (every epoch and every ``cfg.checkpoint_minutes``
+    within one), ``history.json``, ``run.json`` (progress: step, examples,
+    wall time), ``training.png``, ``latest.npz`` (weights after each epoch)
+    and ``best.npz`` (whenever the validation WTA error improves) in
+    ``out_dir``.  ``resume``: a checkpoint path to continue from (bit for bit,
+    also from a mid-epoch checkpoint).  ``stop_after``: run at most this many
+    epochs in this call; ``stop_after_steps``: stop (with a checkpoint) after
+    this many steps in this call (the schedule still spans ``cfg.epochs``).
+    Returns ``{"model": MCCNN (on device), "history": [...], "provenance": {...}}``.
     """
-    if cfg.batch_size < 2 or cfg.batch_size % 2:
+    if cfg.arch not in ARCHS:
+        raise InputError(f"unknown architecture {cfg.arch!r} (expected one of {', '.join(ARCHS)})")
+    if cfg.sampler not in ("patch", "crop"):
+        raise InputError(f"sampler must be 'patch' or 'crop', got {cfg.sampler!r}")
+    if cfg.sampler == "patch" and (cfg.batch_size < 2 or cfg.batch_size % 2):
         raise InputError(f"batch size must be even (half positive, half negative), got {cfg.batch_size}")
     device = torch.device(device)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
-    model = MCCNN(cfg.conv_layers, cfg.fc_layers).he_init_().to(device)
+    model = MCCNN(cfg.conv_layers, cfg.fc_layers, architecture=ARCHS[cfg.arch],
+                  margin=cfg.margin).he_init_().to(device)
     opt = torch.optim.SGD(model.parameters(), lr=cfg.lr, momentum=cfg.momentum,
                           weight_decay=cfg.weight_decay)
-    sampler = PatchSampler(train_pairs, patch_size=model.patch_size, n_lo=cfg.n_lo, n_hi=cfg.n_hi,
-                           p_hi=cfg.p_hi, use=cfg.gt, max_per_pair=cfg.max_per_pair)
-    vset = make_validation(val_pairs, model.patch_size, n_examples=cfg.val_examples,
-                           n_pixels=cfg.val_pixels, seed=cfg.seed + 1, n_lo=cfg.n_lo, n_hi=cfg.n_hi,
-                           p_hi=cfg.p_hi, ndisp=cfg.val_ndisp)
-    per_epoch_locs = sum(sampler.locations_per_epoch().values())
-    locs = per_epoch_locs if cfg.examples_per_epoch is None else cfg.examples_per_epoch // 2
     half = cfg.batch_size // 2
-    iters_per_epoch = max(1, locs // half)
+    if cfg.sampler == "patch":
+        sampler = PatchSampler(train_pairs, patch_size=model.patch_size, n_lo=cfg.n_lo, n_hi=cfg.n_hi,
+                               p_hi=cfg.p_hi, use=cfg.gt, max_per_pair=cfg.max_per_pair)
+        per_epoch_locs = sum(sampler.locations_per_epoch().values())
+        locs = per_epoch_locs if cfg.examples_per_epoch is None else cfg.examples_per_epoch // 2
+        iters_per_epoch = max(1, locs // half)
+        unit = f"{cfg.batch_size} examples"
+    else:
+        aug = None
+        if cfg.augment:
+            kitti = sum(p.key.startswith("kitti") for p in train_pairs) * 2 >= len(train_pairs)
+            aug = KITTI_AUGMENT if kitti else MIDDLEBURY_AUGMENT
+        sampler = CropSampler(train_pairs, model.patch_size, p_hi=cfg.p_hi, n_lo=cfg.n_lo, n_hi=cfg.n_hi,
+                              crop=tuple(cfg.crop), spread=cfg.spread, per_crop=cfg.per_crop,
+                              negatives=cfg.negatives, subpixel=cfg.subpixel, augment=aug, use=cfg.gt,
+                              max_per_pair=cfg.max_per_pair)
+        per_epoch_locs = sum(sampler.counts().values())
+        iters_per_epoch = cfg.steps_per_epoch
+        unit = f"{cfg.crops_per_step} crops"
+    vset = make_validation(val_pairs, model.patch_size, n_examples=cfg.val_examples,
+                           n_pixels=cfg.val_pixels, seed=cfg.seed + 1, n_lo=int(round(cfg.n_lo)),
+                           n_hi=int(round(cfg.n_hi)), p_hi=int(round(cfg.p_hi)), ndisp=cfg.val_ndisp)
     total_iters = cfg.epochs * iters_per_epoch
-    history, start_epoch, elapsed0 = [], 0, 0.0
+    history, start_epoch, start_i, elapsed0, examples0 = [], 0, 0, 0.0, 0
+    mid = None
+    best = float("inf")
     if resume is not None:
         ck = torch.load(resume, map_location=device, weights_only=False)
-        if ck["config"]["conv_layers"] != cfg.conv_layers or ck["config"]["fc_layers"] != cfg.fc_layers:
+        c = ck["config"]
+        if (c["conv_layers"] != cfg.conv_layers or c["fc_layers"] != cfg.fc_layers
+                or c.get("arch", "paper") != cfg.arch):
             raise InputError(f"{resume}: checkpoint has another architecture")
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
-        start_epoch, history, elapsed0 = ck["epoch"] + 1, ck["history"], ck.get("elapsed", 0.0)
-        log(f"resumed from {resume} after epoch {ck['epoch'] + 1}")
-    log(f"training on {len(train_pairs)} pairs ({', '.join(sampler.keys)}), "
-        f"{per_epoch_locs} locations per full epoch; validating on {', '.join(vset.keys) or 'nothing'}")
-    log(f"{cfg.epochs} epochs x {iters_per_epoch} iterations x {cfg.batch_size} examples "
-        f"= {total_iters * cfg.batch_size} examples; device {device}")
+        history, elapsed0 = ck["history"], ck.get("elapsed", 0.0)
+        examples0 = ck.get("examples_seen", sum(h["examples"] for h in history))
+        best = ck.get("best_err3", float("inf"))
+        mid = ck.get("mid")
+        if mid is not None:
+            start_epoch, start_i = mid["epoch"], mid["i"]
+            log(f"resumed from {resume} in epoch {start_epoch + 1}, step {start_i}")
+        else:
+            start_epoch = ck["epoch"] + 1
+            log(f"resumed from {resume} after epoch {ck['epoch'] + 1}")
+    log(f"{cfg.arch} net, {cfg.sampler} sampler: training on {len(train_pairs)} pairs ({', '.join(sampler.keys)}), "
+        f"{per_epoch_locs} GT locations; validating on {', '.join(vset.keys) or 'nothing'}")
+    log(f"{cfg.epochs} epochs x {iters_per_epoch} steps x {unit}; device {device}")
     t_start = time.time()
+    examples_seen = examples0
+    steps_left = stop_after_steps
+    last_ck = time.time()
+
+    def progress(step_epoch, step_i):
+        return {"arch": cfg.arch, "sampler": cfg.sampler, "epoch": step_epoch, "step": step_epoch * iters_per_epoch
+                + step_i, "total_steps": total_iters, "examples_seen": int(examples_seen),
+                "wall_time_s": round(elapsed0 + time.time() - t_start, 1), "best_val_err3": best,
+                "updated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+
+    def save_ck(epoch, mid_state):
+        _atomic_torch_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
+                            "history": history, "config": asdict(cfg), "elapsed": elapsed0 + time.time() - t_start,
+                            "examples_seen": examples_seen, "best_err3": best, "mid": mid_state},
+                           out_dir / "checkpoint.pt")
+        with open(out_dir / "run.json.tmp", "w") as f:
+            json.dump(progress(mid_state["epoch"] if mid_state else epoch + 1,
+                               mid_state["i"] if mid_state else 0), f, indent=1)
+        os.replace(out_dir / "run.json.tmp", out_dir / "run.json")
+
     end_epoch = cfg.epochs if stop_after is None else min(cfg.epochs, start_epoch + stop_after)
+    stopped = False
     for epoch in range(start_epoch, end_epoch):
         rng = np.random.default_rng([cfg.seed, epoch])
         gen = torch.Generator().manual_seed(int(rng.integers(2**62)))
-        plan = sampler.epoch(rng, n_locations=iters_per_epoch * half)
-        n_it = min(iters_per_epoch, len(plan[0]) // half)
+        if cfg.sampler == "patch":
+            plan = sampler.epoch(rng, n_locations=iters_per_epoch * half)
+            n_it = min(iters_per_epoch, len(plan[0]) // half)
+        else:
+            n_it = iters_per_epoch
+        i0, loss_sum, seen, t0 = 0, 0.0, 0, time.time()
+        if mid is not None and mid["epoch"] == epoch:
+            i0, loss_sum, seen = mid["i"], mid["loss_sum"], mid["seen"]
+            gen.set_state(mid["gen"])
+            mid = None
         model.train()
-        loss_sum, seen, t0 = 0.0, 0, time.time()
         bar = None
         if cfg.progress:
             from tqdm import tqdm
-            bar = tqdm(total=n_it, desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="it",
+            bar = tqdm(total=n_it, initial=i0, desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="it",
                        mininterval=1.0 if sys.stderr.isatty() else 30.0, leave=False)
-        for i in range(n_it):
+        seen_here, t_here = 0, time.time()
+        for i in range(i0, n_it):
             it = epoch * iters_per_epoch + i
             lr = lr_at(cfg, it, total_iters)
             for g in opt.param_groups:
                 g["lr"] = lr
-            b = sampler.batch(plan, i * half, (i + 1) * half)
-            left = torch.from_numpy(b.left).to(device)
-            right = torch.from_numpy(b.right).to(device)
-            labels = torch.from_numpy(b.labels).to(device)
-            if cfg.augment:
-                left, right = augment_batch(left, right, gen)
-            loss = F.cross_entropy(model(left, right), labels)
+            if cfg.sampler == "patch":
+                b = sampler.batch(plan, i * half, (i + 1) * half)
+                left = torch.from_numpy(b.left).to(device)
+                right = torch.from_numpy(b.right).to(device)
+                if cfg.augment:
+                    left, right = augment_batch(left, right, gen)
+                out = model(left, right)
+                loss = model.loss(out[:half], out[half:])
+                n_ex = len(b.labels)
+            else:
+                cb = sampler.sample(np.random.default_rng([cfg.seed, epoch, i]), cfg.crops_per_step)
+                loss = crop_loss(model, cb, device)
+                n_ex = cb.n * (1 + cfg.negatives)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            loss_sum += float(loss.detach()) * len(labels)
-            seen += len(labels)
+            loss_sum += float(loss.detach()) * n_ex
+            seen += n_ex
+            seen_here += n_ex
+            examples_seen += n_ex
             if bar is not None:
                 bar.update(1)
                 if i % 50 == 0:
-                    bar.set_postfix(loss=f"{loss_sum / seen:.4f}", ex_s=f"{seen / (time.time() - t0):.0f}",
+                    bar.set_postfix(loss=f"{loss_sum / seen:.4f}", ex_s=f"{seen_here / (time.time() - t_here):.0f}",
                                     lr=f"{lr:g}")
+            last = i + 1 == n_it
+            if steps_left is not None:
+                steps_left -= 1
+            if not last and (time.time() - last_ck > 60 * cfg.checkpoint_minutes or steps_left == 0):
+                save_ck(epoch - 1, {"epoch": epoch, "i": i + 1, "loss_sum": loss_sum, "seen": seen,
+                                    "gen": gen.get_state()})
+                last_ck = time.time()
+                log(json.dumps({"checkpoint": progress(epoch, i + 1),
+                                "train_loss_so_far": round(loss_sum / max(seen, 1), 5)}))
+            if steps_left == 0 and not last:
+                stopped = True
+                break
         if bar is not None:
             bar.close()
+        if stopped:
+            break
         train_time = time.time() - t0
         rec = {"epoch": epoch + 1, "train_loss": loss_sum / max(seen, 1), "examples": seen,
                "lr": lr_at(cfg, epoch * iters_per_epoch + max(n_it - 1, 0), total_iters),
-               "examples_per_s": seen / max(train_time, 1e-9)}
+               "examples_per_s": seen_here / max(time.time() - t_here, 1e-9)}
         tv = time.time()
         rec.update(validate(model, vset, device))
         rec["val_time_s"] = time.time() - tv
+        rec["examples_seen"] = int(examples_seen)
+        rec["wall_time_s"] = round(elapsed0 + time.time() - t_start, 1)
         history.append(rec)
-        elapsed = elapsed0 + (time.time() - t_start)
-        _atomic_torch_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
-                            "history": history, "config": asdict(cfg), "elapsed": elapsed},
-                           out_dir / "checkpoint.pt")
+        err = rec.get("val_err3")
+        improved = err is not None and err < best
+        if improved:
+            best = err
+        snap = {"training": {"arch": cfg.arch, "epoch": epoch + 1, "examples_seen": int(examples_seen),
+                             "wall_time_s": rec["wall_time_s"], "held_out": vset.keys,
+                             "trained_on": {k: int(v) for k, v in sampler.counts().items()},
+                             "validation": {k: v for k, v in rec.items() if k.startswith("val_")},
+                             "config": {k: v for k, v in asdict(cfg).items() if k != "progress"}}}
+        _export(model, out_dir / "latest.npz", snap)
+        if improved:
+            _export(model, out_dir / "best.npz", snap)
+        save_ck(epoch, None)
+        last_ck = time.time()
         with open(out_dir / "history.json", "w") as f:
             json.dump(history, f, indent=1)
         plot_history(history, out_dir / "training.png")
         log(json.dumps({k: (round(v, 5) if isinstance(v, float) else v) for k, v in rec.items()}))
+        if steps_left == 0:
+            break
     elapsed = elapsed0 + (time.time() - t_start)
     prov = {
+        "architecture": ARCHS[cfg.arch],
         "trained_on": {k: int(v) for k, v in sampler.counts().items()},
         "held_out": vset.keys,
         "epochs": cfg.epochs,
         "epochs_done": len(history),
-        "examples": int(sum(h["examples"] for h in history)),
+        "examples": int(examples_seen),
         "iterations": total_iters,
         "wall_time_s": round(elapsed, 1),
         "machine": _machine(device),
@@ -342,30 +473,51 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--max-per-pair", type=int, default=None,
                    help="cap on the locations one pair contributes per epoch (keeps one big image from "
                         "drowning the rest)")
-    g = p.add_argument_group("recipe")
+    g = p.add_argument_group("recipe (defaults per --arch: paper lr 0.01, offsets 1/4/8; fst lr 0.002, hinge "
+                             "margin 0.2, offsets 1/4/10, 4 conv 3x3 of 64; acrt lr 0.003, BCE, offsets 1/4/10, "
+                             "4 conv 3x3 of 112, fc 384 x4 + 1)")
+    g.add_argument("--arch", choices=list(ARCHS), default=d.arch, help="network: paper (CVPR 2015), fst, acrt (JMLR)")
     g.add_argument("--epochs", type=int, default=d.epochs)
     g.add_argument("--examples-per-epoch", type=int, default=None,
-                   help="patch pairs per epoch (positives + negatives); default: two per usable GT pixel")
-    g.add_argument("--batch-size", type=int, default=d.batch_size, help="half positive, half negative")
-    g.add_argument("--lr", type=float, default=d.lr)
+                   help="patch sampler: patch pairs per epoch (positives + negatives); default: two per usable GT pixel")
+    g.add_argument("--batch-size", type=int, default=d.batch_size, help="patch sampler: half positive, half negative")
+    g.add_argument("--lr", type=float, default=None)
     g.add_argument("--lr-steps", type=float, nargs="*", default=list(d.lr_steps),
                    help="fractions of the run where the learning rate is multiplied by --lr-factor")
     g.add_argument("--lr-factor", type=float, default=d.lr_factor)
     g.add_argument("--momentum", type=float, default=d.momentum, help="0.9 as in the released code; 0 = plain SGD")
     g.add_argument("--weight-decay", type=float, default=d.weight_decay)
-    g.add_argument("--n-lo", type=int, default=d.n_lo)
-    g.add_argument("--n-hi", type=int, default=d.n_hi)
-    g.add_argument("--p-hi", type=int, default=d.p_hi)
+    g.add_argument("--margin", type=float, default=d.margin, help="fst hinge-loss margin")
+    g.add_argument("--n-lo", type=float, default=None, help="false1: smallest negative offset")
+    g.add_argument("--n-hi", type=float, default=None, help="false2: largest negative offset")
+    g.add_argument("--p-hi", type=float, default=None, help="true1: largest positive offset")
     g.add_argument("--augment", action=argparse.BooleanOptionalAction, default=d.augment,
                    help="geometric/photometric jitter of the released code (not in the paper)")
-    g.add_argument("--conv", type=_parse_layers, default=d.conv_layers, help="JSON [[maps, kernel], ...]")
-    g.add_argument("--fc", type=_parse_layers, default=d.fc_layers, help="JSON [units, ..., 2]")
+    g.add_argument("--conv", type=_parse_layers, default=None, help="JSON [[maps, kernel], ...]")
+    g.add_argument("--fc", type=_parse_layers, default=None, help="JSON [units, ..., outputs] ([] for fst)")
+    g = p.add_argument_group("sampler")
+    g.add_argument("--sampler", choices=["patch", "crop"], default=d.sampler,
+                   help="patch: one patch pair per example; crop: fully convolutional crops (train/crops.py)")
+    g.add_argument("--crop", type=int, nargs=2, default=list(d.crop), metavar=("H", "W"),
+                   help="crop sampler: left feature-map size (odd)")
+    g.add_argument("--spread", type=int, default=d.spread, help="crop sampler: extra right columns each side")
+    g.add_argument("--per-crop", type=int, default=d.per_crop, help="crop sampler: GT pixels per crop at most")
+    g.add_argument("--crops-per-step", type=int, default=d.crops_per_step)
+    g.add_argument("--negatives", type=int, default=d.negatives, help="crop sampler: negatives per GT pixel")
+    g.add_argument("--subpixel", action=argparse.BooleanOptionalAction, default=d.subpixel,
+                   help="crop sampler: exact GT disparity and continuous offsets (bilinear feature sampling)")
+    g.add_argument("--steps-per-epoch", type=int, default=d.steps_per_epoch,
+                   help="crop sampler: SGD steps per epoch (validation, checkpoint and exports after each)")
     g = p.add_argument_group("run")
     g.add_argument("--out", required=True, help="run folder (checkpoint, history, plot)")
     g.add_argument("--export", default=None, help="weights .npz to write at the end (default OUT/weights.npz)")
     g.add_argument("--resume", default=None, help="checkpoint.pt to continue from")
     g.add_argument("--stop-after", type=int, default=None,
                    help="run at most this many epochs now (continue later with --resume)")
+    g.add_argument("--stop-after-steps", type=int, default=None,
+                   help="run at most this many steps now, then checkpoint (continue later with --resume)")
+    g.add_argument("--checkpoint-minutes", type=float, default=d.checkpoint_minutes,
+                   help="also checkpoint within an epoch this often")
     g.add_argument("--seed", type=int, default=d.seed)
     g.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     g.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
@@ -395,13 +547,23 @@ def main(argv=None) -> int:
             pass
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     commit = _git_commit()  # the code that trains, not whatever HEAD is when it ends
-    cfg = TrainConfig(epochs=args.epochs, examples_per_epoch=args.examples_per_epoch,
-                      batch_size=args.batch_size, lr=args.lr, lr_steps=tuple(args.lr_steps),
+    ad = ARCH_DEFAULTS[args.arch]
+
+    def pick(v, key):
+        v = ad[key] if v is None else v
+        return int(v) if isinstance(v, float) and v.is_integer() and key != "lr" else v
+    cfg = TrainConfig(arch=args.arch, epochs=args.epochs, examples_per_epoch=args.examples_per_epoch,
+                      batch_size=args.batch_size, lr=pick(args.lr, "lr"), lr_steps=tuple(args.lr_steps),
                       lr_factor=args.lr_factor, momentum=args.momentum, weight_decay=args.weight_decay,
-                      n_lo=args.n_lo, n_hi=args.n_hi, p_hi=args.p_hi, gt=args.gt,
-                      max_per_pair=args.max_per_pair, augment=args.augment, conv_layers=args.conv,
-                      fc_layers=args.fc, seed=args.seed, val_examples=args.val_examples,
-                      val_pixels=args.val_pixels, val_ndisp=args.val_ndisp, progress=not args.no_progress)
+                      n_lo=pick(args.n_lo, "n_lo"), n_hi=pick(args.n_hi, "n_hi"), p_hi=pick(args.p_hi, "p_hi"),
+                      gt=args.gt, max_per_pair=args.max_per_pair, augment=args.augment,
+                      conv_layers=[list(c) for c in pick(args.conv, "conv_layers")],
+                      fc_layers=list(pick(args.fc, "fc_layers")), margin=args.margin, sampler=args.sampler,
+                      crop=tuple(args.crop), spread=args.spread, per_crop=args.per_crop,
+                      crops_per_step=args.crops_per_step, negatives=args.negatives, subpixel=args.subpixel,
+                      steps_per_epoch=args.steps_per_epoch, checkpoint_minutes=args.checkpoint_minutes,
+                      seed=args.seed, val_examples=args.val_examples, val_pixels=args.val_pixels,
+                      val_ndisp=args.val_ndisp, progress=not args.no_progress)
     try:
         train_refs, held_refs = select_pairs(args.data, args.holdout, args.include, args.dataset)
         train_pairs = [r.load() for r in train_refs]
@@ -413,7 +575,7 @@ def main(argv=None) -> int:
             raise InputError("none of the training pairs has ground truth")
         val_pairs = [r.load() for r in held_refs]
         result = train(cfg, train_pairs, val_pairs, device, args.out, resume=args.resume,
-                       stop_after=args.stop_after)
+                       stop_after=args.stop_after, stop_after_steps=args.stop_after_steps)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
