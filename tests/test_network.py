@@ -268,3 +268,47 @@ def test_flops_count(ctx, paper_weights):
     conv = 2 * 2 * (26 * 16 * 25 * 1 * 32 + 22 * 12 * 25 * 32 * 200 + 22 * 12 * 200 * 200)
     assert f["features"] == conv + 2 * 2 * 12 * 22 * 200 * 300
     assert f["total"] == f["features"] + f["head"]
+
+
+# -- settings that travel with the network (StereoMatcher) --------------------
+
+def test_settings_travel_with_weights(ctx):
+    """Weights.stereo applies first, the caller's overrides win; fst's settings
+    (no CBCA) run without cross arms; the cost class follows the architecture."""
+    from mccnn_cl.pipeline import StereoMatcher
+    from mccnn_cl.settings import authors_settings
+    from mccnn_cl.stages.fst import FstCost
+
+    w = Weights.random([[8, 3]] * 2, architecture="mccnn-fst", seed=2)
+    w.meta["stereo"] = authors_settings("mccnn-fst", "kitti")
+    sm = StereoMatcher(weights=w, max_disparity=8, device=ctx, sgm_pi2=40.0)
+    assert isinstance(sm.cost, FstCost) and sm.margin == 2
+    assert sm.params.sgm_pi2 == 40.0                      # the caller wins
+    assert sm.params.sgm_pi1 == 4.0 and sm.params.sgm_tau_so == 0.02  # the network's
+    assert sm.params.intensity_scale == "standardised" and sm.params.cbca_iterations == 0
+    rng = np.random.default_rng(0)
+    left = rng.random((24, 40)).astype(np.float32)
+    right = np.roll(left, -2, axis=1)
+    res = sm.compute(left, right, timings=True)
+    assert res.disparity.shape == (24, 40) and np.isfinite(res.disparity).all()
+    assert "cross" not in res.timings and "cross_R" not in res.timings
+    # the thresholds compare the standardised images
+    S_L, _ = sm._threshold_images(left, right)
+    np.testing.assert_allclose(S_L, normalise(left))
+    # without settings in the file: the paper's defaults, unit scale
+    w.meta.pop("stereo")
+    sm = StereoMatcher(weights=w, max_disparity=8, device=ctx)
+    assert sm.params.intensity_scale == "unit" and sm.params.sgm_pi2 == 32.0
+    assert sm._threshold_images(left, right)[0] is left
+
+
+def test_settings_errors(ctx):
+    from mccnn_cl.errors import WeightsError
+    from mccnn_cl.pipeline import Hyperparameters, StereoMatcher
+
+    w = Weights.random([[8, 3]], [4, 2], seed=1)
+    w.meta["stereo"] = {"sgm_pi9": 1.0}
+    with pytest.raises(WeightsError, match="sgm_pi9"):
+        StereoMatcher(weights=w, max_disparity=8, device=ctx)
+    with pytest.raises(InputError, match="intensity_scale"):
+        Hyperparameters(intensity_scale="0..255")

@@ -1,0 +1,151 @@
+"""MC-CNN-fst on the device (features.ConvStack without the last ReLU,
+kernels/fst.cl: normalisation and cosine volume) against
+mccnn_cl.reference.network.fst_cost_volume.
+
+Tolerance: features are unit vectors, so every cost is a cosine in [-1, 1].
+The kernels accumulate in float32 over up to 9 * 64 products per conv unit
+and 64 products per cost (another order than the float64 reference); with
+He-scale weights the costs differ by ~1e-6.  2e-5 absolute is a bound with
+margin that any wrong index, shift, sign, missing ReLU or missing
+normalisation exceeds by orders of magnitude (checked below where cheap:
+the sign and the ReLU after the last layer).  NaN exactly where x - d < 0.
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from mccnn_cl.errors import InputError, WeightsError
+from mccnn_cl.reference import network as ref
+from mccnn_cl.stages import fst as fst_stage
+from mccnn_cl.stages.costs import make_cost
+from mccnn_cl.stages.fst import FstCost
+from mccnn_cl.weights import Weights
+
+from conftest import POISON
+
+TOL = 2e-5
+
+
+def random_pair(rng, H, W, shift=3):
+    left = rng.random((H, W)).astype(np.float32)
+    right = np.roll(left, -shift, axis=1) + 0.05 * rng.random((H, W)).astype(np.float32)
+    return left, right
+
+
+def run_poisoned(ctx, cost, left, right, D, half=False):
+    m = cost.margin
+    h, w = left.shape[0] - 2 * m, left.shape[1] - 2 * m
+    item = 2 if half else 4
+    d_out = ctx.empty(D * h * w * item, "test volume")
+    ctx.fill(d_out, np.float16(-1e4) if half else POISON, D * h * w * item,
+             dtype=np.float16 if half else np.float32)
+    assert cost(left, right, D, out=d_out) is d_out
+    return ctx.from_device(d_out, (D, h, w), np.float16 if half else np.float32)
+
+
+def check(got, expected, tol=TOL):
+    D, h, w = expected.shape
+    assert got.shape == expected.shape
+    assert not np.any(got == POISON), "cells left unwritten"
+    d, _, x = np.meshgrid(np.arange(D), np.arange(h), np.arange(w), indexing="ij")
+    np.testing.assert_array_equal(np.isnan(got), x < d)
+    np.testing.assert_array_equal(np.isnan(expected), x < d)
+    v = ~np.isnan(expected)
+    if v.any():
+        err = np.abs(got[v].astype(np.float64) - expected[v]).max()
+        assert err <= tol, f"max abs error {err:.3g}"
+        assert np.all(np.abs(got[v]) <= 1 + 1e-6)
+
+
+@pytest.mark.parametrize("case", [
+    # conv layers, H x W image, D
+    ([[16, 3]] * 4, 37 + 8, 53 + 8, 16),     # the brief's odd size: 37 x 53 volume, D = 16
+    ([[64, 3]] * 4, 20, 70, 40),             # KITTI's layers, several 16-pixel blocks
+    ([[64, 3]] * 5, 19, 31, 33),             # Middlebury's 5 layers (patch 11), D > W
+    ([[7, 3], [5, 5]], 9, 23, 5),            # odd maps, kernel 5, one row
+    ([[12, 3]], 5, 8, 1),                    # one layer, D = 1, w < 16
+], ids=["37x53-D16", "kitti-layers", "mb-5-layers-D>W", "odd-maps", "one-layer"])
+def test_random_images(ctx, case):
+    conv, H, W, D = case
+    w = Weights.random(conv, architecture="mccnn-fst", seed=H * W)
+    left, right = random_pair(np.random.default_rng(H + W), H, W)
+    cost = FstCost(ctx, w)
+    got = run_poisoned(ctx, cost, left, right, D)
+    check(got, ref.fst_cost_volume(w, left, right, D))
+
+
+@pytest.mark.parametrize("crop", [
+    ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png", 180, 600),
+    ("middlebury/Cones/im0.png", "middlebury/Cones/im1.png", 150, 200),
+], ids=["kitti2015-000000", "middlebury-cones"])
+def test_real_crops(ctx, shared_data, crop):
+    lp, rp, y0, x0 = crop
+    left = cv2.imread(str(shared_data / lp), cv2.IMREAD_GRAYSCALE)[y0:y0 + 41, x0:x0 + 67]
+    right = cv2.imread(str(shared_data / rp), cv2.IMREAD_GRAYSCALE)[y0:y0 + 41, x0:x0 + 67]
+    assert left.std() > 5 and right.std() > 5
+    w = Weights.random(architecture="mccnn-fst", seed=5)  # 4 x 64 maps, 3 x 3
+    cost = FstCost(ctx, w)
+    expected = ref.fst_cost_volume(w, left, right, 24)
+    check(run_poisoned(ctx, cost, left, right, 24), expected)
+    # the best disparity of a real pair is mostly a clear minimum: the costs are not flat
+    assert np.nanstd(expected) > 0.05
+
+
+def test_features_normalised_and_no_last_relu(ctx):
+    """fst_normalise's output is the reference's unit vectors, with negative
+    components (no ReLU after the last layer); the cost is minus the dot product."""
+    w = Weights.random([[8, 3], [8, 3]], architecture="mccnn-fst", seed=2)
+    assert not w.relu_after_last_conv
+    img = np.random.default_rng(3).random((14, 41)).astype(np.float32)
+    cost = FstCost(ctx, w)
+    f = cost.features(img)
+    fr = ref.fst_features(w, img)
+    np.testing.assert_allclose(f, fr, atol=2e-6, rtol=0)
+    assert (f < 0).any()
+    np.testing.assert_allclose(np.linalg.norm(f, axis=2), 1.0, atol=1e-4)
+    # a pair of identical images: the cost at d = 0 is -|f|^2 ~ -1
+    got = run_poisoned(ctx, cost, img, img, 3)
+    np.testing.assert_allclose(got[0], -1.0, atol=1e-4)
+
+
+@pytest.mark.parametrize("rows", [1, 3])
+def test_bands_and_to_host(ctx, monkeypatch, rows):
+    """Bands of 1 and 3 volume rows (seams), to_host in bands: the same values as one band."""
+    w = Weights.random([[10, 3]] * 3, architecture="mccnn-fst", seed=4)
+    left, right = random_pair(np.random.default_rng(9), 20, 45)
+    cost = FstCost(ctx, w)
+    whole = run_poisoned(ctx, cost, left, right, 11)
+    monkeypatch.setattr(fst_stage, "BAND_BYTES", rows * cost._row_bytes(39))
+    assert cost.band_rows(14, 39) == rows
+    seen = []
+    np.testing.assert_array_equal(run_poisoned(ctx, cost, left, right, 11), whole)
+    host = cost.to_host(left, right, 11, max_bytes=11 * 39 * 4 * 2, progress=lambda d, t: seen.append((d, t)))
+    np.testing.assert_array_equal(host, whole)
+    assert seen[-1] == (11, 11) and all(t == 11 for _, t in seen)
+
+
+def test_half_storage(ctx):
+    w = Weights.random([[16, 3]] * 4, architecture="mccnn-fst", seed=6)
+    left, right = random_pair(np.random.default_rng(1), 23, 50)
+    got = run_poisoned(ctx, FstCost(ctx, w, half=True), left, right, 9, half=True).astype(np.float32)
+    # float16 rounding of values in [-1, 1]: half an ulp at 1 is 2^-11 ~ 4.9e-4
+    check(got, ref.fst_cost_volume(w, left, right, 9), tol=5e-4 + TOL)
+
+
+def test_interface_and_errors(ctx):
+    w = Weights.random([[8, 3]] * 2, architecture="mccnn-fst", seed=1)
+    cost = make_cost(ctx, w)
+    assert isinstance(cost, FstCost) and cost.margin == 2 and not cost.local
+    f = cost.flops(30, 40, 10)
+    assert f["volume"] == 2 * 8 * f["valid_cells"] and f["valid_cells"] == 26 * sum(36 - d for d in range(10))
+    assert cost.scratch_bytes(26, 36) > 0
+    with pytest.raises(WeightsError):
+        FstCost(ctx, Weights.random([[8, 3]], [4, 2], seed=1))  # a paper network
+    img = np.zeros((10, 12), np.float32)
+    with pytest.raises(InputError):
+        cost(img, img[:, :11], 4)
+    with pytest.raises(InputError):
+        cost(img, img, 0)
+    with pytest.raises(InputError):
+        cost(img[:4], img[:4], 3)  # smaller than the 5 x 5 patch
