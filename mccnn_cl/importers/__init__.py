@@ -21,6 +21,7 @@ what was expected and what was found.  ``mccnn-cl convert-weights`` and
 from __future__ import annotations
 
 import hashlib
+import numbers
 import os
 
 from ..errors import WeightsError
@@ -100,8 +101,9 @@ def _from_pt(path) -> Weights:
     training = {"by": "CNES (PyPI mccnn)", "data": "Middlebury"}
     if isinstance(ckpt, dict):
         for k in ("epoch", "train_epoch_loss", "test_epoch_loss"):
-            if isinstance(ckpt.get(k), (int, float)):
-                training[k] = ckpt[k]
+            value = ckpt.get(k)
+            if isinstance(value, numbers.Real) and not isinstance(value, bool):
+                training[k] = int(value) if isinstance(value, numbers.Integral) else float(value)
     net = "AccMcCnn (MC-CNN-acrt)" if arch == ACRT else "FastMcCnn (MC-CNN-fst)"
     meta = {
         "dataset": "mb",

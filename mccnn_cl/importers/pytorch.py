@@ -33,9 +33,11 @@ from ..errors import WeightsError
 from ..weights import ACRT, FST
 
 #: (module, name) globals the fallback unpickler allows: tensor rebuilding,
-#: OrderedDict state dicts, numpy scalars (epochs, losses) and their dtypes.
+#: OrderedDict state dicts, numpy scalars (epochs, losses), their dtypes and
+#: the str -> bytes helper their pickles use.
 ALLOWED = {
     ("collections", "OrderedDict"),
+    ("_codecs", "encode"),
     ("torch._utils", "_rebuild_tensor"),
     ("torch._utils", "_rebuild_tensor_v2"),
     ("torch._utils", "_rebuild_parameter"),
@@ -91,7 +93,7 @@ def load_checkpoint(path, fallback=True):
         raise
     except Exception as exc:  # noqa: BLE001 - torch raises many kinds for a bad pickle
         first = exc
-    if not fallback or not isinstance(first, pickle.UnpicklingError) or "global" not in str(first).lower():
+    if not fallback or not isinstance(first, pickle.UnpicklingError) or "global" not in _line(first).lower():
         raise WeightsError(f"{name}: not a readable PyTorch checkpoint ({_line(first)}); "
                            f"expected {EXPECTED}") from first
     try:  # torch refused a global: try our own allow-list, which refuses by name
@@ -104,8 +106,19 @@ def load_checkpoint(path, fallback=True):
 
 
 def _line(exc) -> str:
-    text = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {text[0][:200]}" if text else type(exc).__name__
+    """One line of a torch error: the unpickler's own reason where torch wraps it in advice."""
+    text = str(exc).strip()
+    reason = re.search(r"WeightsUnpickler error:\s*([^\n]+)", text)
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    if reason:
+        lines = [reason.group(1)]
+    else:
+        lines = [line for line in lines if not line.startswith(_ADVICE)] or lines
+    return f"{type(exc).__name__}: {lines[0][:200]}" if lines else type(exc).__name__
+
+
+#: paragraphs of torch's weights_only errors that give advice, not the reason
+_ADVICE = ("Weights only load failed", "Check the documentation", "Please file an issue")
 
 
 def state_dict(obj, name):

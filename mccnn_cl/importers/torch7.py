@@ -283,6 +283,10 @@ def _kind(obj) -> str:
         return obj.class_name
     if isinstance(obj, T7Table):
         return f"a table of {len(obj)} entries"
+    if isinstance(obj, (T7Tensor, T7Storage)):
+        return obj.class_name
+    if isinstance(obj, T7Function):
+        return "a Lua function"
     return f"a {type(obj).__name__}" if obj is not None else "nil"
 
 
@@ -308,7 +312,8 @@ def network(root, name):
     if isinstance(root, T7Table) and 1.0 in root:  # main.lua saves {net_te, opt}
         net = root[1.0]
     if not (isinstance(net, T7Object) and net.class_name == "nn.Sequential"):
-        raise WeightsError(f"{name}: expected {EXPECTED}; the file holds {_kind(net)}")
+        held = (f"a table whose first entry is {_kind(net)}" if net is not root else _kind(net))
+        raise WeightsError(f"{name}: expected {EXPECTED}; the file holds {held}")
     modules = net.fields.get("modules")
     if not isinstance(modules, T7Table):
         raise WeightsError(f"{name}: nn.Sequential has no module list (expected {EXPECTED})")
