@@ -131,6 +131,42 @@ def case_network(ctx, rng, chk):
         chk.close(f"C_CNN {h}x{wd} D={D} tiles {net.tm}/{net.rm}/{net.rn} nwi {net.nwi}", got, ref.cost_volume(w, left, right, D), atol=2e-5, rtol=1e-4)
 
 
+def case_fst(ctx, rng, chk):
+    """fst.cl (normalisation, cosine volume) after the conv stack without its last ReLU."""
+    from mccnn_cl.reference import network as ref
+    from mccnn_cl.stages.fst import FstCost
+    from mccnn_cl.weights import Weights
+
+    w = Weights.random(conv_layers=[[6, 3], [5, 3]], architecture="mccnn-fst", seed=4)  # patch 5
+    cost = FstCost(ctx, w)
+    # 2nd: D >= W (cropped W = 9), 3rd: cropped width 35 (a partial 16-pixel block)
+    for h, wd, D in ((9, 21, 7), (8, 13, 11), (7, 39, 20)):
+        left, right = _images(rng, h, wd)
+        H, W = h - 2 * w.margin, wd - 2 * w.margin
+        out = _poisoned(ctx, D * H * W * 4)
+        cost(left, right, D, out=out)
+        # float32 dot products of 5 unit-vector components: ~1e-7
+        chk.close(f"fst {h}x{wd} D={D}", ctx.from_device(out, (D, H, W)), ref.fst_cost_volume(w, left, right, D),
+                  atol=2e-6, rtol=0)
+
+
+def case_acrt(ctx, rng, chk):
+    """network_head.cl with the 1-output sigmoid layer (NOUT=1)."""
+    from mccnn_cl.reference import network as ref
+    from mccnn_cl.stages.network import AcrtCost
+    from mccnn_cl.weights import Weights
+
+    w = Weights.random(conv_layers=[[4, 3], [4, 3]], fc_layers=[8, 8, 1], architecture="mccnn-acrt", seed=5)
+    for tiles, (h, wd, D) in ((None, (9, 17, 5)), ({"TM": 4, "RM": 2, "RN": 4, "ROWS_FASTEST": 0, "CONV_RM": 3},
+                                                    (8, 11, 9))):
+        left, right = _images(rng, h, wd)
+        H, W = h - 2 * w.margin, wd - 2 * w.margin
+        out = _poisoned(ctx, D * H * W * 4)
+        AcrtCost(ctx, w, tiles=tiles)(left, right, D, out=out)
+        chk.close(f"acrt {h}x{wd} D={D}", ctx.from_device(out, (D, H, W)), ref.cost_volume(w, left, right, D),
+                  atol=2e-5, rtol=1e-4)
+
+
 def case_census(ctx, rng, chk):
     from mccnn_cl.reference import disparity as ref
     from mccnn_cl.stages.census import CensusCost
@@ -385,6 +421,8 @@ def selftest_bad_kernel(ctx, rng, chk):
 # Stages covered: add a case here once its stage is committed.
 CASES = {
     "network": case_network,
+    "fst": case_fst,
+    "acrt": case_acrt,
     "census": case_census,
     "cross": case_cross,
     "cbca": case_cbca,
@@ -398,6 +436,8 @@ CASES = {
 # they must cover every kernel the package uses (test_every_kernel_is_covered).
 CASE_KERNELS = {
     "network": {"network_conv", "network_head", "network_mark_invalid"},
+    "fst": {"network_conv", "fst_normalise", "fst_volume"},
+    "acrt": {"network_conv", "network_head", "network_mark_invalid"},
     "census": {"census_transform", "census_cost"},
     "cross": {"cross_build"},
     "cbca": {"cbca_rows", "cbca_columns", "cbca_rows_short", "cbca_columns_short", "cbca_fused_short",
