@@ -119,6 +119,12 @@ def test_t7_converts_to_fst(t7_weights):
             opts["blur_sigma"], opts["blur_t"]) == (s["sgm_pi1"], s["sgm_pi2"], s["sgm_q1"], s["sgm_q2"],
                                                     s["sgm_v"], s["sgm_tau_so"], s["blur_sigma"], s["blur_tau"])
     assert opts["color"] == "gray" and opts["fm"] == 64 and opts["l1"] == 4
+    # -a train_all: every KITTI 2012 training pair, so evaluate can say which pairs it saw
+    from mccnn_cl.evaluate import training_status
+
+    assert opts["a"] == "train_all" and len(w.meta["training"]["trained_on"]) == 194
+    assert training_status(w.meta, "kitti2012/000193", "000193") == "trained"
+    assert training_status(w.meta, "kitti2015/000000", "000000") == "held out"
 
 
 def test_t7_arrays_equal_the_storages_in_the_text(t7_bytes, t7_weights):

@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import numbers
 import os
+import re
 
 from ..errors import WeightsError
 from ..weights import ACRT, FST, Weights
@@ -32,6 +33,12 @@ BSD2 = ("BSD-2-Clause: Copyright (c) 2015, Jure Zbontar; redistribution with the
         "conditions and disclaimer of the mc-cnn LICENSE")
 APACHE2 = ("Apache-2.0: Centre National d'Etudes Spatiales (CNES), PyPI mccnn 1.4.1; "
            "see the Apache License, Version 2.0")
+
+
+#: what the released code's -d options train on; pair keys as mccnn_cl.datasets names them
+TRAINING_DATA = {"kitti": "KITTI 2012 training pairs", "kitti2015": "KITTI 2015 training pairs",
+                 "mb": "Middlebury training pairs"}
+TRAINING_PAIRS = {"kitti": ("kitti2012", 194), "kitti2015": ("kitti2015", 200)}
 
 
 def sha256(path) -> str:
@@ -79,17 +86,24 @@ def _from_t7(path) -> Weights:
     root = torch7.read_t7(path)
     conv, facts = torch7.network(root, path)
     opts = facts["options"]
+    # main.lua names its nets net_<dataset>_<arch>_<arguments>.t7
+    named = re.match(r"net_(kitti2015|kitti|mb)_(fast|slow)_", os.path.basename(path))
+    dataset = named.group(1) if named else "kitti"
     meta = {
-        "dataset": "kitti",
+        "dataset": dataset,
         "source": {"what": "MC-CNN-fst trained by J. Zbontar with the released mc-cnn code "
                            f"(Torch7 ASCII, modules {', '.join(m.split('.')[-1] for m in facts['modules'])})",
                    "format": "torch7-ascii", "padding": [list(p) for p in facts["padding"]]},
         "licence": BSD2,
         "training": {"by": "Jure Zbontar (jzbontar/mc-cnn)",
-                     "data": "KITTI 2012 training pairs (all 194 for -a train_all)",
+                     "data": TRAINING_DATA[dataset] + (" (all of them: -a train_all)" if opts.get("a") == "train_all"
+                                                       else ""),
                      "options": opts},
         "_converter": "mccnn_cl.importers.torch7",
     }
+    if opts.get("a") == "train_all" and dataset in TRAINING_PAIRS:
+        kind, n = TRAINING_PAIRS[dataset]
+        meta["training"]["trained_on"] = [f"{kind}/{i:06d}" for i in range(n)]
     return Weights(conv=conv, fc=[], meta=meta, architecture=FST)
 
 
@@ -98,7 +112,10 @@ def _from_pt(path) -> Weights:
 
     ckpt = pytorch.load_checkpoint(path)
     arch, conv, fc = pytorch.network(pytorch.state_dict(ckpt, path), path)
-    training = {"by": "CNES (PyPI mccnn)", "data": "Middlebury"}
+    training = {"by": "CNES (PyPI mccnn)",
+                "data": "Middlebury, standardised gray images (CNES preprocess_middlebury: the 2014 scenes at "
+                        "half size but their first 7, which CNES tests on, and the 2006, 2005 and 2003 "
+                        "(Cones, Teddy) scenes, among others)"}
     if isinstance(ckpt, dict):
         for k in ("epoch", "train_epoch_loss", "test_epoch_loss"):
             value = ckpt.get(k)
