@@ -227,3 +227,162 @@ def test_shipped_weights(shared_data):
     # Raw-cost WTA error on Cones' non-occluded GT: 7.9 % measured on 1000 pixels (MODEL_CARD.md);
     # 9x9 census gives 17 %, an untrained (He-initialised) net 93 % on these 150 pixels (shipped: 8.7 %).
     assert res["err3"] < 0.15, res
+
+
+# -- JMLR architectures and fully convolutional crop training ------------------------
+
+FST_SMALL = dict(conv_layers=[[8, 3], [8, 3], [8, 3]], fc_layers=[], architecture="mccnn-fst")
+ACRT_SMALL = dict(conv_layers=[[8, 3], [8, 3], [8, 3]], fc_layers=[16, 1], architecture="mccnn-acrt")
+PAPER_SMALL = dict(conv_layers=SMALL_CONV, fc_layers=SMALL_FC, architecture="mccnn-paper")
+ARCH_SMALL = {"fst": FST_SMALL, "acrt": ACRT_SMALL, "paper": PAPER_SMALL}
+
+
+@pytest.mark.parametrize("arch", ["fst", "acrt"])
+def test_jmlr_export_import_round_trip(arch, tmp_path):
+    torch.manual_seed(3)
+    m = MCCNN(**ARCH_SMALL[arch]).he_init_()
+    path = tmp_path / f"{arch}.npz"
+    m.to_weights({"training": {"note": "test"}}).save(path)
+    w = Weights.load(path)
+    assert w.architecture == f"mccnn-{arch}" and w.conv_layers() == [[8, 3]] * 3
+    assert w.relu_after_last_conv == (arch == "acrt")
+    m2 = MCCNN.from_weights(w)
+    assert m2.architecture == m.architecture
+    x, y = torch.randn(6, 1, 7, 7), torch.randn(6, 1, 7, 7)
+    with torch.no_grad():
+        out, out2 = m(x, y), m2(x, y)
+    torch.testing.assert_close(out2, out, rtol=0, atol=0)
+    assert out.shape == (6,)
+    with torch.no_grad():
+        fl, fr = m.features(x).flatten(1), m.features(y).flatten(1)
+    if arch == "fst":
+        # L2-normalised features, no ReLU after the last layer, cost = -cosine.
+        torch.testing.assert_close(fl.norm(dim=1), torch.ones(6), atol=1e-4, rtol=0)
+        assert (fl < 0).any()
+        torch.testing.assert_close(m.cost(out), -(fl * fr).sum(1))
+    else:
+        assert (fl >= 0).all()
+        c = m.cost(out)
+        assert ((c > 0) & (c < 1)).all()
+        # BCE with target 0 for the positive, 1 for the negative: the cost is P(bad match).
+        lp = m.loss(out[:3], out[3:])
+        expect = -(torch.log(1 - torch.sigmoid(out[:3])).sum() + torch.log(torch.sigmoid(out[3:])).sum()) / 6
+        torch.testing.assert_close(lp, expect)
+
+
+def test_fst_hinge_loss():
+    m = MCCNN(**FST_SMALL)
+    sp, sn = torch.tensor([0.9, 0.5, 0.1]), torch.tensor([0.2, 0.4, 0.3])
+    # max(0, 0.2 + s- - s+): 0, 0.1, 0.4
+    torch.testing.assert_close(m.loss(sp, sn), torch.tensor(0.5 / 3))
+
+
+@pytest.mark.parametrize("arch", ["fst", "acrt", "paper"])
+def test_crop_features_equal_patch_features(arch, tsukuba):
+    """Integer mode: the crop maps' features at the example centres are the patch features there."""
+    from mccnn_cl.train.crops import CropSampler, crop_loss, crop_outputs
+    torch.manual_seed(0)
+    m = MCCNN(**ARCH_SMALL[arch]).he_init_().eval()
+    s = CropSampler([tsukuba], m.patch_size, p_hi=1, n_lo=4, n_hi=8, crop=(21, 31), spread=14,
+                    per_crop=200, negatives=3)
+    b = s.sample(np.random.default_rng(4), 3)
+    assert b.exact and b.left.shape == (3, 1, 21 + m.patch_size - 1, 31 + m.patch_size - 1)
+    assert b.n > 300 and b.qn.shape == (b.n, 3, 2)
+    src = b.src
+    d = np.floor(tsukuba.disp[src["y"].astype(int), src["x"].astype(int)] + 0.5)
+    op, on = src["x"] - d - src["x_pos"], src["x"][:, None] - d[:, None] - src["x_neg"]
+    assert set(np.unique(-op)) <= {-1, 0, 1} and (np.abs(on) >= 4).all() and (np.abs(on) <= 8).all()
+    # The same examples through the patch network, patches cut from the normalised source images.
+    ps = PatchSampler([tsukuba], patch_size=m.patch_size)
+    x, y = src["x"].astype(np.int64), src["y"].astype(np.int64)
+    img = np.zeros(len(x), np.int64)
+    lp = torch.from_numpy(ps.patches(img, x, y, right=False))
+    pp = torch.from_numpy(ps.patches(img, src["x_pos"].astype(np.int64), y, right=True))
+    with torch.no_grad():
+        out_p, out_n = crop_outputs(m, b, "cpu")
+        ref_p = m(lp, pp)
+        torch.testing.assert_close(out_p, ref_p, rtol=1e-5, atol=2e-6)
+        for k in range(3):
+            pn = torch.from_numpy(ps.patches(img, src["x_neg"][:, k].astype(np.int64), y, right=True))
+            torch.testing.assert_close(out_n[:, k], m(lp, pn), rtol=1e-5, atol=2e-6)
+        # Same loss on the same pairs.
+        ref_n = torch.stack([m(lp, torch.from_numpy(ps.patches(img, src["x_neg"][:, k].astype(np.int64), y,
+                                                              right=True))) for k in range(3)], 1)
+        K = 3
+        if arch == "paper":
+            ref = m.loss(ref_p.repeat_interleave(K, 0), ref_n.reshape(-1, 2))
+        else:
+            ref = m.loss(ref_p[:, None].expand(-1, K).reshape(-1), ref_n.reshape(-1))
+        torch.testing.assert_close(crop_loss(m, b, "cpu"), ref, rtol=1e-5, atol=1e-6)
+
+
+def test_crop_warp_keeps_matches_aligned():
+    """Augmented crops of a right image that is the left shifted by 6 px: the right crop, at the
+    matching columns, equals the left crop (one warp for both), and positives sit at matching places."""
+    from mccnn_cl.train.crops import Augment, CropSampler
+    rng = np.random.default_rng(0)
+    h, w, D = 120, 200, 6
+    base = rng.normal(size=(h, w + D)).astype(np.float32)
+    scale = lambda a: ((a - a.min()) / (a.max() - a.min()) * 255).astype(np.uint8)  # noqa: E731
+    left, right = scale(base[:, :w]), scale(base[:, D:])   # left(x) = right(x - D)
+    disp = np.full((h, w), float(D), np.float32)
+    pair = StereoPair(name="shift", left=left, right=right, disp=disp, valid_noc=None,
+                      valid_all=np.ones((h, w), bool), ndisp=None, calib=None, kind="middlebury")
+    aug = Augment(brightness=0, contrast=1, d_brightness=0)
+    s = CropSampler([pair], 5, p_hi=0, n_lo=2, n_hi=4, crop=(15, 17), spread=8, subpixel=True, augment=aug)
+    b = s.sample(np.random.default_rng(1), 4)
+    assert not b.exact and b.n > 100
+    sp = s.spread
+    # The two images are normalised separately (different columns): compare by correlation, and only
+    # where both crops sample inside their image (outside is zero padding, brightness and contrast off).
+    L = b.left[:, 0, 4:-4, 4:-4].numpy()
+    R = b.right[:, 0, 4:-4, sp + 4:sp + 4 + L.shape[-1]].numpy()
+    inside = (L != 0) & (R != 0)
+    for ax in (1, 2):  # one pixel away from the padding too (bilinear blends across its edge)
+        inside &= np.roll(inside, 1, ax) & np.roll(inside, -1, ax)
+    assert inside.mean() > 0.5
+    corr = [float(np.corrcoef(L[i][inside[i]], R[i][inside[i]])[0, 1]) for i in range(4)]
+    assert min(corr) > 0.999, corr
+    torch.testing.assert_close(b.qp, b.ql + torch.tensor([float(sp), 0.0]), atol=1e-4, rtol=0)
+    assert (b.ql.std(0) > 1).all()   # the warp moved the positions (not the identity grid)
+
+
+def _crop_cfg(arch, **kw):
+    base = dict(arch=arch, sampler="crop", epochs=2, steps_per_epoch=6, crops_per_step=2, crop=(15, 15),
+                spread=12, per_crop=128, negatives=2, lr=0.01, n_lo=4, n_hi=8, p_hi=1, seed=5,
+                conv_layers=ARCH_SMALL[arch]["conv_layers"], fc_layers=ARCH_SMALL[arch]["fc_layers"],
+                val_examples=200, val_pixels=100, progress=False)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+@pytest.mark.parametrize("arch", ["fst", "acrt", "paper"])
+def test_crop_training_runs_and_exports(arch, tsukuba, venus, tmp_path):
+    cfg = _crop_cfg(arch, augment=arch == "fst", subpixel=arch == "fst")
+    res = train(cfg, [crop(tsukuba, 0, 160, 0, 300)], [crop(venus, 100, 260, 0, 300)], "cpu", tmp_path,
+                log=lambda *a: None)
+    h = res["history"]
+    assert len(h) == 2 and all(np.isfinite(e["train_loss"]) and np.isfinite(e["val_loss"]) for e in h)
+    assert h[-1]["examples_seen"] == sum(e["examples"] for e in h) > 0
+    for name in ("latest.npz", "best.npz"):
+        w = Weights.load(tmp_path / name)
+        assert w.architecture == f"mccnn-{arch}"
+        assert w.meta["training"]["held_out"] == ["middlebury/Venus"]
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["step"] == 12 and run["examples_seen"] == h[-1]["examples_seen"] and run["wall_time_s"] > 0
+
+
+def test_crop_training_resumes_mid_epoch_bit_for_bit(tsukuba, venus, tmp_path):
+    cfg = _crop_cfg("fst", augment=True, subpixel=True)
+    pairs, val = [crop(tsukuba, 0, 160, 0, 300)], [crop(venus, 100, 260, 0, 300)]
+    quiet = lambda *a: None  # noqa: E731
+    full = train(cfg, pairs, val, "cpu", tmp_path / "a", log=quiet)
+    # Stopped after 4 steps of epoch 1 (a mid-epoch checkpoint), then resumed to the end.
+    train(cfg, pairs, val, "cpu", tmp_path / "b", log=quiet, stop_after_steps=4)
+    ck = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    assert ck["mid"] == {**ck["mid"], "epoch": 0, "i": 4} and ck["examples_seen"] > 0
+    resumed = train(cfg, pairs, val, "cpu", tmp_path / "b", log=quiet, resume=tmp_path / "b" / "checkpoint.pt")
+    for k, v in full["model"].state_dict().items():
+        assert torch.equal(v, resumed["model"].state_dict()[k]), k
+    assert [e["train_loss"] for e in resumed["history"]] == [e["train_loss"] for e in full["history"]]
+    assert resumed["provenance"]["examples"] == full["provenance"]["examples"]
