@@ -84,7 +84,7 @@ def tower(weights, img):
     for i, (W, b) in enumerate(weights.conv):
         k = W.shape[2]
         win = np.lib.stride_tricks.sliding_window_view(x, (k, k), axis=(1, 2))  # (C, h, w, k, k)
-        x = np.einsum("chwij,ocij->ohw", win, W.astype(np.float64)) + b[:, None, None]
+        x = np.tensordot(W.astype(np.float64), win, axes=([1, 2, 3], [0, 3, 4])) + b[:, None, None]
         if i < len(weights.conv) - 1 or weights.relu_after_last_conv:
             x = np.maximum(x, 0)
     return x  # (maps, h, w)
