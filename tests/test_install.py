@@ -17,7 +17,7 @@ def test_non_editable_install_carries_kernels(tmp_path):
     kernels = sorted(p.name for p in (target / "mccnn_cl" / "kernels").iterdir())
     sources = sorted(p.name for p in (REPO / "kernels").iterdir() if p.suffix in (".cl", ".h"))
     assert sources and set(sources) <= set(kernels), (sources, kernels)
-    for sub in ("stages", "reference", "train"):
+    for sub in ("stages", "reference", "train", "importers"):
         assert (target / "mccnn_cl" / sub / "__init__.py").exists(), sub
     code = ("import mccnn_cl, mccnn_cl.cl as c; ctx = c.ClContext(); "
             "assert mccnn_cl.__file__.startswith(%r), mccnn_cl.__file__; "
