@@ -188,7 +188,7 @@ def test_weights_errors(crops, tmp_path):
     with np.load(good) as z:
         arrays = dict(z)
     meta = json.loads(str(arrays["__meta__"]))
-    meta["architecture"] = "mccnn-fst"
+    meta["architecture"] = "mccnn-unknown"  # not one of weights.ARCHITECTURES
     arrays["__meta__"] = np.array(json.dumps(meta))
     np.savez(other, **arrays)
     for path, word in ((trunc, "not a readable"), (other, "architecture")):
