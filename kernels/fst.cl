@@ -10,7 +10,7 @@
  *
  * fst_volume: the cosine volume  C(d, y, x) = -f_L(x, y) . f_R(x - d, y),
  * NaN where x - d < 0.  One work-item per 16 consecutive pixels of a row
- * (float16 lanes), looping over the disparities in blocks of RD: per block
+ * (float16 lanes), looping over the disparities in blocks of RD (8): per block
  * and map k it loads the left vector once and RD shifted right vectors
  * (contiguous, unaligned: x - d .. x - d + 15 of plane k) and does RD
  * vector FMAs; each disparity's 16 costs are one contiguous store.  Blocks
@@ -31,7 +31,7 @@
 #error "PADL (zero columns left of x = 0 in the planar features) must be defined"
 #endif
 #ifndef RD
-#define RD 4
+#define RD 8
 #endif
 #if PADL < 15 + RD
 #error "PADL must be at least 15 + RD"

@@ -32,7 +32,7 @@ FST_CL = "fst.cl"
 #: bytes of one band's feature buffers (both images)
 BAND_BYTES = 256 << 20
 #: disparities per block of the volume kernel; PADL zero columns left of x = 0
-RD = 4
+RD = 8
 PADL = 32
 
 
