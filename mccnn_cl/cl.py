@@ -5,6 +5,10 @@ keyed on ``(file, defines)``; kernels are fetched once per program.  Every
 stage of the pipeline takes a ``ClContext``; there is no module-level
 singleton.
 
+What the stages need to know about the chosen device (its class, limits
+and declared quirks, and the rules that pick kernel variants) is
+``ClContext.profile``, a :class:`mccnn_cl.device.DeviceProfile`.
+
 Device selection (:func:`select_device`):
 
 * an explicit ``device`` argument wins: a ``pyopencl.Device``, ``"cpu"``,
@@ -29,6 +33,7 @@ from importlib import resources
 
 import numpy as np
 
+from .device import DeviceProfile, type_name
 from .errors import NO_PLATFORM_HELP, InputError, NoOpenCLDeviceError, OpenCLError
 
 log = logging.getLogger(__name__)
@@ -139,15 +144,7 @@ def _version_tuple(text: str) -> tuple:
 
 
 def _device_type_name(dev) -> str:
-    cl = _cl()
-    t = dev.type
-    if t & cl.device_type.GPU:
-        return "GPU"
-    if t & cl.device_type.ACCELERATOR:
-        return "ACCELERATOR"
-    if t & cl.device_type.CPU:
-        return "CPU"
-    return "OTHER"
+    return type_name(dev, _cl())
 
 
 @dataclass
@@ -265,6 +262,8 @@ class ClContext:
         self.cl = cl
         dev, self.reason = select_device(device)
         self.device = dev
+        #: what the stages need to know about the device (mccnn_cl.device)
+        self.profile = DeviceProfile.of(dev, cl)
         self.context = cl.Context([dev])
         props = cl.command_queue_properties.PROFILING_ENABLE if profiling else 0
         self.queue = cl.CommandQueue(self.context, properties=props)
@@ -293,15 +292,6 @@ class ClContext:
     @property
     def max_work_group(self) -> int:
         return int(self.device.max_work_group_size)
-
-    @property
-    def is_rusticl(self) -> bool:
-        """The device belongs to Mesa's Rusticl (llvmpipe here), which some
-        stages steer around: llvmpipe ends a work-item's loops after 65535
-        iterations in all, so CBCA takes its two-pass kernels and SGM walks
-        its paths in several launches there; SGM also builds smaller
-        kernels (compile time)."""
-        return "rusticl" in self.device.platform.name.lower()
 
     @property
     def has_fp64(self) -> bool:

@@ -15,7 +15,8 @@ import pytest
 
 from conftest import POISON
 from mccnn_cl.reference.aggregation import cbca, cross_arms
-from mccnn_cl.stages.cbca import CBCA, MULTI_K, SHORT_MAX
+from mccnn_cl.pipeline import Hyperparameters
+from mccnn_cl.stages.cbca import CBCA, MULTI_K, SHORT_MAX, path_scratch_bytes
 from mccnn_cl.stages.cross import CrossArms, arms_to_device, max_arm
 
 
@@ -199,14 +200,19 @@ def test_scratch_reused_across_sizes(ctx, multi):
     rng = np.random.default_rng(7)
     stage = CBCA(ctx, fused=True, multi=multi)
     # one-iteration kernel: D x (2A + 1) x W float row sums + byte counts
-    assert CBCA.scratch_bytes(228, 1232, max_arm(4), multi=False) == 5 * 228 * 7 * 1232
+    assert path_scratch_bytes(228, 1232, max_arm(4), "fused") == 5 * 228 * 7 * 1232
     # multi-iteration kernel (MULTI_K = 4, A = 3, W rounded up to 16 = 1232):
     # per plane 4 x 7 float rows, 3 x 3 + 1 ushort rows (5 float rows), 5 x (4 x 3 + 1) byte rows,
     # 3 rows of 1232 + 32 floats: 58.8 MB, 14.3 % of a 228 x 367 x 1232 float32 volume
     assert MULTI_K == 4
-    assert CBCA.scratch_bytes(228, 1232, max_arm(4)) == 228 * (4 * 33 * 1232 + 65 * 1232 + 4 * 3 * 1264)
-    assert CBCA.scratch_bytes(228, 1232, 255) == 0
-    assert CBCA.scratch_bytes(228, 1232, max_arm(4), fused=False) == 0
+    assert path_scratch_bytes(228, 1232, max_arm(4), "multi") == 228 * (4 * 33 * 1232 + 65 * 1232 + 4 * 3 * 1264)
+    assert path_scratch_bytes(228, 1232, 255, "running") == 0
+    assert path_scratch_bytes(228, 1232, max_arm(4), "short") == 0
+    # the stage's own figure follows its path: the planner's question
+    params = Hyperparameters()
+    assert stage.scratch_bytes(228, 1232, params) == path_scratch_bytes(228, 1232, 3, "multi" if multi else "fused")
+    assert CBCA(ctx, fused=False).scratch_bytes(228, 1232, params) == 0
+    assert stage.scratch_bytes(228, 1232, Hyperparameters(cbca_eta=10)) == 0  # arms up to 9 px: running sums
     for D, H, W in [(6, 9, 40), (11, 12, 70), (5, 8, 33)]:
         cost = random_volume(rng, D, H, W)
         img_l, img_r = blocky_image(rng, H, W), blocky_image(rng, H, W)
@@ -218,7 +224,7 @@ def test_scratch_reused_across_sizes(ctx, multi):
         compare(ctx.from_device(d_out, cost.shape), cbca(cost, arms_l, arms_r, 2), cost)
     sizes = (stage._multi or stage._ring)[0]  # what the stage really allocated, for the largest volume
     allocated = sum(sizes) if multi else sizes
-    assert allocated == CBCA.scratch_bytes(11, 70, max_arm(4), multi=multi)
+    assert allocated == path_scratch_bytes(11, 70, max_arm(4), "multi" if multi else "fused")
 
 
 def multi_vs_single(ctx, cost, arms_l, arms_r, iterations, in_place):

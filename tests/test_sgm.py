@@ -16,7 +16,7 @@ import pytest
 from conftest import POISON
 from mccnn_cl.errors import InputError
 from mccnn_cl.reference.aggregation import SGM_DIRECTIONS, sgm, sgm_direction
-from mccnn_cl.stages.sgm import SGM
+from mccnn_cl.stages.sgm import SGM, state_bytes
 from test_cbca import ad_volume, blocky_image, invalid_mask, random_volume
 
 
@@ -251,11 +251,11 @@ def test_scratch_bytes_bounds_the_state_buffer(ctx):
     for cols in (None, 128):
         st = SGM(ctx, cols=cols, paired=False)
         st(ctx.to_device(cost), d_img, d_img, D, H, W)
-        assert st._state.size <= SGM.scratch_bytes(D, W)
-        assert st._state.size == SGM.scratch_bytes(D, W, st.cols)
+        assert st._state.size <= state_bytes(D, W, 128)
+        assert st._state.size == state_bytes(D, W, st.cols) == st.scratch_bytes(D, W)
     st = SGM(ctx, paired=True)
     st(ctx.to_device(cost), d_img, d_img, D, H, W)
-    assert st._state.size == SGM.scratch_bytes(D, W, paired=True)
+    assert st._state.size == state_bytes(D, W, paired=True) == st.scratch_bytes(D, W)
 
 
 def test_constant_images(ctx):

@@ -42,8 +42,7 @@ def limit_for_rows(matcher, shape, rows):
     m, D = matcher.margin, matcher.max_disparity
     row = D * (Wi - 2 * m) * 4
     nvol = 3 if matcher.params.right_reference == "aggregated" else 2
-    extra = MAP_BUFFERS * Hi * Wi * 4 + matcher.cbca.scratch_bytes(D, Wi - 2 * m, 3, matcher.cbca.short,
-                                                                   matcher.cbca.fused)
+    extra = MAP_BUFFERS * Hi * Wi * 4 + matcher.cbca.scratch_bytes(D, Wi - 2 * m, matcher.params)
     per_row = nvol * row + (2 * 3 * (Wi - 2 * m) * 4 if matcher.cost_name == "census" else 0)  # census bits
     return per_row * rows + extra
 

@@ -18,7 +18,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from .disparity import launch, volume_bytes
+from ..cl import launch
+from .disparity import volume_bytes
 
 MARGIN = 4
 WINDOW = 2 * MARGIN + 1

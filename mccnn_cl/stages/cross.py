@@ -24,36 +24,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError, OpenCLError
+from ..cl import launch
+from ..errors import InputError
 
 #: Largest arm length the uchar4 storage can hold.
 ARM_LIMIT = 255
-
-
-def launch(ctx, stage: str, kernel, global_size, local_size, *args) -> None:
-    """Set the arguments and enqueue ``kernel``; OpenCL errors name the stage."""
-    try:
-        kernel.set_args(*args)
-        ctx.cl.enqueue_nd_range_kernel(ctx.queue, kernel, tuple(int(g) for g in global_size),
-                                       None if local_size is None else tuple(int(n) for n in local_size))
-    except ctx.cl.Error as exc:
-        raise OpenCLError(f"{stage}: OpenCL error {exc}") from exc
-
-
-def scan_local_size(ctx, kernel) -> int:
-    """Work-group size for the line-walking kernels of CBCA and SGM: the
-    kernel's preferred work-group size multiple (queried), capped by its
-    maximum work-group size.
-
-    These kernels keep kilobytes of private arrays per work-item; CPU
-    runtimes (PoCL) may lay a whole work-group's private memory on one
-    thread's stack, so the runtime's default choice (up to thousands of
-    work-items) can overflow it.  The preferred multiple is small on CPUs
-    (8 on PoCL) and a warp/wavefront on GPUs."""
-    cl = ctx.cl
-    pref = int(kernel.get_work_group_info(cl.kernel_work_group_info.PREFERRED_WORK_GROUP_SIZE_MULTIPLE,
-                                          ctx.device))
-    return max(1, min(pref, ctx.work_group_size(kernel)))
 
 
 def check_size(H, W, what="image") -> tuple:
@@ -89,7 +64,7 @@ class CrossArms:
             raise InputError(f"eta must be in [0, {ARM_LIMIT + 1}] (arms are stored as bytes), got {eta}")
         if out is None:
             out = self.ctx.empty(4 * H * W, "cross arms")
-        launch(self.ctx, "cross arms", self.kernel, (W, H), None, d_img, out, np.int32(H), np.int32(W),
+        launch(self.ctx, "cross arms", self.kernel, (W, H), d_img, out, np.int32(H), np.int32(W),
                np.float32(tau), np.int32(eta), np.int32(bool(include_neighbor)))
         return out
 

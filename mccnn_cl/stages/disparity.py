@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import OpenCLError
+from ..cl import launch
 from ..reference.disparity import CORRECT, DIRECTIONS, MISMATCH, OCCLUSION  # noqa: F401
 
 _I32 = np.dtype(np.int32).itemsize
@@ -33,15 +33,6 @@ def volume_bytes(half: bool) -> int:
     """Bytes of one cost-volume element: 2 with half-precision storage
     (``-D VOL_HALF=1``, see kernels/common.h), else 4."""
     return 2 if half else 4
-
-
-def launch(ctx, stage: str, kernel, global_size, *args) -> None:
-    """Set the arguments and enqueue ``kernel``; OpenCL errors name the stage."""
-    try:
-        kernel.set_args(*args)
-        ctx.cl.enqueue_nd_range_kernel(ctx.queue, kernel, tuple(int(g) for g in global_size), None)
-    except ctx.cl.Error as exc:
-        raise OpenCLError(f"{stage}: OpenCL error {exc}") from exc
 
 
 class WinnerTakeAll:

@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from .disparity import launch
+from ..cl import launch
 
 _F32 = np.dtype(np.float32).itemsize
 

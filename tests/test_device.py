@@ -1,0 +1,115 @@
+"""mccnn_cl.device: the one device profile and its rule table."""
+
+import re
+from pathlib import Path
+from types import SimpleNamespace
+
+import pyopencl as cl
+import pytest
+
+from mccnn_cl.device import CLASSES, CPU, GPU, LLVMPIPE, LLVMPIPE_LOOP_LIMIT, RULES, DeviceProfile, device_class
+from mccnn_cl.stages.cbca import CBCA, SHORT_MAX
+from mccnn_cl.stages.sgm import SGM
+
+PACKAGE = Path(__file__).resolve().parents[1] / "mccnn_cl"
+
+
+def fake_device(name, type_, units=2, width=16, platform="Some platform"):
+    return SimpleNamespace(name=name, type=type_, max_compute_units=units, preferred_vector_width_float=width,
+                           native_vector_width_float=width, global_mem_size=1 << 32, local_mem_size=1 << 16,
+                           max_mem_alloc_size=1 << 30, max_work_group_size=256,
+                           platform=SimpleNamespace(name=platform))
+
+
+T = cl.device_type
+DEVICES = {  # what the platforms here report (name, type), and a GPU
+    "pocl": fake_device("pthread-skylake-avx512-AMD EPYC", T.CPU),
+    "llvmpipe": fake_device("llvmpipe (LLVM 15.0.6, 256 bits)", T.CPU, units=8, width=1, platform="rusticl"),
+    "oclgrind": fake_device("Oclgrind Simulator", T.ALL, units=1, width=1, platform="Oclgrind"),
+    "gpu": fake_device("NVIDIA H200", T.GPU, units=132, width=1, platform="NVIDIA CUDA"),
+}
+
+
+def test_classes():
+    assert device_class(DEVICES["pocl"], cl) == CPU
+    assert device_class(DEVICES["llvmpipe"], cl) == LLVMPIPE
+    assert device_class(DEVICES["oclgrind"], cl) == GPU  # every type bit at once: a simulated generic device
+    assert device_class(DEVICES["gpu"], cl) == GPU
+    assert device_class(fake_device("some accelerator", T.ACCELERATOR), cl) == GPU
+
+
+def test_every_rule_has_every_column():
+    for option, row in RULES.items():
+        assert set(row) == set(CLASSES), option
+
+
+def test_declared_loop_limit_and_the_rules_it_changes():
+    pocl, pipe = (DeviceProfile.of(DEVICES[k], cl) for k in ("pocl", "llvmpipe"))
+    assert pocl.loop_limit is None and not pocl.slow_compiler
+    assert pipe.loop_limit == LLVMPIPE_LOOP_LIMIT == 65535 and pipe.slow_compiler
+    assert pipe.sgm_options()["fused_rows"] is False and pocl.sgm_options()["fused_rows"] is True
+    # an explicit limit overrides the declared one either way
+    assert pocl.sgm_options(loop_limit=3000)["loop_limit"] == 3000
+    assert pocl.sgm_options(loop_limit=3000)["fused_rows"] is False
+    assert pipe.sgm_options(loop_limit=0)["loop_limit"] is None
+    # CBCA's fused kernels walk a whole plane per work-item: not under llvmpipe's limit
+    assert pipe.cbca_path(3, SHORT_MAX) == "short" and pocl.cbca_path(3, SHORT_MAX) == "multi"
+
+
+@pytest.mark.parametrize("key, sgm, cbca, rn", [
+    # the defaults each stage had before the profile (one device of each kind seen here), except
+    # Oclgrind's CBCA: "multi" before (its CPU bit), now the generic column's two short passes,
+    # bit-identical to the fused kernels (tests/test_cbca.py)
+    ("pocl", dict(prefetch=True, cols=128, fused_rows=True, specialize=True, whole_tiles=True, paired=True,
+                  group_of_one=True, loop_limit=None), "multi", 16),
+    ("llvmpipe", dict(prefetch=True, cols=32, fused_rows=False, specialize=False, whole_tiles=False, paired=False,
+                      group_of_one=True, loop_limit=65535), "short", 4),
+    ("oclgrind", dict(prefetch=False, cols=32, fused_rows=False, specialize=True, whole_tiles=True, paired=False,
+                      group_of_one=False, loop_limit=None), "short", 4),
+    ("gpu", dict(prefetch=False, cols=32, fused_rows=False, specialize=True, whole_tiles=True, paired=False,
+                 group_of_one=False, loop_limit=None), "short", 4),
+])
+def test_rules_per_device(key, sgm, cbca, rn):
+    p = DeviceProfile.of(DEVICES[key], cl)
+    assert p.sgm_options() == sgm
+    assert p.cbca_path(3, SHORT_MAX) == cbca
+    assert p.cbca_path(9, SHORT_MAX) == "running" and p.cbca_path(3, SHORT_MAX, short=False) == "running"
+    assert p.cbca_path(3, SHORT_MAX, fused=True, multi=False) == "fused"
+    tiles = p.network_tiles()
+    assert tiles["RN"] == rn and tiles["ROWS_FASTEST"] == int(p.is_cpu)
+
+
+def test_paired_sweeps_follow_compute_units():
+    assert DeviceProfile.of(fake_device("cpu", T.CPU, units=2), cl).sgm_options()["paired"]
+    assert not DeviceProfile.of(fake_device("cpu", T.CPU, units=3), cl).sgm_options()["paired"]
+
+
+def test_stages_take_their_defaults_from_the_profile(ctx):
+    opts = ctx.profile.sgm_options()
+    s = SGM(ctx)
+    assert (s.prefetch, s.cols, s.fused_rows, s.specialize, s.whole_tiles, s.paired, s._loop_limit) == \
+        (opts["prefetch"], opts["cols"], opts["fused_rows"], opts["specialize"], opts["whole_tiles"],
+         opts["paired"], opts["loop_limit"])
+    assert SGM(ctx, cols=48, paired=False).cols == 48
+    assert CBCA(ctx).path(3) == ctx.profile.cbca_path(3, SHORT_MAX)
+    assert CBCA(ctx, fused=False).path(3) == "short"
+
+
+def test_no_device_type_test_outside_the_profile():
+    """The stages, the pipeline and the context make no device-dependent choice
+    of their own: they live in mccnn_cl/device.py (device listing and
+    selection by type in cl.py and gpucheck.py choose a device, not a kernel)."""
+    pattern = re.compile(r"device_type\.|\.type\s*[&=]|is_rusticl|platform\.name\.lower|\"rusticl\"")
+    # stages/features.py: the network's tile rule, being switched to profile.network_tiles() by its owner
+    pending = {"stages/features.py"}
+    found = []
+    files = sorted(PACKAGE.glob("stages/*.py")) + [PACKAGE / "pipeline.py", PACKAGE / "cl.py"]
+    assert len(files) > 8
+    for path in files:
+        rel = path.relative_to(PACKAGE).as_posix()
+        if rel in pending:
+            continue
+        for no, line in enumerate(path.read_text().splitlines(), 1):
+            if pattern.search(line):
+                found.append(f"{rel}:{no}: {line.strip()}")
+    assert not found, "\n".join(found)
