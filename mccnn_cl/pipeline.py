@@ -37,6 +37,7 @@ from .validate import PATCH, check_disparity_range, check_hyperparameters, check
 from .stages.costs import make_cost
 from .stages.features import normalise
 from .stages.cross import CrossArms, max_arm
+from .stages.confidence import Confidence
 from .stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpixel, WinnerTakeAll
 from .stages.refine import BilateralFilter, Enlarge, MedianFilter
 from .weights import Weights
@@ -194,7 +195,12 @@ class StereoResult:
     ``plan``: the :class:`MemoryPlan` followed; ``peak_device_bytes``: the
     peak of the device buffers the run held beyond those alive when it began
     (measured: every buffer made through the context, freed when released or
-    collected).  When the plan
+    collected).  With ``compute(..., confidence=True)``: ``confidence``, the
+    per-pixel confidence in [0, 1] of :class:`mccnn_cl.stages.confidence.Confidence`
+    (0 where the left-right check did not label the pixel correct), and
+    ``labels``, the left-right labels (int32 0 correct / 1 mismatch / 2
+    occlusion), both the image's size with the border filled as D_E's
+    (the cropped domain's edge copied outwards); None otherwise.  When the plan
     is tiled, volumes are not kept (only maps, assembled from the tiles'
     cores) and a stage's time is the sum over tiles (``C_CNN_upload``: the
     host-to-device copies of the network's volume).
@@ -206,6 +212,8 @@ class StereoResult:
     margin: int = 4
     plan: MemoryPlan | None = None
     peak_device_bytes: int = 0
+    confidence: np.ndarray | None = None
+    labels: np.ndarray | None = None
 
 
 def to_gray(img, name: str) -> np.ndarray:
@@ -336,6 +344,7 @@ class StereoMatcher:
         self.lr_check = LeftRightCheck(ctx)
         self.interpolate = Interpolate(ctx)
         self.subpixel = Subpixel(ctx, half=self.half)
+        self.confidence = Confidence(ctx, half=self.half)
         self.enlarge = Enlarge(ctx)
         self.median = MedianFilter(ctx, self.params.median_size)
         self.bilateral = BilateralFilter(ctx)
@@ -358,15 +367,19 @@ class StereoMatcher:
         return I_L, I_R
 
     # -- the method ----------------------------------------------------------
-    def compute(self, left, right, return_intermediates: bool = False, timings: bool = False):
+    def compute(self, left, right, return_intermediates: bool = False, timings: bool = False,
+                confidence: bool = False):
         """Disparity map (float32, the left image's size, pixels) of a rectified pair.
 
         ``return_intermediates``: return a :class:`StereoResult` with every
         intermediate volume and map plus per-stage times.  ``timings``: return a
         :class:`StereoResult` with per-stage times only (no copies).
+        ``confidence``: return a :class:`StereoResult` whose ``confidence``
+        and ``labels`` are set (computed on the final volume C; also tiled).
         """
         I_L, I_R = self._inputs(left, right)
         rec = _Recorder(self.ctx, keep=return_intermediates, timed=return_intermediates or timings)
+        rec.wanted = {"confidence", "labels"} if confidence else set()
         plan = self.memory_plan(I_L.shape)
         self._pool.trim(plan.largest_volume)  # kept volumes of another size are freed
         self.ctx.memory.reset_peak()
@@ -374,9 +387,13 @@ class StereoMatcher:
         # kept volumes this call reuses (they count in its peak)
         base = self.ctx.memory.live - self._pool.free_bytes
         out = self._run(I_L, I_R, rec, plan)
-        if not (return_intermediates or timings):
+        if not (return_intermediates or timings or confidence):
             return out
-        return StereoResult(out, rec.arrays, rec.times, self.margin, rec.plan, self.ctx.memory.peak - base)
+        res = StereoResult(out, rec.arrays, rec.times, self.margin, rec.plan, self.ctx.memory.peak - base)
+        if confidence:  # cropped maps -> image size, border as Enlarge (refine_enlarge: clamped indices)
+            pick = rec.arrays.get if return_intermediates else rec.arrays.pop
+            res.confidence, res.labels = (np.pad(pick(k), self.margin, mode="edge") for k in ("confidence", "labels"))
+        return res
 
     def _run(self, I_L, I_R, rec, plan):
         ctx, m, D = self.ctx, self.margin, self.max_disparity
@@ -468,6 +485,8 @@ class StereoMatcher:
         labels = rec("labels", self.lr_check(D_L, D_R, D, H, W, p.lr_threshold), crop, np.int32)
         D_INT = rec("D_INT", self.interpolate(D_L, labels, H, W, p.interpolation), crop, np.int32)
         D_SE = rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp), crop)
+        if "confidence" in rec.wanted:
+            rec("confidence", self.confidence(C, labels, D, H, W), crop)
         self._pool.give(C)  # the in-order queue runs any later user after subpixel
         return D_SE
 
@@ -598,6 +617,7 @@ class _Recorder:
         self.t = 0.0
         self.plan = None
         self._tile = None
+        self.wanted = set()  # names kept even when not keeping (compute's confidence=True)
 
     def start(self):
         if self.timed:
@@ -614,7 +634,7 @@ class _Recorder:
             self.ctx.finish()
             now = time.perf_counter()
             self.times[name] = self.times.get(name, 0.0) + now - self.t
-        if self.keep and shape is not None:
+        if (self.keep or name in self.wanted) and shape is not None:
             if self._tile is None:
                 self.arrays[name] = self.ctx.from_device(buf, shape, dtype)
             elif len(shape) == 2:

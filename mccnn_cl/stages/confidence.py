@@ -1,0 +1,38 @@
+"""Per-pixel confidence of the disparity (not in the paper): ``kernels/confidence.cl``.
+
+:class:`Confidence` maps the final cost volume C (the one the winner-take-all
+and subpixel enhancement read, float32 or half storage) and the left-right
+labels to a float32 H x W map in [0, 1] on the cropped domain:
+(c2 - c1) / (cmax - c1) with c1 <= c2 the two lowest *local minima* of the
+pixel's cost curve and cmax its largest cost; 0 where the label is not
+correct.  Local minima, not the two smallest costs, so that the neighbours
+of a wide minimum do not count as a rival match; normalised by the curve's
+own range so that the measure does not depend on the cost's scale or
+offset (census and paper/acrt costs in [0, 1], fst in [-1, 1], sums after
+SGM).  Definition, plateaus and edge cases: :mod:`mccnn_cl.reference.confidence`
+(the numpy twin).  The pipeline enlarges the map to the image size as the
+disparity is (border pixels copied outwards), see ``StereoMatcher.compute``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..cl import launch
+
+_F32 = np.dtype(np.float32).itemsize
+
+
+class Confidence:
+    """``Confidence(ctx, half)(d_cost, d_labels, D, H, W, out=None)`` -> float32 H x W buffer."""
+
+    def __init__(self, ctx, half: bool = False):
+        self.ctx = ctx
+        self.kernel = ctx.kernel("confidence.cl", "confidence_curve", VOL_HALF=int(half))
+
+    def __call__(self, d_cost, d_labels, D, H, W, out=None):
+        if out is None:
+            out = self.ctx.empty(H * W * _F32, "confidence")
+        launch(self.ctx, "confidence", self.kernel, (W, H), d_cost, d_labels, out,
+               np.int32(D), np.int32(H), np.int32(W))
+        return out
