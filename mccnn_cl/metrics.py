@@ -26,7 +26,7 @@ from .errors import InputError
 
 __all__ = ["evaluated", "bad_pixel_rate", "kitti_3px", "kitti_d1", "middlebury_bad",
            "end_point_error", "density", "evaluate_disparity", "bad_pixel_map", "fill_invalid",
-           "METRIC_NAMES"]
+           "METRIC_NAMES", "sparsification", "SPARSIFICATION_FRACTIONS"]
 
 #: Short names and descriptions of the keys returned by :func:`evaluate_disparity`.
 METRIC_NAMES = {
@@ -191,3 +191,63 @@ def fill_invalid(disp) -> np.ndarray:
         fill_lines(d.T)
     d[~np.isfinite(d)] = 0.0
     return d
+
+
+#: Fractions of the evaluated pixels dropped along a sparsification curve: 0 .. 90 % in 5 % steps.
+SPARSIFICATION_FRACTIONS = tuple(round(0.05 * i, 2) for i in range(19))
+
+
+def _kept_error(bad, key, fractions):
+    """Error rate (%) of the pixels kept after dropping the fraction f with the
+    lowest ``key``, for each f.  Pixels of equal key are dropped as a group in
+    random order: a cut inside a group removes its errors pro rata (the
+    expected value), so ties (e.g. every confidence-0 pixel) favour no pixel."""
+    order = np.argsort(key, kind="stable")
+    ks, bs = key[order], bad[order].astype(np.float64)
+    n = len(ks)
+    cum = np.concatenate([[0.0], np.cumsum(bs)])
+    out = []
+    for f in fractions:
+        k = int(round(f * n))
+        if k >= n:
+            out.append(float("nan"))
+            continue
+        dropped = 0.0
+        if k > 0:
+            a, b = np.searchsorted(ks, ks[k - 1], "left"), np.searchsorted(ks, ks[k - 1], "right")
+            dropped = cum[a] + (k - a) * (cum[b] - cum[a]) / (b - a)
+        out.append(100.0 * (cum[n] - dropped) / (n - k))
+    return np.array(out)
+
+
+def sparsification(pred, gt, confidence, threshold, mask=None, fractions=SPARSIFICATION_FRACTIONS) -> dict:
+    """Sparsification curve of a confidence map against its oracle.
+
+    Over the evaluated pixels (:func:`evaluated`), ``curve[i]`` is the bad-T
+    rate (%, ``|pred - gt| > threshold``, invalid predictions bad) of the
+    pixels kept after dropping the ``fractions[i]`` of them with the lowest
+    ``confidence``; ``oracle[i]`` the same when dropping by the true error
+    (the best any confidence can do).  ``auc`` / ``oracle_auc``: the curves'
+    mean over [fractions[0], fractions[-1]] (trapezoids), in %; the closer
+    ``auc`` to ``oracle_auc``, the better the confidence ranks the errors
+    (``curve[0]`` is the plain error rate; a random confidence keeps it flat).
+    """
+    pred, gt, mask = _check(pred, gt, mask)
+    conf = np.asarray(confidence, dtype=np.float64)
+    if conf.shape != gt.shape:
+        raise InputError(f"confidence {conf.shape} does not match the ground truth {gt.shape}")
+    fr = np.asarray(fractions, dtype=np.float64)
+    if fr.ndim != 1 or len(fr) < 2 or np.any(np.diff(fr) <= 0) or fr[0] < 0 or fr[-1] >= 1:
+        raise InputError("fractions must be at least two increasing values in [0, 1)")
+    ev = evaluated(gt, mask)
+    if not np.isfinite(conf[ev]).all():
+        raise InputError("confidence must be finite on the evaluated pixels")
+    if not ev.any():
+        raise InputError("sparsification: no evaluated pixel (no ground truth inside the mask)")
+    bad = _bad_map(pred, gt, threshold)[ev]
+    with np.errstate(invalid="ignore"):
+        err = np.where(np.isfinite(pred[ev]), np.abs(pred[ev] - gt[ev]), np.inf)
+    curve, oracle = _kept_error(bad, conf[ev], fr), _kept_error(bad, -err, fr)
+    span = fr[-1] - fr[0]
+    return {"fractions": fr, "curve": curve, "oracle": oracle,
+            "auc": float(np.trapezoid(curve, fr) / span), "oracle_auc": float(np.trapezoid(oracle, fr) / span)}
