@@ -66,8 +66,11 @@ def kitti_crop(shared_data, y0, x0, H, W):
     return imgs
 
 
-def group_size(ctx, L):
-    return ctx.work_group_size(SGMWorkGroup(ctx).kernel()) if L == "max" else L
+def group_sizes(ctx, sizes):
+    """``sizes`` with "max" as the kernel's maximum on this device, those above
+    it left out (Rusticl's llvmpipe allows 32): the maximum always runs."""
+    kmax = ctx.work_group_size(SGMWorkGroup(ctx).kernel())
+    return sorted({kmax if L == "max" else L for L in sizes if L == "max" or L <= kmax})
 
 
 def run(ctx, stage, cost, img_l, img_r, dtype=np.float32, **kw):
@@ -90,12 +93,12 @@ def check_reference(got, cost, want, pi2=32.0):
 
 
 def check_all(ctx, cost, img_l, img_r, sizes=GROUP_SIZES, **kw):
-    """Every work-group size against the reference and, bit for bit, SGM's
-    one-direction kernels; returns the result."""
+    """Each work-group size of ``sizes`` (and the kernel's maximum) against the
+    reference and, bit for bit, SGM's one-direction kernels; returns the last
+    result."""
     want = sgm(cost, img_l, img_r, **kw)
     cpu_path = run(ctx, SGM(ctx, paired=False), cost, img_l, img_r, **kw)
-    for L in sizes:
-        L = group_size(ctx, L)
+    for L in group_sizes(ctx, (*sizes, "max")):
         st = SGMWorkGroup(ctx, local_size=L)
         got = run(ctx, st, cost, img_l, img_r, **kw)
         assert st.work_group_size(cost.shape[0]) == L
@@ -160,7 +163,7 @@ def test_largest_group_size_on_many_levels(ctx):
     rng = np.random.default_rng(5)
     D, H, W = 130, 5, 141
     cost = random_volume(rng, D, H, W, scale=2.0)
-    check_all(ctx, cost, blocky_image(rng, H, W), blocky_image(rng, H, W), sizes=("max", 128, 7))
+    check_all(ctx, cost, blocky_image(rng, H, W), blocky_image(rng, H, W), sizes=(128, 7))
 
 
 def test_kitti_crop_against_reference_and_sgm(ctx, shared_data):
@@ -176,7 +179,7 @@ def test_kitti_crop_against_reference_and_sgm(ctx, shared_data):
     assert np.nanmax(np.abs(a - b)) > 0.01
 
 
-@pytest.mark.parametrize("L", [1, 16, 64])
+@pytest.mark.parametrize("L", [1, 16, 32])
 def test_half_storage(ctx, shared_data, L):
     """Half volumes (VOL_HALF=1): bit for bit SGM(half=True, paired=False) (the
     same in-place accumulation in half) and within test_half's bound of the

@@ -1,0 +1,85 @@
+"""scripts/gpu_check.sh's quick paths (the full check is run by hand on a
+machine with a GPU, and with --cpu as a rehearsal: docs/portability.md).
+
+The no-GPU path is forced on any machine by an ICD folder holding only PoCL
+(or nothing), so the script's own NVIDIA ICD fix-up is skipped (it never
+touches an OCL_ICD_VENDORS that is set): one line on stdout, exit status 0.
+"""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO, ImplUnavailable, icd_file
+from mccnn_cl import gpucheck
+
+SCRIPT = REPO / "scripts" / "gpu_check.sh"
+
+
+def _vendors(tmp_path, with_pocl):
+    d = tmp_path / "vendors"
+    d.mkdir()
+    if with_pocl:
+        try:
+            (d / "pocl.icd").write_text(Path(icd_file("pocl")).read_text())
+        except ImplUnavailable as exc:
+            pytest.fail(f"PoCL is needed for this test: {exc}")
+    return d
+
+
+def _run_script(tmp_path, vendors, extra_path=None, *args):
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OCL_ICD_", "PYOPENCL_CTX"))}
+    env["OCL_ICD_VENDORS"] = str(vendors)
+    if extra_path:
+        env["PATH"] = f"{extra_path}{os.pathsep}{env['PATH']}"
+    out = tmp_path / "report.md"
+    p = subprocess.run(["bash", str(SCRIPT), "--out", str(out), *args], env=env, capture_output=True, text=True,
+                       timeout=120)
+    return p, out
+
+
+@pytest.mark.parametrize("with_pocl", [True, False])
+def test_no_gpu_prints_one_line_and_exits_0(tmp_path, with_pocl):
+    p, out = _run_script(tmp_path, _vendors(tmp_path, with_pocl))
+    assert p.returncode == 0, p.stdout + p.stderr
+    lines = p.stdout.strip().splitlines()
+    assert len(lines) == 1, p.stdout
+    assert lines[0].startswith("gpu_check: no OpenCL GPU device") and "likely cause" in lines[0], lines[0]
+    assert ("Portable Computing Language" in lines[0]) == with_pocl
+    assert not out.exists()  # no tests, no bench, no report
+
+
+def test_no_gpu_names_a_missing_nvidia_icd(tmp_path):
+    """nvidia-smi sees a GPU (a stand-in script here) but no OpenCL GPU device
+    shows up: the line names the NVIDIA driver / ICD as the cause."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    smi = bin_dir / "nvidia-smi"
+    smi.write_text("#!/bin/sh\necho 'GPU 0: NVIDIA H200 (UUID: GPU-0)'\n")
+    smi.chmod(0o755)
+    p, _ = _run_script(tmp_path, _vendors(tmp_path, True), bin_dir)
+    assert p.returncode == 0, p.stdout + p.stderr
+    lines = p.stdout.strip().splitlines()
+    assert len(lines) == 1 and "nvidia-smi sees 'GPU 0: NVIDIA H200" in lines[0], p.stdout
+
+
+def test_oclgrind_is_never_the_gpu_under_test():
+    """Oclgrind's simulator reports CPU | GPU (listed as a GPU): not picked."""
+    from mccnn_cl.cl import DeviceInfo
+
+    sim = DeviceInfo(0, 0, "Oclgrind", "OpenCL 1.2", "Oclgrind Simulator", "GPU", object())
+    gpu = DeviceInfo(1, 0, "NVIDIA CUDA", "OpenCL 3.0", "NVIDIA H200", "GPU", object())
+    assert gpucheck.pick([(sim, "")], want_cpu=False) is None
+    assert gpucheck.pick([(sim, ""), (gpu, "")], want_cpu=False) == ("1:0", gpu)
+
+
+def test_pack_data_copies_the_files_the_check_reads(tmp_path, shared_data):
+    p = subprocess.run([sys.executable, "-m", "mccnn_cl.gpucheck", "--data", str(shared_data), "--pack-data",
+                        str(tmp_path / "data")], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stdout + p.stderr
+    for rel in gpucheck.DATA_FILES:
+        assert (tmp_path / "data" / rel).read_bytes() == (shared_data / rel).read_bytes()
+    assert gpucheck.find_data(tmp_path / "data") == (tmp_path / "data").resolve()
