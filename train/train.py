@@ -1,24 +1,25 @@
-"""Train the MC-CNN network (paper, "Details of learning") and export it for the OpenCL side.
+"""Train an MC-CNN network (paper, fst or acrt) and export it for the OpenCL side.
 
 Run as ``python -m mccnn_cl.train.train --data DIR [DIR ...] --holdout KEY ... --out runs/NAME``.
 
-Defaults are the paper's recipe: cross-entropy on the 2-way softmax (class 0 =
-bad match, class 1 = good match), SGD, batch 128 (64 positive + 64 negative
-pairs), learning rate 0.01 divided by 10 at 12/16 and 15/16 of the run, 16
-epochs, shuffled examples, N_lo 4, N_hi 8, P_hi 1, per-image mean/std
-normalisation.  The paper does not state a momentum; the default 0.9 is the
-released code's (``--momentum 0`` for plain SGD).  The weights are He
-initialised (see :meth:`MCCNN.he_init_`).
+``--arch`` picks the network and its recipe defaults (``ARCH_DEFAULTS``):
+paper (the CVPR paper: 2-way softmax cross-entropy, lr 0.01, N_lo 4, N_hi 8,
+P_hi 1), fst (hinge loss margin 0.2, lr 0.002, offsets 1/4/10) and acrt (BCE,
+lr 0.003, offsets 1/4/10), all SGD with momentum 0.9 (the released code's;
+the paper states none), lr multiplied by ``lr_factor`` at ``lr_steps``
+fractions of the run, He-initialised weights (see :meth:`MCCNN.he_init_`).
 
-An "epoch" is ``--examples-per-epoch`` patch pairs (default: one positive
-and one negative for every usable GT pixel of the training pairs, after the
-``--max-per-pair`` cap), drawn afresh each epoch with offsets redrawn, so a
-short run can still follow the paper's 16-epoch schedule on a fraction of
-the data.  Each epoch ends with a checkpoint (``checkpoint.pt``: unwrapped
-``state_dict``, optimizer, epoch, history), validation on the held-out pairs
-(patch loss and WTA 3-px error, :mod:`.evaluate`) and an updated plot
-(``training.png``).  The run is deterministic for a given ``--seed`` (and
-thread count), and ``--resume`` continues it bit for bit.
+``--sampler patch`` trains on patch pairs (batch 128 = 64 positive + 64
+negative; an epoch is ``--examples-per-epoch`` pairs drawn afresh with offsets
+redrawn); ``--sampler crop`` on fully convolutional crops (:mod:`.crops`; an
+epoch is ``--steps-per-epoch`` steps).  Each epoch ends with validation on
+the held-out pairs (:mod:`.evaluate`), ``checkpoint.pt``, ``history.json``,
+``run.json``, ``training.png``, ``latest.npz`` and, when the validation error
+improves, ``best.npz``; ``checkpoint.pt`` is also written every
+``--checkpoint-minutes`` within an epoch.  Every random draw derives from
+``--seed`` (per epoch, and per step for crops), so a run is deterministic for
+a seed and thread count, and ``--resume`` continues it bit for bit, also from
+a mid-epoch checkpoint.
 """
 
 from __future__ import annotations
