@@ -65,8 +65,9 @@ class SGMWorkGroup:
         self._kernel = None
 
     @staticmethod
-    def scratch_bytes(D, W, cols=None, paired=False) -> int:
-        """Device memory besides the cost and output volumes: none."""
+    def scratch_bytes(D, W, *args, **kwargs) -> int:
+        """Device memory besides the cost and output volumes: none (whatever
+        configuration the planner passes, as to SGM.scratch_bytes)."""
         return 0
 
     def kernel(self):
