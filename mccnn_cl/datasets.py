@@ -26,16 +26,19 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from .errors import InputError
+from .imageops import luminance
 from .io import read_image, read_kitti_disparity, read_pfm
 
 __all__ = ["StereoPair", "PairRef", "load_kitti2012", "load_kitti2015", "load_middlebury",
            "read_calib", "discover", "find_pairs", "KINDS"]
 
 KINDS = ("kitti2012", "kitti2015", "middlebury")
+
+#: Ground-truth files of a MiddEval3-layout scene, first existing wins.
+MIDDLEBURY_GT = ("disp0GT.pfm", "disp0.pfm")
 
 _KITTI = {
     # kind: (left dirs, right dirs, noc dir, occ dir) -- first existing wins
@@ -89,10 +92,8 @@ class StereoPair:
 
 
 def to_gray(img: np.ndarray) -> np.ndarray:
-    """uint8 BGR or gray → (H, W) uint8 gray."""
-    if img.ndim == 2:
-        return img
-    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    """uint8 BGR or gray → (H, W) uint8 gray (:func:`mccnn_cl.imageops.luminance`)."""
+    return luminance(img)
 
 
 def _check_shapes(name, **arrays):
@@ -202,7 +203,7 @@ def load_middlebury(scene_dir) -> StereoPair:
     left = read_image(scene / "im0.png")
     right = read_image(scene / "im1.png")
     disp = valid_noc = valid_all = None
-    gt_path = next((scene / n for n in ("disp0GT.pfm", "disp0.pfm") if (scene / n).exists()), None)
+    gt_path = next((scene / n for n in MIDDLEBURY_GT if (scene / n).exists()), None)
     if gt_path is not None:
         gt = read_pfm(gt_path)
         if gt.ndim != 2:
@@ -237,6 +238,7 @@ class PairRef:
     kind: str
     root: str  # KITTI: the training/testing folder; Middlebury: the scene folder
     name: str
+    labeled: bool = True  # ground truth on disk (False: images only, e.g. the shared data's unlabeled/)
 
     @property
     def key(self) -> str:
@@ -261,26 +263,39 @@ def _kitti_kind(d: Path) -> str | None:
 def _kitti_refs(kind: str, d: Path) -> list:
     ldir = _first_dir(d, _KITTI[kind][0])
     frames = sorted(p.name[:-7] for p in ldir.glob("*_10.png"))
-    return [PairRef(kind, str(d), f) for f in frames]
+    gt_dirs = [d / n for n in _KITTI[kind][2:]]
+    return [PairRef(kind, str(d), f, any((g / f"{f}_10.png").exists() for g in gt_dirs)) for f in frames]
+
+
+def _middlebury_gt(d: Path) -> bool:
+    return any((d / n).exists() for n in MIDDLEBURY_GT)
 
 
 def _scene_name(d: Path) -> str:
     """Scene name; inside MiddEval3's resolution folders it keeps the folder (``trainingQ/Adirondack``)
-    so the same scene at several resolutions gets distinct keys."""
-    if re.fullmatch(r"(training|test)[QHF]", d.parent.name):
+    so the same scene at several resolutions gets distinct keys, and so does a scene without
+    ground truth (``eth3d_two_view/electro_1l``): the same scene may be in a labelled collection too."""
+    if re.fullmatch(r"(training|test)[QHF]", d.parent.name) or not _middlebury_gt(d):
         return f"{d.parent.name}/{d.name}"
     return d.name
 
 
-def discover(root, dataset: str | None = None, _depth: int = 0) -> list:
+def discover(root, dataset: str | None = None, labeled: bool | None = None) -> list:
     """Find every stereo pair under ``root`` without loading it: a list of :class:`PairRef`.
 
     ``root`` may be a KITTI dataset root (holding ``training/``), a KITTI
     ``training``/``testing`` folder, a Middlebury scene folder, a folder of
     scenes (e.g. MiddEval3 ``trainingQ``), or any folder holding such folders
     (searched three levels deep, in sorted order).  ``dataset`` (one of
-    :data:`KINDS`) keeps only pairs of that kind.
+    :data:`KINDS`) keeps only pairs of that kind; ``labeled`` True only pairs
+    with ground truth on disk, False only pairs without (images only: they
+    load with ``disp``, ``valid_all``, ``valid_noc`` None), None both.
     """
+    refs = _discover(root, dataset, 0)
+    return refs if labeled is None else [r for r in refs if r.labeled == bool(labeled)]
+
+
+def _discover(root, dataset, _depth):
     if dataset is not None and dataset not in KINDS:
         raise InputError(f"unknown dataset {dataset!r}; expected one of {', '.join(KINDS)}")
     d = Path(root)
@@ -290,7 +305,8 @@ def discover(root, dataset: str | None = None, _depth: int = 0) -> list:
     if kind is not None:
         return _kitti_refs(kind, d) if dataset in (None, kind) else []
     if (d / "im0.png").exists() and (d / "im1.png").exists():
-        return [PairRef("middlebury", str(d), _scene_name(d))] if dataset in (None, "middlebury") else []
+        return ([PairRef("middlebury", str(d), _scene_name(d), _middlebury_gt(d))]
+                if dataset in (None, "middlebury") else [])
     if _depth >= 3:
         return []
     refs = []
@@ -298,13 +314,13 @@ def discover(root, dataset: str | None = None, _depth: int = 0) -> list:
         # In a KITTI root prefer training/ (which has GT) and skip testing/ unless asked directly.
         if sub.name == "testing" and (d / "training").is_dir():
             continue
-        refs.extend(discover(sub, dataset, _depth + 1))
+        refs.extend(_discover(sub, dataset, _depth + 1))
     return refs
 
 
-def find_pairs(root, dataset: str | None = None) -> list:
+def find_pairs(root, dataset: str | None = None, labeled: bool | None = None) -> list:
     """Load every pair :func:`discover` finds under ``root``; raises InputError if there is none."""
-    refs = discover(root, dataset)
+    refs = discover(root, dataset, labeled)
     if not refs:
         raise InputError(f"no stereo pairs found under {root}"
                          + (f" for dataset {dataset}" if dataset else "")

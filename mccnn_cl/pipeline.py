@@ -28,11 +28,11 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from .cl import BufferPool, ClContext
 from .errors import InputError, WeightsError
+from .imageops import to_gray  # noqa: F401 (also importable from here)
 from .validate import PATCH, check_disparity_range, check_hyperparameters, check_pair  # noqa: F401 (PATCH re-exported)
 from .stages.costs import make_cost
 from .stages.features import normalise
@@ -214,32 +214,6 @@ class StereoResult:
     peak_device_bytes: int = 0
     confidence: np.ndarray | None = None
     labels: np.ndarray | None = None
-
-
-def to_gray(img, name: str) -> np.ndarray:
-    """Gray float32 in [0, 1] from a gray or colour (BGR/BGRA, as cv2 reads) array:
-    uint8 / 255, uint16 / 65535, float as is (must be finite and in [0, 1])."""
-    a = np.asarray(img)
-    if a.ndim == 3 and a.shape[2] == 1:
-        a = a[:, :, 0]
-    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (3, 4)):
-        raise InputError(f"{name} image: expected H x W (gray) or H x W x 3/4 (BGR/BGRA), got shape {a.shape}")
-    if a.dtype == np.uint8:
-        scale = 255.0
-    elif a.dtype == np.uint16:
-        scale = 65535.0
-    elif a.dtype.kind == "f":
-        a = a.astype(np.float32)
-        if not np.isfinite(a).all():
-            raise InputError(f"{name} image contains NaN or infinite pixels")
-        if a.size and (a.min() < 0 or a.max() > 1):
-            raise InputError(f"{name} image: float pixels must lie in [0, 1], found [{a.min():g}, {a.max():g}]")
-        scale = 1.0
-    else:
-        raise InputError(f"{name} image: dtype {a.dtype} not supported (uint8, uint16 or float in [0, 1])")
-    if a.ndim == 3:  # luminance weights 0.299 R + 0.587 G + 0.114 B, in the input's own type
-        a = cv2.cvtColor(np.ascontiguousarray(a), cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
-    return (a.astype(np.float32) / np.float32(scale)).astype(np.float32)
 
 
 def _resolve_weights(spec) -> Weights:

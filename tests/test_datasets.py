@@ -22,11 +22,17 @@ MIDDLEBURY = {
 }
 
 
+#: The KITTI 2015 frames of the shared data: two official ones and eight "e" frames (ids unknown).
+KITTI2015 = ["000000", "000001"] + [f"e{n:05d}" for n in (1, 2, 3, 4, 6, 7, 8, 10)]
+#: The shared data's pairs with ground truth, in discovery order.
+LABELED = (["kitti2012/000000", "kitti2012/000001"] + [f"kitti2015/{f}" for f in KITTI2015]
+           + [f"middlebury/{s}" for s in sorted(MIDDLEBURY)])
+
+
 def test_every_pair_loads(shared_data):
-    pairs = find_pairs(shared_data)
+    pairs = find_pairs(shared_data, labeled=True)
     keys = [p.key for p in pairs]
-    assert keys == ["kitti2012/000000", "kitti2012/000001", "kitti2015/000000", "kitti2015/000001"] + \
-        [f"middlebury/{s}" for s in sorted(MIDDLEBURY)]
+    assert keys == LABELED
     for p in pairs:
         assert p.left.dtype == np.uint8 and p.right.shape == p.left.shape
         assert p.disp.dtype == np.float32 and p.disp.shape == p.shape
@@ -65,14 +71,43 @@ def test_kitti(shared_data):
 
 
 def test_layout_detection(shared_data):
-    assert [r.key for r in discover(shared_data / "kitti2015")] == ["kitti2015/000000", "kitti2015/000001"]
+    assert [r.key for r in discover(shared_data / "kitti2015")] == [f"kitti2015/{f}" for f in KITTI2015]
     assert [r.key for r in discover(shared_data / "kitti2012" / "training")] == \
         ["kitti2012/000000", "kitti2012/000001"]
     assert [r.key for r in discover(shared_data / "middlebury" / "Cones")] == ["middlebury/Cones"]
     assert len(discover(shared_data / "middlebury")) == 7
-    assert len(discover(shared_data, dataset="kitti2015")) == 2
+    assert len(discover(shared_data, dataset="kitti2015")) == len(KITTI2015) == 10
+    assert [r.key for r in discover(shared_data, labeled=True)] == LABELED
     with pytest.raises(InputError, match="unknown dataset"):
         discover(shared_data, dataset="sintel")
+
+
+def test_unlabeled_pairs(shared_data, tmp_path):
+    """Pairs without ground truth (the shared data's unlabeled/: ETH3D two-view and MiddEval3
+    quarter-size scenes) are discovered as such, keep their collection in the key (a scene may
+    also be in a labelled collection), and load with images only."""
+    refs = discover(shared_data, labeled=False)
+    keys = [r.key for r in refs]
+    assert len(keys) == len(set(keys)) == 39 and not set(keys) & set(LABELED)
+    assert sum(k.startswith("middlebury/eth3d_two_view/") for k in keys) == 27
+    assert sum(k.startswith("middlebury/middeval3_trainingQ/") for k in keys) == 12
+    assert "middlebury/middeval3_trainingQ/Adirondack" in keys
+    assert len(discover(shared_data)) == len(LABELED) + 39  # both, labelled ones first (sorted folders)
+    pair = next(r for r in refs if r.name.endswith("/Adirondack")).load()
+    assert pair.disp is None and pair.valid_all is None and pair.valid_noc is None and pair.ndisp is None
+    lg, rg = pair.gray()
+    assert lg.dtype == np.uint8 and lg.shape == rg.shape == pair.shape and lg.std() > 5
+    # a scene folder of one's own without GT, and the same with GT added
+    scene = tmp_path / "mine" / "room"
+    scene.mkdir(parents=True)
+    for n in ("im0.png", "im1.png"):
+        (scene / n).write_bytes((shared_data / "middlebury" / "Tsukuba" / n).read_bytes())
+    (ref,) = discover(tmp_path)
+    assert (ref.key, ref.labeled) == ("middlebury/mine/room", False)
+    (scene / "disp0GT.pfm").write_bytes((shared_data / "middlebury" / "Tsukuba" / "disp0GT.pfm").read_bytes())
+    (ref,) = discover(tmp_path)
+    assert (ref.key, ref.labeled) == ("middlebury/room", True) and ref.load().disp is not None
+    assert discover(tmp_path, labeled=False) == []
 
 
 def test_errors(tmp_path, shared_data):

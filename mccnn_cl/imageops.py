@@ -1,0 +1,72 @@
+"""Image conversions shared by inference, training and the tools: one of each.
+
+* :func:`luminance`: a gray or colour (BGR/BGRA, as cv2 reads) image to H x W
+  gray in the input's own type (cv2's 0.299 R + 0.587 G + 0.114 B).
+* :func:`to_gray`: the stereo method's input, gray float32 in [0, 1]
+  (uint8 / 255, uint16 / 65535, float as is: finite and in [0, 1]).
+* :func:`standardise`: the per-image standardisation the networks see,
+  (I - mean(I)) / std(I) with mean and std over the whole image in float64
+  and the result in float32; a constant image gives zeros.  Integer images
+  are first brought to [0, 1] exactly as :func:`to_gray` does, so training
+  (which standardises the uint8 gray images it reads) and inference (which
+  standardises the matcher's [0, 1] input) get the same values, bit for bit.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+
+#: Divisor bringing each integer dtype to [0, 1].
+_UNIT_SCALE = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}
+
+
+def luminance(img, name: str = "image") -> np.ndarray:
+    """H x W gray in the input's own dtype from H x W, H x W x 1, or H x W x 3/4 (BGR/BGRA)."""
+    a = np.asarray(img)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (3, 4)):
+        raise InputError(f"{name} image: expected H x W (gray) or H x W x 3/4 (BGR/BGRA), got shape {a.shape}")
+    if a.ndim == 3:  # luminance weights 0.299 R + 0.587 G + 0.114 B, in the input's own type
+        a = cv2.cvtColor(np.ascontiguousarray(a), cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    return a
+
+
+def to_gray(img, name: str = "image") -> np.ndarray:
+    """Gray float32 in [0, 1] (module docstring); ``name`` goes into the error messages.
+    Float pixels are checked before the colour conversion, integer ones converted
+    in their own type (cv2 rounds) and then scaled."""
+    a = np.asarray(img)
+    if a.dtype in _UNIT_SCALE:
+        scale = _UNIT_SCALE[a.dtype]
+    elif a.dtype.kind == "f":
+        a = a.astype(np.float32)
+        if not np.isfinite(a).all():
+            raise InputError(f"{name} image contains NaN or infinite pixels")
+        if a.size and (a.min() < 0 or a.max() > 1):
+            raise InputError(f"{name} image: float pixels must lie in [0, 1], found [{a.min():g}, {a.max():g}]")
+        scale = 1.0
+    else:
+        raise InputError(f"{name} image: dtype {a.dtype} not supported (uint8, uint16 or float in [0, 1])")
+    return _scaled(luminance(a, name), scale)
+
+
+def _scaled(a: np.ndarray, scale: float) -> np.ndarray:
+    return (a.astype(np.float32) / np.float32(scale)).astype(np.float32)
+
+
+def standardise(img) -> np.ndarray:
+    """(I - mean(I)) / std(I), float32, stats in float64 over all pixels and
+    channels; std 0 divides by 1 (module docstring)."""
+    a = np.asarray(img)
+    if a.dtype in _UNIT_SCALE:  # as to_gray scales them
+        a = _scaled(a, _UNIT_SCALE[a.dtype])
+    a = np.asarray(a, dtype=np.float64)
+    mean = a.mean()
+    std = a.std()
+    if not std > 0:
+        std = 1.0
+    return ((a - mean) / std).astype(np.float32)
