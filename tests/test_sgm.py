@@ -17,7 +17,7 @@ from conftest import POISON
 from mccnn_cl.errors import InputError
 from mccnn_cl.reference.aggregation import SGM_DIRECTIONS, sgm, sgm_direction
 from mccnn_cl.stages.sgm import SGM, state_bytes
-from test_cbca import ad_volume, blocky_image, invalid_mask, random_volume
+from helpers import ad_volume, blocky_image, invalid_mask, random_volume
 
 
 def run_sgm(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None,
