@@ -1,4 +1,4 @@
-"""Dataset readers on the real data in /work/shared/data (see its README for the table checked here)."""
+"""Dataset readers on the real shared data (the shared_data fixture; see its README for the table checked here)."""
 
 import shutil
 
