@@ -3,11 +3,14 @@
  * extent) then a columns pass (sums of row sums over the rows of U_d(p),
  * divided by the cell count).  Driven by mccnn_cl/stages/cbca.py (the
  * derivation of the two passes from the set U_d(p) is in that module's
- * docstring).  Two implementations: cbca_rows / cbca_columns (running sums,
- * any MAX_ARM, described here) and cbca_rows_short / cbca_columns_short
- * (float16 direct sums, MAX_ARM <= CBCA_SHORT_MAX, further down), the latter
- * also fused into one launch per iteration (cbca_fused_short) and per up to
- * CBCA_K iterations (cbca_fused_multi_short, at the end).
+ * docstring).  Four kernel paths: cbca_rows / cbca_columns (running sums,
+ * any MAX_ARM, described here), cbca_rows_short / cbca_columns_short
+ * (float16 direct sums, MAX_ARM <= CBCA_SHORT_MAX, further down), the short
+ * passes fused into one launch per iteration (cbca_fused_short) and into one
+ * launch per up to CBCA_K iterations (cbca_fused_multi_short, at the end).
+ * Defines: MAX_ARM (required, below), VOL_HALF [0] (common.h), CBCA_GROUPS [8]
+ * (16-column groups per work-item of the short column pass), CBCA_K
+ * [4] (iterations per launch of the multi kernel).
  *
  * Arms: bytes in four planes [4][H][W] (left, right, up, down), as written
  * by cross.cl; ARM(a, k, i) is arm k of pixel index i = y * W + x.

@@ -4,8 +4,16 @@
  * output, or runs the paired sweeps (sgm_paired, at the end: two launches
  * of two work-items for all four directions).
  *
- * Required define: MAX_DISP >= D; it sizes the private arrays.
- * Optional define: SGM_CPU_PREFETCH=1 (CPU devices), see SGM_PREFETCH.
+ * Defines (the host, stages/sgm.py, passes all seven; defaults in brackets):
+ *   MAX_DISP          required, >= D (a multiple of 32); sizes the private arrays
+ *   VOL_HALF          [0] volumes stored as half (common.h)
+ *   SGM_COLS          [32] columns per sgm_columns work-item, a multiple of 16
+ *                     (the host's default: 128 on CPU devices, 32 elsewhere
+ *                     and on llvmpipe; mccnn_cl.device.RULES)
+ *   SGM_CPU_PREFETCH  [unset] 1: CPU prefetch instructions, see SGM_PREFETCH
+ *   SGM_SPECIALIZE    [1] the column kernel's inner loop compiled per case
+ *   SGM_WHOLE_TILES   [1] sgm_rows' separate path for whole 16 x 16 tiles
+ *   SGM_PAIR_CW       [16] columns per chunk of sgm_paired
  *
  * Validity is decided by index: the cost of cell (d, y, x) is used only when
  * d <= x; entries of C_r(p - r, .) beyond p - r's valid range hold
@@ -15,8 +23,9 @@
  *
  * The volume is [d][y][x]: only x is contiguous, so both kernels move
  * 16-wide chunks along x (VW floats, one 64-byte line):
- *  - sgm_columns (vertical paths): one work-item walks 32 adjacent columns
- *    at once, as two groups of 16, all arithmetic on float16 lanes;
+ *  - sgm_columns (vertical paths): one work-item walks SGM_COLS adjacent
+ *    columns at once, as SGM_COLS / 16 groups of 16, all arithmetic on
+ *    float16 lanes;
  *  - sgm_rows (horizontal paths): one work-item walks one row; for each
  *    chunk of 16 x it copies the chunk's D x 16 costs into private memory
  *    transposed to [x][d] (16 x 16 tiles, transposed in registers), runs
@@ -40,8 +49,8 @@
 #endif
 
 /* Prefetch hint for the line holding *p.  PoCL compiles OpenCL's prefetch()
- * to nothing; with -D SGM_CPU_PREFETCH=1 (set by the host for devices of type
- * CPU) clang's __builtin_prefetch emits a real prefetch instruction - only
+ * to nothing; with -D SGM_CPU_PREFETCH=1 (set by the host on CPU devices,
+ * mccnn_cl.device.RULES) clang's __builtin_prefetch emits a real prefetch instruction - only
  * where the kernel is compiled straight to a CPU instruction set (PoCL).
  * Compilers going through SPIR / SPIR-V (Intel's CPU runtime, Oclgrind,
  * Rusticl's llvmpipe, which aborts on the intrinsic) get prefetch(). */
