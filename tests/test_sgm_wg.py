@@ -181,7 +181,7 @@ def test_kitti_crop_against_reference_and_sgm(ctx, shared_data):
 
 @pytest.mark.parametrize("L", [1, 16, 32])
 def test_half_storage(ctx, shared_data, L):
-    """Half volumes (VOL_HALF=1): bit for bit SGM(half=True, paired=False) (the
+    """Half volumes (VOL_HALF=1): equal to SGM(half=True, paired=False) (the
     same in-place accumulation in half) and within test_half's bound of the
     reference on the half input."""
     L_img, R_img = kitti_crop(shared_data, 150, 60, 20, 45)
@@ -190,7 +190,9 @@ def test_half_storage(ctx, shared_data, L):
     C32 = C.astype(np.float32)
     got = run(ctx, SGMWorkGroup(ctx, half=True, local_size=L), C, L_img, R_img, dtype=np.float16)
     cpu_path = run(ctx, SGM(ctx, half=True, paired=False), C, L_img, R_img, dtype=np.float16)
-    np.testing.assert_array_equal(got.view(np.uint16), cpu_path.view(np.uint16))
+    # equal values, NaN in the same cells (the NaN's bits may differ: Rusticl
+    # stores NAN as 0x7fff in one kernel and 0x7e00 in the other)
+    np.testing.assert_array_equal(got, cpu_path)
     got = got.astype(np.float32)
     want = sgm(C32, L_img, R_img)
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
