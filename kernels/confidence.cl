@@ -6,10 +6,11 @@
  * index, see common.h), the curve c(d) = C(d, y, x) is read once as runs of
  * equal cost.  A run is a local minimum when the costs on both sides of it
  * are higher (the curve's ends count as higher).  With c1 <= c2 the two
- * lowest local minima and cmax the curve's largest cost:
- *     confidence = (c2 - c1) / (cmax - c1)
- * c2 = cmax with a single local minimum; 0 when cmax == c1 (flat curve or
- * one level) and for pixels the left-right check did not label correct.
+ * lowest local minima (c2 = the curve's largest cost when there is one
+ * only) and f the matching cost's lower bound (argument cost_floor):
+ *     confidence = (c2 - c1) / ((c1 - f) + (c2 - f)),  clamped to [0, 1]
+ * 0 when the denominator is not positive and for pixels the left-right
+ * check did not label correct.
  */
 #include "common.h"
 
@@ -35,7 +36,8 @@ __kernel void confidence_curve(
     __global float *conf,        /* out: confidence in [0, 1], H x W */
     const int D,                 /* disparity levels */
     const int H,                 /* rows */
-    const int W)                 /* columns */
+    const int W,                 /* columns */
+    const float cost_floor)      /* f: lower bound of the matching cost (0; fst: -1) */
 {
     const int x = get_global_id(0);
     const int y = get_global_id(1);
@@ -67,5 +69,6 @@ __kernel void confidence_curve(
     if (left_higher)
         confidence_push(run, &m1, &m2);
     const float c2 = isinf(m2) ? cmax : m2;
-    conf[p] = cmax > m1 ? fmin(1.0f, (c2 - m1) / (cmax - m1)) : 0.0f;
+    const float den = (m1 - cost_floor) + (c2 - cost_floor);
+    conf[p] = den > 0.0f ? fmin(1.0f, (c2 - m1) / den) : 0.0f;
 }

@@ -37,7 +37,7 @@ from .validate import PATCH, check_disparity_range, check_hyperparameters, check
 from .stages.costs import make_cost
 from .stages.features import normalise
 from .stages.cross import CrossArms, max_arm
-from .stages.confidence import Confidence
+from .stages.confidence import Confidence, cost_floor
 from .stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpixel, WinnerTakeAll
 from .stages.refine import BilateralFilter, Enlarge, MedianFilter
 from .weights import Weights
@@ -319,6 +319,7 @@ class StereoMatcher:
         self.interpolate = Interpolate(ctx)
         self.subpixel = Subpixel(ctx, half=self.half)
         self.confidence = Confidence(ctx, half=self.half)
+        self.cost_floor = cost_floor(self.weights.architecture if self.weights is not None else "census")
         self.enlarge = Enlarge(ctx)
         self.median = MedianFilter(ctx, self.params.median_size)
         self.bilateral = BilateralFilter(ctx)
@@ -460,7 +461,7 @@ class StereoMatcher:
         D_INT = rec("D_INT", self.interpolate(D_L, labels, H, W, p.interpolation), crop, np.int32)
         D_SE = rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp), crop)
         if "confidence" in rec.wanted:
-            rec("confidence", self.confidence(C, labels, D, H, W), crop)
+            rec("confidence", self.confidence(C, labels, D, H, W, self.cost_floor), crop)
         self._pool.give(C)  # the in-order queue runs any later user after subpixel
         return D_SE
 

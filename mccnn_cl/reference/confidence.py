@@ -6,18 +6,22 @@ d = 0 .. min(D-1, x) and split it into runs of equal cost.  A run is a
 *local minimum* when its neighbours on both sides are higher (the curve's
 ends count as higher).  With c1 <= c2 the costs of the two lowest local
 minima (c1 is the global minimum, the winner-take-all cost; two separate
-runs at the same cost give c2 = c1) and cmax the curve's largest cost,
+runs at the same cost give c2 = c1; c2 = the curve's largest cost when it
+has one local minimum only) and f the matching cost's lower bound
+(``floor``: 0 for census, paper and acrt, -1 for fst's -cosine),
 
-    confidence = (c2 - c1) / (cmax - c1)
+    confidence = (c2 - c1) / ((c1 - f) + (c2 - f))
 
-with c2 = cmax when the curve has one local minimum only, and 0 when
-cmax = c1 (a flat curve, or one valid level).  This is the peak ratio of
-the two best matches on the flipped curve s(d) = cmax - c(d):
-1 - s2 / s1.  It is invariant under c -> a c + b (a > 0), like the
-winner-take-all itself, so one measure serves census and the paper/acrt
-networks ([0, 1]), fst ([-1, 1]) and volumes after SGM (sums of path
-costs, offsets and ranges that depend on P1, P2).  Pixels whose
-left-right label is not CORRECT get 0.
+the peak ratio 1 - c1'/c2' of the costs measured from their floor, in
+[0, 1]; 0 where the denominator is 0 (both minima at the floor) and where
+the left-right label is not CORRECT.  Local minima, so that the shoulders
+of one wide minimum are no rival match.  Invariant under c -> f + a (c - f),
+a > 0: SGM's mean over directions and CBCA's means keep the matching cost's
+floor, so one f per network serves C_CNN and the final volume alike, and
+the measure does not depend on the network's cost range or on P1, P2.
+Measured against the range-normalised (c2 - c1)/(cmax - c1), which is also
+shift-invariant, this ranks errors better (docs/method.md, "Confidence"): a
+high c1 (a poor best match) lowers it.
 """
 
 from __future__ import annotations
@@ -27,15 +31,11 @@ import numpy as np
 from .disparity import CORRECT
 
 
-def curve_confidence(c: np.ndarray) -> float:
+def curve_confidence(c: np.ndarray, floor: float = 0.0) -> float:
     """The measure of the module docstring on one curve (float32 values, all valid)."""
     c = np.asarray(c, np.float32)
     n = len(c)
     if n == 0:
-        return 0.0
-    cmax = c.max()
-    c1 = c.min()
-    if not cmax > c1:
         return 0.0
     minima = []
     i = 0
@@ -49,20 +49,25 @@ def curve_confidence(c: np.ndarray) -> float:
             minima.append(c[i])
         i = j + 1
     minima.sort()
-    c2 = minima[1] if len(minima) > 1 else cmax
-    # float32 arithmetic as in the kernel
-    return float(min(np.float32(1.0), np.float32(c2 - c1) / np.float32(cmax - c1)))
+    c1 = minima[0]
+    c2 = minima[1] if len(minima) > 1 else c.max()
+    f = np.float32(floor)
+    den = np.float32(np.float32(c1 - f) + np.float32(c2 - f))  # float32 arithmetic as in the kernel
+    if not den > 0:
+        return 0.0
+    return float(min(np.float32(1.0), np.float32(c2 - c1) / den))
 
 
-def confidence(C: np.ndarray, labels: np.ndarray) -> np.ndarray:
+def confidence(C: np.ndarray, labels: np.ndarray, floor: float = 0.0) -> np.ndarray:
     """Confidence map (float32 H x W, in [0, 1]) of volume ``C`` [D][H][W]
-    (float32 or float16; invalid cells d > x are skipped by index) and
-    left-right ``labels`` (int32 H x W; not CORRECT -> 0)."""
+    (float32 or float16; invalid cells d > x are skipped by index),
+    left-right ``labels`` (int32 H x W; not CORRECT -> 0) and the cost's
+    lower bound ``floor``."""
     D, H, W = C.shape
     C = C.astype(np.float32)
     out = np.zeros((H, W), np.float32)
     for y in range(H):
         for x in range(W):
             if labels[y, x] == CORRECT:
-                out[y, x] = curve_confidence(C[:min(D - 1, x) + 1, y, x])
+                out[y, x] = curve_confidence(C[:min(D - 1, x) + 1, y, x], floor)
     return out

@@ -3,14 +3,15 @@
 :class:`Confidence` maps the final cost volume C (the one the winner-take-all
 and subpixel enhancement read, float32 or half storage) and the left-right
 labels to a float32 H x W map in [0, 1] on the cropped domain:
-(c2 - c1) / (cmax - c1) with c1 <= c2 the two lowest *local minima* of the
-pixel's cost curve and cmax its largest cost; 0 where the label is not
-correct.  Local minima, not the two smallest costs, so that the neighbours
-of a wide minimum do not count as a rival match; normalised by the curve's
-own range so that the measure does not depend on the cost's scale or
-offset (census and paper/acrt costs in [0, 1], fst in [-1, 1], sums after
-SGM).  Definition, plateaus and edge cases: :mod:`mccnn_cl.reference.confidence`
-(the numpy twin).  The pipeline enlarges the map to the image size as the
+(c2 - c1) / ((c1 - f) + (c2 - f)) with c1 <= c2 the two lowest *local
+minima* of the pixel's cost curve and f the matching cost's lower bound
+(:func:`cost_floor`); 0 where the label is not correct.  Local minima, not
+the two smallest costs, so that the neighbours of a wide minimum do not
+count as a rival match; costs measured from f so that the measure does not
+depend on the cost's scale (census and paper/acrt costs in [0, 1], fst's
+-cosine in [-1, 1]; SGM and CBCA average, so the final volume keeps the
+floor of C_CNN).  Definition, plateaus and edge cases:
+:mod:`mccnn_cl.reference.confidence` (the numpy twin).  The pipeline enlarges the map to the image size as the
 disparity is (border pixels copied outwards), see ``StereoMatcher.compute``.
 """
 
@@ -19,20 +20,35 @@ from __future__ import annotations
 import numpy as np
 
 from ..cl import launch
+from ..errors import InputError
+from ..weights import ACRT, FST, PAPER
 
 _F32 = np.dtype(np.float32).itemsize
 
+#: Lower bound of each matching cost (and so of every volume after it):
+#: census (Hamming / bits), paper (softmax) and acrt (sigmoid) costs >= 0,
+#: fst's -cosine of unit vectors >= -1.
+COST_FLOORS = {"census": 0.0, PAPER: 0.0, ACRT: 0.0, FST: -1.0}
+
+
+def cost_floor(kind: str) -> float:
+    """f for a cost ``kind``: "census" or a network architecture (``Weights.architecture``)."""
+    try:
+        return COST_FLOORS[kind]
+    except KeyError:
+        raise InputError(f"no cost floor known for {kind!r}; known: {', '.join(COST_FLOORS)}") from None
+
 
 class Confidence:
-    """``Confidence(ctx, half)(d_cost, d_labels, D, H, W, out=None)`` -> float32 H x W buffer."""
+    """``Confidence(ctx, half)(d_cost, d_labels, D, H, W, floor=0.0, out=None)`` -> float32 H x W buffer."""
 
     def __init__(self, ctx, half: bool = False):
         self.ctx = ctx
         self.kernel = ctx.kernel("confidence.cl", "confidence_curve", VOL_HALF=int(half))
 
-    def __call__(self, d_cost, d_labels, D, H, W, out=None):
+    def __call__(self, d_cost, d_labels, D, H, W, floor=0.0, out=None):
         if out is None:
             out = self.ctx.empty(H * W * _F32, "confidence")
         launch(self.ctx, "confidence", self.kernel, (W, H), d_cost, d_labels, out,
-               np.int32(D), np.int32(H), np.int32(W))
+               np.int32(D), np.int32(H), np.int32(W), np.float32(floor))
         return out
