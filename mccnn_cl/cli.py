@@ -208,6 +208,50 @@ def _side_outputs(out, args):
     return color, depth, ply
 
 
+CONFIDENCE_FORMATS = (".pfm", ".png", ".npy")
+LABEL_FORMATS = (".png", ".npy")
+
+
+def _confidence_outputs(out, args):
+    """Paths of ``--confidence`` and ``--labels`` (None when not asked), extensions checked."""
+    stem = os.path.splitext(out)[0]
+    paths = []
+    for value, default, formats, what in ((args.confidence, "_confidence.pfm", CONFIDENCE_FORMATS, "--confidence"),
+                                          (args.labels, "_labels.png", LABEL_FORMATS, "--labels")):
+        path = None if value is None else (value or stem + default)
+        if path is not None and os.path.splitext(path)[1].lower() not in formats:
+            raise InputError(f"{path}: {what} must end in {', '.join(formats)}")
+        paths.append(path)
+    return paths
+
+
+def _save_confidence(out, res, args):
+    """--confidence: .pfm / .npy float32 in [0, 1], .png 16-bit round(c * 65535);
+    --labels: 0 correct, 1 mismatch, 2 occlusion as 8-bit .png or int32 .npy."""
+    import cv2
+
+    from .depth import atomic_write
+    from .io import write_image, write_pfm
+    conf_path, labels_path = _confidence_outputs(out, args)
+    for path, a in ((conf_path, res.confidence), (labels_path, res.labels)):
+        if path is None:
+            continue
+        ext = os.path.splitext(path)[1].lower()
+        if ext == ".pfm":
+            write_pfm(path, a.astype(np.float32))
+        elif ext == ".npy":
+            atomic_write(path, lambda tmp, a=a: np.save(tmp, a))
+        elif a is res.labels:
+            write_image(path, a.astype(np.uint8))
+        else:
+            raw = np.round(np.clip(a, 0, 1) * 65535.0).astype(np.uint16)
+
+            def write(tmp, raw=raw, path=path):
+                if not cv2.imwrite(tmp, raw):
+                    raise InputError(f"{path}: cv2 could not write the PNG")
+            atomic_write(path, write)
+
+
 # -- match -------------------------------------------------------------------
 
 def cmd_match(args):
@@ -235,6 +279,8 @@ def cmd_match(args):
             raise InputError("-o is for one pair; a batch writes into --output-dir")
         if args.color:
             raise InputError("in a batch, --color takes no file name (pictures go next to each output)")
+        if args.confidence or args.labels:
+            raise InputError("in a batch, --confidence and --labels take no file name (maps go next to each output)")
         lefts, rights = _expand(args.left_glob, "left"), _expand(args.right_glob, "right")
         if len(lefts) != len(rights):
             raise InputError(f"{len(lefts)} left but {len(rights)} right images; they are paired "
@@ -257,7 +303,7 @@ def cmd_match(args):
         color, depth, ply = _side_outputs(out, args)
         if color is not None and not color.lower().endswith((".png", ".jpg", ".jpeg", ".bmp")):
             raise InputError(f"{color}: the colour picture must be a .png/.jpg/.bmp file")
-        _check_outputs([out, color, depth, ply], args.force)
+        _check_outputs([out, color, depth, ply, *_confidence_outputs(out, args)], args.force)
 
     weights = _load_weights(args)
     from .cl import ClContext
@@ -280,9 +326,13 @@ def cmd_match(args):
                 matchers[max_disp] = _make_matcher(args, max_disp, weights, progress=single and _tty(),
                                                    ctx=ctx)
             t0 = time.perf_counter()
-            disp = matchers[max_disp].compute(_gray(left_img), _gray(right_img))
+            want = args.confidence is not None or args.labels is not None
+            res = matchers[max_disp].compute(_gray(left_img), _gray(right_img), confidence=want)
+            disp = res.disparity if want else res
             seconds = time.perf_counter() - t0
             _save_outputs(out, disp, left_img, args, calib, max_disp)
+            if want:
+                _save_confidence(out, res, args)
             fin = np.isfinite(disp)
             msg = (f"{out}: {disp.shape[1]}x{disp.shape[0]}, {max_disp} disparities, "
                    f"{fin.mean():.1%} valid, {seconds:.2f} s")
@@ -464,6 +514,12 @@ def build_parser() -> argparse.ArgumentParser:
     _matcher_options(m, "default: ndisp from --calib if given, else 228 (KITTI)")
     m.add_argument("--color", nargs="?", const="", default=None, metavar="FILE.png",
                    help="also write a colour picture with a disparity legend (default name: <OUT>_color.png)")
+    m.add_argument("--confidence", nargs="?", const="", default=None, metavar="FILE",
+                   help="also write the per-pixel confidence in [0, 1], 0 where the left-right check failed: "
+                        ".pfm/.npy float or .png 16-bit (confidence * 65535) (default name: <OUT>_confidence.pfm)")
+    m.add_argument("--labels", nargs="?", const="", default=None, metavar="FILE",
+                   help="also write the left-right labels (0 correct, 1 mismatch, 2 occlusion) as 8-bit .png "
+                        "or .npy (default name: <OUT>_labels.png)")
     m.add_argument("--calib", metavar="FILE",
                    help="KITTI calib_cam_to_cam / calib or Middlebury calib.txt: also write depth "
                         "(<OUT>_depth.npy, or .pfm for .pfm output) and a coloured point cloud <OUT>.ply")
