@@ -386,3 +386,18 @@ def test_crop_training_resumes_mid_epoch_bit_for_bit(tsukuba, venus, tmp_path):
         assert torch.equal(v, resumed["model"].state_dict()[k]), k
     assert [e["train_loss"] for e in resumed["history"]] == [e["train_loss"] for e in full["history"]]
     assert resumed["provenance"]["examples"] == full["provenance"]["examples"]
+
+
+def test_cli_fst_crop_run_exports_fst(shared_data, tmp_path):
+    rc = main(["--data", str(shared_data / "middlebury"), "--include", "middlebury/Tsukuba",
+               "--holdout", "middlebury/Venus", "--arch", "fst", "--sampler", "crop", "--epochs", "1",
+               "--steps-per-epoch", "3", "--crops-per-step", "2", "--crop", "15", "15", "--spread", "12",
+               "--conv", json.dumps([[8, 3]] * 3), "--augment", "--subpixel", "--val-pixels", "100",
+               "--val-examples", "200", "--threads", "1", "--out", str(tmp_path / "run"), "--no-progress"])
+    assert rc == 0
+    w = Weights.load(tmp_path / "run" / "weights.npz")
+    t = w.meta["training"]
+    assert w.architecture == "mccnn-fst" and not w.fc and w.conv_layers() == [[8, 3]] * 3
+    c = t["config"]
+    assert (c["lr"], c["margin"], c["n_lo"], c["n_hi"], c["p_hi"]) == (0.002, 0.2, 4, 10, 1)  # fst defaults
+    assert c["sampler"] == "crop" and t["examples"] > 0 and t["architecture"] == "mccnn-fst"

@@ -480,9 +480,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--arch", choices=list(ARCHS), default=d.arch, help="network: paper (CVPR 2015), fst, acrt (JMLR)")
     g.add_argument("--epochs", type=int, default=d.epochs)
     g.add_argument("--examples-per-epoch", type=int, default=None,
-                   help="patch sampler: patch pairs per epoch (positives + negatives); default: two per usable GT pixel")
+                   help="patch sampler: patch pairs per epoch (positives + negatives); "
+                        "default: two per usable GT pixel")
     g.add_argument("--batch-size", type=int, default=d.batch_size, help="patch sampler: half positive, half negative")
-    g.add_argument("--lr", type=float, default=None)
+    g.add_argument("--lr", type=float, default=None, help="learning rate (default: the architecture's)")
     g.add_argument("--lr-steps", type=float, nargs="*", default=list(d.lr_steps),
                    help="fractions of the run where the learning rate is multiplied by --lr-factor")
     g.add_argument("--lr-factor", type=float, default=d.lr_factor)
