@@ -20,12 +20,14 @@ import numpy as np
 
 from .errors import InputError
 
-#: StereoResult.timings key -> group.  Names not listed go by substring
-#: (:data:`_FALLBACK`), else to "rest" (WTA ... bilateral).
+#: StereoResult.timings key -> group (every stage StereoMatcher times;
+#: tests/test_bench.py checks that none is missing).  Names not listed go by
+#: substring (:data:`_FALLBACK`), else to "rest".
 STAGE_GROUP = {"C_CNN": "cost", "C_CNN_upload": "cost",
                "cross": "CBCA", "C_CBCA": "CBCA", "C": "CBCA", "C_SGM": "SGM",
                # the right reference (right_reference="aggregated"): the same stages again
-               "cross_R": "CBCA", "C_R_SGM": "SGM", "C_R": "CBCA", "right_volume": "rest"}
+               "cross_R": "CBCA", "C_R_SGM": "SGM", "C_R": "CBCA", "right_volume": "rest",
+               **dict.fromkeys(("D_L", "D_R", "labels", "D_INT", "D_SE", "D_E", "D_median", "D_BF"), "rest")}
 GROUPS = ("cost", "CBCA", "SGM", "rest")
 _FALLBACK = (("cost", ("network", "cnn", "census", "conv")),
              ("CBCA", ("cbca", "cross", "aggregat")),
