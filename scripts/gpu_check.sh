@@ -44,7 +44,7 @@ elif [ -d "$WHEELS" ]; then
     "${PYTHON:-python3}" -m venv --system-site-packages .gpucheck/venv
     VP=.gpucheck/venv/bin/python
     $VP -m pip install -q --no-index --find-links "$WHEELS" numpy pyopencl pytest opencv-python-headless tqdm >&2
-    $VP -c "import setuptools" 2>/dev/null || \
+    $VP -c "import setuptools, wheel" 2>/dev/null || \
         $VP -m pip install -q --no-index --find-links "$WHEELS" setuptools wheel >&2
     $VP -m pip install -q --no-index --no-deps --no-build-isolation -e . >&2
     PY=$VP; NOTE=".gpucheck/venv from the wheels in $WHEELS"
