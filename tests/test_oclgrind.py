@@ -222,6 +222,31 @@ def case_disparity(ctx, rng, chk):
                       ref.subpixel(C, DL, min_denominator=mind, clamp_step=clamp), atol=1e-5, rtol=1e-5)
 
 
+def case_confidence(ctx, rng, chk):
+    """confidence.cl: the LR labels of the volume and all-correct labels, a
+    D >= W volume, quantised costs (plateaus), an fst-like floor; float32 and half."""
+    from mccnn_cl.reference import confidence as ref
+    from mccnn_cl.reference import disparity as dref
+    from mccnn_cl.stages.confidence import Confidence
+
+    for (D, H, W), levels, floor, half in (((5, 4, 13), None, 0.0, False), ((7, 3, 5), 3, 0.0, False),
+                                           ((6, 3, 11), 4, -1.0, False), ((5, 4, 13), None, 0.0, True)):
+        C = _volume(rng, D, H, W)
+        if levels:
+            C = (np.floor(C * levels) / levels).astype(np.float32)
+        if floor:
+            C = C * 2 - 1
+        if half:
+            C = C.astype(np.float16)
+        lab = dref.lr_check(dref.wta_left(C.astype(np.float32)), dref.wta_right(C.astype(np.float32)), D)
+        for name, labels in (("LR labels", lab), ("all correct", np.zeros((H, W), np.int32))):
+            out = _poisoned(ctx, H * W * 4)
+            Confidence(ctx, half=half)(ctx.to_device(C), ctx.to_device(labels), D, H, W, floor, out=out)
+            # one float32 division, rounded within 2.5 ulp by OpenCL: < 3e-7 on values <= 1
+            chk.close(f"confidence D={D} {H}x{W} levels={levels} floor={floor} half={half} {name}",
+                      ctx.from_device(out, (H, W)), ref.confidence(C, labels, floor), atol=1e-6)
+
+
 def case_refine(ctx, rng, chk):
     """refine.cl: enlarge, median, bilateral."""
     from mccnn_cl.reference import disparity as ref
@@ -431,6 +456,7 @@ CASES = {
     "disparity": case_disparity,
     "refine": case_refine,
     "half": case_half,
+    "confidence": case_confidence,
 }
 # The kernels each case must have fetched (checked in the worker): together
 # they must cover every kernel the package uses (test_every_kernel_is_covered).
@@ -447,6 +473,7 @@ CASE_KERNELS = {
     "disparity": {"disparity_wta_left", "disparity_wta_right", "disparity_lr_check",
                   "disparity_right_volume", "disparity_mirror", "interpolate_fill", "subpixel_refine"},
     "refine": {"refine_enlarge", "refine_median", "refine_median16", "refine_bilateral"},
+    "confidence": {"confidence_curve"},
     "half": {"network_head", "network_mark_invalid", "census_cost", "cbca_fused_multi_short", "cbca_fused_short",
              "cbca_rows_short",
              "cbca_columns_short", "sgm_rows", "sgm_columns", "disparity_wta_left", "disparity_right_volume",
