@@ -332,8 +332,10 @@ class StereoMatcher:
         that the next call of the same size reuses them: on CPU devices a fresh
         volume's first write costs several times a pass over it (first-touch
         page mapping; ~0.6 s per call on the KITTI pair on PoCL).  Calls of
-        another size free them on their own."""
+        another size free them on their own.  The cost's kept scratch (the
+        networks' conv maps) is freed too."""
         self._pool.clear()
+        self.cost.release_buffers()
 
     # -- input checks ------------------------------------------------------
     def _inputs(self, left, right):

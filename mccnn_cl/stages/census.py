@@ -44,6 +44,9 @@ class CensusCost:
         census bits (3 words per pixel) on the H x W cost-volume domain."""
         return 2 * 3 * int(H) * int(W) * 4
 
+    def release_buffers(self) -> None:
+        """Nothing is kept between calls (the interface of mccnn_cl.stages.costs)."""
+
     @staticmethod
     def flops(height: int, width: int, max_disparity: int) -> dict:
         """Operations of one volume, counted as 2 per census comparison and 2 per

@@ -35,6 +35,9 @@ Every one of them has
     for it at a time where the cost can band (census computes then copies).
 ``flops(H_img, W_img, D) -> dict``
     arithmetic of one volume (``total`` and its parts).
+``release_buffers()``
+    frees the scratch kept between calls (the networks keep their conv
+    stack's maps: first writes to fresh buffers cost page mapping on CPUs).
 
 Images may be on any intensity scale: the networks standardise each image,
 census only compares intensities.  :func:`make_cost` picks the class from

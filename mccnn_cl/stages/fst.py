@@ -90,6 +90,10 @@ class FstCost:
         vol = 2 * self.nk * valid
         return {"features": feat, "volume": vol, "total": feat + vol, "valid_cells": valid}
 
+    def release_buffers(self) -> None:
+        """Free the conv stack's kept maps (see ConvStack)."""
+        self.stack.release_buffers()
+
     def features(self, img, left: bool = True):
         """Host copy of the normalised features of a whole image (h x w x maps,
         float32), for tests: the conv stack and fst_normalise."""
@@ -106,7 +110,7 @@ class FstCost:
         wp = self._wp(w)
         d_out = self.ctx.empty(hb * self.nk * wp * 4, "fst planar features")
         self._norm(self.ctx.queue, (wp, hb), None, d_feat, d_out, np.int32(w), np.int32(wp))
-        d_feat.release()
+        self.stack.give(d_feat)
         return d_out
 
     def __call__(self, left, right, max_disparity, out=None, progress=None):

@@ -163,6 +163,10 @@ class PaperCost:
         (see :class:`.features.ConvStack`)."""
         return self.stack(d_img, H, W)
 
+    def release_buffers(self) -> None:
+        """Free the conv stack's kept maps (see ConvStack)."""
+        self.stack.release_buffers()
+
     def split_l4(self, d_feat, n_pixels: int, left: bool):
         """The L4 split of L3 features: ``A = W4a f + b4`` (left) or ``B = W4b f`` (right).
 
@@ -182,7 +186,7 @@ class PaperCost:
         d_feat = self.stack.run_image(band)
         n = (H - self.patch + 1) * (W - self.patch + 1)
         d_half = self.split_l4(d_feat, n, left=left)
-        d_feat.release()
+        self.stack.give(d_feat)
         return d_half
 
     def flops(self, height: int, width: int, max_disparity: int) -> dict:
