@@ -16,20 +16,20 @@
 
 #define LABEL_CORRECT 0 /* as disparity.cl */
 
-/* Keeps m1 <= m2 the two lowest local minima seen so far. */
-static inline void confidence_push(const float v, float *m1, float *m2)
-{
-    if (v < *m1) {
-        *m2 = *m1;
-        *m1 = v;
-    } else if (v < *m2) {
-        *m2 = v;
-    }
-}
+/* Pushes `run` where `push` (a lane mask) into m1 <= m2, the two lowest
+ * local minima of each lane so far. */
+#define CONFIDENCE_PUSH(push, run, m1, m2)                                 \
+    do {                                                                   \
+        const int16 lt1_ = (push) & ((run) < (m1));                        \
+        const int16 lt2_ = (push) & ~lt1_ & ((run) < (m2));                \
+        (m2) = select(select((m2), (run), lt2_), (m1), lt1_);              \
+        (m1) = select((m1), (run), lt1_);                                  \
+    } while (0)
 
-/* One work-item per pixel: the curve is read with a stride of H*W cells,
- * neighbouring work-items reading neighbouring cells of one plane.  Global
- * size (W, H). */
+/* One work-item per 16 consecutive pixels of a row (as disparity_wta_left:
+ * one contiguous line per plane and level), lanes holding their own run
+ * state; cells with d > x are read (NaN, never uninitialised) but masked
+ * out.  Global size (ceil(W / 16), H). */
 __kernel void confidence_curve(
     __global const vol_t *cost,  /* C, D x H x W (the volume the WTA used) */
     __global const int *labels,  /* left-right labels, H x W (LABEL_CORRECT = 0) */
@@ -39,36 +39,35 @@ __kernel void confidence_curve(
     const int W,                 /* columns */
     const float cost_floor)      /* f: lower bound of the matching cost (0; fst: -1) */
 {
-    const int x = get_global_id(0);
+    const int x0 = get_global_id(0) * 16;
     const int y = get_global_id(1);
-    if (x >= W || y >= H)
+    if (x0 >= W || y >= H)
         return;
-    const size_t p = (size_t)y * W + x;
-    if (labels[p] != LABEL_CORRECT) {
-        conf[p] = 0.0f;
-        return;
-    }
-    const int dmax = min(D - 1, x);
-    float run = VOL_GET(cost, VIDX(0, y, x, H, W)); /* cost of the current run */
-    int left_higher = 1;                             /* the run was entered going down */
-    float m1 = INFINITY, m2 = INFINITY, cmax = run;
+    const int n = min(16, W - x0);
+    const int16 xs = (int16)(x0) + LANES;
+    const int dmax = min(D - 1, x0 + n - 1);
+    float16 run = vol_load16_partial(cost + VIDX(0, y, x0, H, W), 0, n, 0.0f); /* cost of the current run */
+    float16 cmax = run;
+    float16 m1 = (float16)(INFINITY), m2 = (float16)(INFINITY);
+    int16 left_higher = (int16)(-1); /* the run was entered going down (or starts the curve) */
     for (int d = 1; d <= dmax; d++) {
-        const float c = VOL_GET(cost, VIDX(d, y, x, H, W));
-        cmax = fmax(cmax, c);
-        if (c != run) {
-            if (c > run) {
-                if (left_higher)
-                    confidence_push(run, &m1, &m2);
-                left_higher = 0;
-            } else {
-                left_higher = 1;
-            }
-            run = c;
-        }
+        const float16 c = vol_load16_partial(cost + VIDX(d, y, x0, H, W), 0, n, 0.0f);
+        const int16 valid = (int16)(d) <= xs;
+        const int16 changed = valid & (c != run);
+        const int16 up = changed & (c > run);
+        CONFIDENCE_PUSH(up & left_higher, run, m1, m2); /* the run ends going up: a local minimum */
+        left_higher = select(select(left_higher, (int16)(0), up), (int16)(-1), changed & ~up);
+        run = select(run, c, changed);
+        cmax = select(cmax, fmax(cmax, c), valid);
     }
-    if (left_higher)
-        confidence_push(run, &m1, &m2);
-    const float c2 = isinf(m2) ? cmax : m2;
-    const float den = (m1 - cost_floor) + (c2 - cost_floor);
-    conf[p] = den > 0.0f ? fmin(1.0f, (c2 - m1) / den) : 0.0f;
+    CONFIDENCE_PUSH(left_higher, run, m1, m2); /* the last run, when entered going down */
+    const float16 c2 = select(m2, cmax, isinf(m2));
+    const float16 den = (m1 - cost_floor) + (c2 - cost_floor);
+    float16 out = select((float16)(0.0f), fmin((float16)(1.0f), (c2 - m1) / den), den > 0.0f);
+    const size_t p = (size_t)y * W + x0;
+    int lab[16];
+    for (int i = 0; i < 16; ++i)
+        lab[i] = i < n ? labels[p + i] : LABEL_CORRECT;
+    out = select((float16)(0.0f), out, vload16(0, lab) == (int16)(LABEL_CORRECT));
+    store16_partial(out, conf + p, n);
 }

@@ -49,6 +49,6 @@ class Confidence:
     def __call__(self, d_cost, d_labels, D, H, W, floor=0.0, out=None):
         if out is None:
             out = self.ctx.empty(H * W * _F32, "confidence")
-        launch(self.ctx, "confidence", self.kernel, (W, H), d_cost, d_labels, out,
+        launch(self.ctx, "confidence", self.kernel, (-(-W // 16), H), d_cost, d_labels, out,
                np.int32(D), np.int32(H), np.int32(W), np.float32(floor))
         return out
