@@ -1,27 +1,24 @@
 """Numpy twin of the confidence stage (``kernels/confidence.cl``).
 
-The measure (the executable specification, loops and all): for pixel (x, y)
-take its cost curve c(d) = C[d, y, x] over the valid levels
-d = 0 .. min(D-1, x) and split it into runs of equal cost.  A run is a
-*local minimum* when its neighbours on both sides are higher (the curve's
-ends count as higher).  With c1 <= c2 the costs of the two lowest local
-minima (c1 is the global minimum, the winner-take-all cost; two separate
-runs at the same cost give c2 = c1; c2 = the curve's largest cost when it
-has one local minimum only) and f the matching cost's lower bound
-(``floor``: 0 for census, paper and acrt, -1 for fst's -cosine),
+The measure (the executable specification, loops and all): pixel (x, y)'s
+cost curve c(d) = C[d, y, x], d = 0 .. min(D-1, x), is split into runs of
+equal cost; a run is a *local minimum* when its neighbours on both sides
+are higher (the curve's ends count as higher).  c1 <= c2: the two lowest
+local minima (c1 = the winner-take-all cost; two separate runs at one cost
+give c2 = c1; c2 = the curve's largest cost when it has one local minimum).
+With f the matching cost's lower bound (``floor``: 0 for census, paper and
+acrt, -1 for fst's -cosine) and c' = c - f,
 
-    confidence = (c2 - c1) / ((c1 - f) + (c2 - f))
+    confidence = (c2 - c1) / ((c1 - f) + (c2 - f)) = (1 - r) / (1 + r),  r = c1' / c2',
 
-the peak ratio 1 - c1'/c2' of the costs measured from their floor, in
-[0, 1]; 0 where the denominator is 0 (both minima at the floor) and where
-the left-right label is not CORRECT.  Local minima, so that the shoulders
-of one wide minimum are no rival match.  Invariant under c -> f + a (c - f),
-a > 0: SGM's mean over directions and CBCA's means keep the matching cost's
-floor, so one f per network serves C_CNN and the final volume alike, and
-the measure does not depend on the network's cost range or on P1, P2.
-Measured against the range-normalised (c2 - c1)/(cmax - c1), which is also
-shift-invariant, this ranks errors better (docs/method.md, "Confidence"): a
-high c1 (a poor best match) lowers it.
+a monotone map of the peak ratio r into [0, 1]; 0 where the denominator is
+0 (both minima at the floor) and where the left-right label is not CORRECT.
+Local minima, so that the shoulders of one wide minimum are no rival.
+Invariant under c -> f + a (c - f), a > 0, and SGM's and CBCA's means keep
+the matching cost's floor, so one f per cost serves every network's range
+and every stage's volume with nothing to tune.  Unlike (c2 - c1) / (cmax -
+c1) it sees how good the best match is (a high c1' lowers it), which ranks
+errors better (docs/method.md, "Confidence").
 """
 
 from __future__ import annotations
