@@ -204,6 +204,20 @@ def test_pipeline_confidence(ctx, kitti_crop):
     assert np.all(only.confidence[only.labels != 0] == 0) and only.confidence.max() > 0.3
 
 
+def test_pipeline_passes_the_fst_floor(ctx, kitti_crop):
+    """An fst network (costs -cosine in [-1, 1]): the pipeline measures from f = -1."""
+    from mccnn_cl.weights import Weights
+
+    left, right = kitti_crop
+    m = StereoMatcher(weights=Weights.random([[8, 3], [8, 3]], architecture="mccnn-fst", seed=2),
+                      max_disparity=24, device=ctx)
+    assert m.cost_floor == -1.0
+    res = m.compute(left, right, return_intermediates=True, confidence=True)
+    C, lab = res.intermediates["C"], res.intermediates["labels"]
+    assert np.nanmin(C) < 0  # costs below 0: floor 0 would be wrong here
+    np.testing.assert_allclose(res.intermediates["confidence"], ref.confidence(C, lab, -1.0), atol=ATOL)
+
+
 def test_pipeline_confidence_half_and_tiled(ctx, kitti_crop):
     left, right = kitti_crop
     D = 48
