@@ -44,9 +44,21 @@ def best(fn, reps):
     return min(t)
 
 
-def gemm_time(w, H, W, reps, extra=None):
-    """Best time of numpy's GEMMs with the conv stack's shapes (both images),
-    plus ``extra`` (rows, k, n) products; returns (seconds, FLOP)."""
+def interleaved(fns, reps):
+    """Best time of each function, the functions run in turn in every round
+    (so that drifts of this shared machine's speed hit them alike)."""
+    times = {name: [] for name in fns}
+    for _ in range(reps):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+    return {name: min(t) for name, t in times.items()}
+
+
+def gemm_job(w, H, W, reps, extra=None):
+    """numpy's GEMMs with the conv stack's shapes (both images), plus
+    ``extra`` (rows, k, n) products; returns (a function running them, FLOP)."""
     rng = np.random.default_rng(0)
     shapes = []
     h, wd = H, W
@@ -63,7 +75,7 @@ def gemm_time(w, H, W, reps, extra=None):
             for a, b in mats:
                 a @ b
     run()
-    return best(run, reps), flop
+    return run, flop
 
 
 def main(argv=None):
@@ -121,9 +133,9 @@ def main(argv=None):
         extra = [(h * wd, w.feature_maps, w.fc[0][0].shape[0])]
     for buf in feats():
         buf.release()
-    keep = []
-    t_feat = best(lambda: keep.append([b.release() for b in feats()]), args.reps)
-    t_np, np_flop = gemm_time(w, H, W, args.reps, extra)
+    np_run, np_flop = gemm_job(w, H, W, args.reps, extra)
+    t = interleaved({"features": lambda: [b.release() for b in feats()], "numpy": np_run}, args.reps)
+    t_feat, t_np = t["features"], t["numpy"]
     print(f"features: {t_feat * 1e3:.0f} ms ({fl['features'] / t_feat / 1e9:.1f} GFLOP/s); numpy GEMM on the "
           f"same shapes {t_np * 1e3:.0f} ms ({np_flop / t_np / 1e9:.1f} GFLOP/s): ratio {t_feat / t_np:.2f}x")
 
@@ -149,12 +161,13 @@ def main(argv=None):
             ctx.fill(d_vol, 1.0, nbytes)
             ctx.finish()
         vol()
-        t_vol = best(vol, args.reps)
-        t_copy, t_fill = best(copy, args.reps), best(fill, args.reps)
+        t = interleaved({"vol": vol, "copy": copy, "fill": fill}, args.reps)
+        t_vol, t_copy, t_fill = t["vol"], t["copy"], t["fill"]
         print(f"cosine volume: {t_vol * 1e3:.0f} ms ({nbytes / t_vol / 1e9:.2f} GB/s written, "
               f"{fl['volume'] / t_vol / 1e9:.1f} GFLOP/s); copy of {nbytes / 1e6:.0f} MB {t_copy * 1e3:.0f} ms "
               f"({nbytes / t_copy / 1e9:.2f} GB/s), fill {t_fill * 1e3:.0f} ms: volume / copy "
-              f"{t_vol / t_copy:.2f}x, volume / fill {t_vol / t_fill:.2f}x")
+              f"{t_vol / t_copy:.2f}x, volume / fill {t_vol / t_fill:.2f}x; its arithmetic at numpy's GEMM "
+              f"rate above: {fl['volume'] / (np_flop / t_np) * 1e3:.0f} ms")
         for b in (d_vol, d_src, d_l, d_r):
             b.release()
         t_cost = best(lambda: (cost(left, right, D).release(), ctx.finish()), args.reps)

@@ -10,10 +10,13 @@
  *
  * fst_volume: the cosine volume  C(d, y, x) = -f_L(x, y) . f_R(x - d, y),
  * NaN where x - d < 0.  One work-item per 16 consecutive pixels of a row
- * (float16 lanes), looping over the disparities in blocks of RD (8): per block
- * and map k it loads the left vector once and RD shifted right vectors
- * (contiguous, unaligned: x - d .. x - d + 15 of plane k) and does RD
- * vector FMAs; each disparity's 16 costs are one contiguous store.  Blocks
+ * (float16 lanes), looping over the disparities in blocks of RD: per block
+ * and map k it loads the left vector once and the RD shifted right vectors
+ * (x - d .. x - d + 15 of plane k) and does RD vector FMAs; each
+ * disparity's 16 costs are one contiguous store.  VARIANT 0 loads each
+ * shifted vector (unaligned, mostly split across two cache lines); VARIANT 1
+ * (RD = 16, the default) loads two aligned vectors and makes the 15 others
+ * by constant shuffles (d0 and x0 are multiples of 16).  Blocks
  * whose 16 pixels are all left of d are not computed: their cells (and every
  * later disparity's) get NaN.  The right vectors of a computed block start at
  * x - d >= -15 - (RD - 1), hence PADL >= 15 + RD.  Every cell of the band's
@@ -38,6 +41,19 @@
 #endif
 
 #define EPS 1e-5f
+
+#ifndef VARIANT
+#define VARIANT 0
+#endif
+#if VARIANT == 1
+#if RD != 16
+#error "VARIANT 1 needs RD 16"
+#endif
+/* the 16 floats from offset s of the 32 in A (16) then B (16): literal indices,
+ * so the shuffle is one constant permutation (no unaligned, line-splitting load) */
+#define SHF(s) __builtin_shufflevector(A, B, s, s + 1, s + 2, s + 3, s + 4, s + 5, s + 6, s + 7, \
+                                       s + 8, s + 9, s + 10, s + 11, s + 12, s + 13, s + 14, s + 15)
+#endif
 
 __kernel void fst_normalise(
     __global const float *feat, /* conv stack output, [hb * w][CS] */
@@ -98,9 +114,24 @@ __kernel void fst_volume(
             const size_t o = (size_t)k * (size_t)wp;
             const float16 l = vload16(0, L + o);
             __global const float *r = R + o - d0;
+#if VARIANT == 1
+            /* d0 and x0 are multiples of 16: A and B are aligned; window j
+             * (right pixels x0 - d0 - j ..) is B for j = 0, else SHF(16 - j) */
+            const float16 A = vload16(0, r - 16), B = vload16(0, r);
+            acc[0] = fma(l, B, acc[0]);
+            acc[1] = fma(l, SHF(15), acc[1]);   acc[2] = fma(l, SHF(14), acc[2]);
+            acc[3] = fma(l, SHF(13), acc[3]);   acc[4] = fma(l, SHF(12), acc[4]);
+            acc[5] = fma(l, SHF(11), acc[5]);   acc[6] = fma(l, SHF(10), acc[6]);
+            acc[7] = fma(l, SHF(9), acc[7]);    acc[8] = fma(l, SHF(8), acc[8]);
+            acc[9] = fma(l, SHF(7), acc[9]);    acc[10] = fma(l, SHF(6), acc[10]);
+            acc[11] = fma(l, SHF(5), acc[11]);  acc[12] = fma(l, SHF(4), acc[12]);
+            acc[13] = fma(l, SHF(3), acc[13]);  acc[14] = fma(l, SHF(2), acc[14]);
+            acc[15] = fma(l, SHF(1), acc[15]);
+#else
 #pragma unroll
             for (int j = 0; j < RD; ++j)
                 acc[j] = fma(l, vload16(0, r - j), acc[j]);
+#endif
         }
 #pragma unroll
         for (int j = 0; j < RD; ++j) {

@@ -31,8 +31,13 @@ from .features import ConvStack, check_pair, default_tiles, normalise
 FST_CL = "fst.cl"
 #: bytes of one band's feature buffers (both images)
 BAND_BYTES = 256 << 20
-#: disparities per block of the volume kernel; PADL zero columns left of x = 0
-RD = 8
+#: disparities per block of the volume kernel, and its form: VARIANT 1 (RD 16)
+#: builds the 16 shifted right vectors from two aligned loads by constant
+#: shuffles (VARIANT 0: one unaligned load each, most split across cache
+#: lines: 96 -> 63 ms per KITTI volume on PoCL, same process); PADL zero
+#: columns left of x = 0
+RD = 16
+VARIANT = 1
 PADL = 32
 
 
@@ -58,7 +63,7 @@ class FstCost:
         self.tiles = t
         self.stack = ConvStack(ctx, weights, int(t["RN"]), int(t["CONV_RM"]))
         self.nk = weights.feature_maps
-        defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL, RD=RD)
+        defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL, RD=RD, VARIANT=VARIANT)
         self._norm = ctx.kernel(FST_CL, "fst_normalise", **defs)
         self._vol = ctx.kernel(FST_CL, "fst_volume", VOL_HALF=int(half), **defs)
 
