@@ -312,3 +312,17 @@ def test_settings_errors(ctx):
         StereoMatcher(weights=w, max_disparity=8, device=ctx)
     with pytest.raises(InputError, match="intensity_scale"):
         Hyperparameters(intensity_scale="0..255")
+
+
+def test_published_fst_file_through_matcher(ctx, shared_data):
+    """A .t7 path goes through weights.resolve and the importer: the fst cost
+    with the authors' KITTI settings, which the caller can still override."""
+    from mccnn_cl.pipeline import StereoMatcher
+    from mccnn_cl.stages.fst import FstCost
+
+    path = shared_data.parent / "models" / "net_kitti_fast_-a_train_all.t7"
+    assert path.exists(), path
+    sm = StereoMatcher(weights=str(path), max_disparity=16, device=ctx, blur_sigma=3.0)
+    assert isinstance(sm.cost, FstCost) and sm.margin == 4
+    assert (sm.params.sgm_pi1, sm.params.sgm_pi2, sm.params.sgm_tau_so) == (4.0, 55.72, 0.02)
+    assert sm.params.blur_sigma == 3.0 and sm.params.intensity_scale == "standardised"
