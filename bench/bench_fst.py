@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 
-from bench_network import Timer, cpu_name
+from bench_network import cpu_name
 
 
 def best(fn, reps):

@@ -99,7 +99,7 @@ class FstCost:
         """Free the conv stack's kept maps (see ConvStack)."""
         self.stack.release_buffers()
 
-    def features(self, img, left: bool = True):
+    def features(self, img):
         """Host copy of the normalised features of a whole image (h x w x maps,
         float32), for tests: the conv stack and fst_normalise."""
         I = check_pair(img, img, 1, self.channels, self.patch)[0]
