@@ -149,7 +149,7 @@ def main(argv=None):
         i32 = np.int32
 
         def vol():
-            cost._vol(ctx.queue, (-(-wd // 16), h), None, d_l, d_r, d_vol, i32(h), i32(wd), i32(0), i32(D),
+            cost._vol(ctx.queue, (-(-wd // cost._vol_px), h), None, d_l, d_r, d_vol, i32(h), i32(wd), i32(0), i32(D),
                       i32(cost._wp(wd)))
             ctx.finish()
 

@@ -16,7 +16,9 @@
  * disparity's 16 costs are one contiguous store.  VARIANT 0 loads each
  * shifted vector (unaligned, mostly split across two cache lines); VARIANT 1
  * (RD = 16, the default) loads two aligned vectors and makes the 15 others
- * by constant shuffles (d0 and x0 are multiples of 16).  Blocks
+ * by constant shuffles (d0 and x0 are multiples of 16).  VARIANT 2 (the
+ * default, fst_volume_pairs below) shares those shuffles between two
+ * 16-pixel vectors.  Blocks
  * whose 16 pixels are all left of d are not computed: their cells (and every
  * later disparity's) get NaN.  The right vectors of a computed block start at
  * x - d >= -15 - (RD - 1), hence PADL >= 15 + RD.  Every cell of the band's
@@ -45,8 +47,8 @@
 #ifndef VARIANT
 #define VARIANT 0
 #endif
-#if VARIANT == 1
-#if RD != 16
+#if VARIANT == 1 || VARIANT == 2
+#if VARIANT == 1 && RD != 16
 #error "VARIANT 1 needs RD 16"
 #endif
 /* the 16 floats from offset s of the 32 in A (16) then B (16): literal indices,
@@ -59,7 +61,7 @@ __kernel void fst_normalise(
     __global const float *feat, /* conv stack output, [hb * w][CS] */
     __global float *out,        /* planar features, [hb][NK][wp] */
     int w,                      /* pixels per row */
-    int wp)                     /* row stride of a plane (PADL + w rounded up to 16) */
+    int wp)                     /* row stride of a plane (PADL + w rounded up to 32) */
 {
     const int xp = get_global_id(0);            /* 0 .. wp-1 */
     const int y = get_global_id(1);
@@ -143,3 +145,76 @@ __kernel void fst_volume(
         }
     }
 }
+
+#if VARIANT == 2
+/* fst_volume_pairs: as fst_volume, one work-item per 32 pixels of a row: two
+ * 16-pixel vectors xa = x0 and xb = x0 + 16.  The right vectors that xa needs
+ * at disparity d are the ones xb needs at d + 16, so each half-block e of 8
+ * disparities (xa: d = 8e + i, xb: d = 8e + 16 + i, i = 0..7, e >= -2) makes
+ * its 8 shifted vectors once (two aligned loads, constant shuffles; which
+ * shuffles depends on the parity of e) for 16 FMAs.  Global size
+ * (ceil(w / 32), hb). */
+#define HALF_BLOCK(S0, S1, S2, S3, S4, S5, S6, S7)                               \
+    for (int k = 0; k < NK; ++k) {                                              \
+        const size_t o = (size_t)k * (size_t)wp;                                \
+        const float16 la = vload16(0, L + o), lb = vload16(0, L + o + 16);     \
+        const float16 A = vload16(0, R + o + base), B = vload16(0, R + o + base + 16); \
+        float16 v;                                                              \
+        v = S0; acc[0] = fma(la, v, acc[0]); acc[8] = fma(lb, v, acc[8]);       \
+        v = S1; acc[1] = fma(la, v, acc[1]); acc[9] = fma(lb, v, acc[9]);       \
+        v = S2; acc[2] = fma(la, v, acc[2]); acc[10] = fma(lb, v, acc[10]);     \
+        v = S3; acc[3] = fma(la, v, acc[3]); acc[11] = fma(lb, v, acc[11]);     \
+        v = S4; acc[4] = fma(la, v, acc[4]); acc[12] = fma(lb, v, acc[12]);     \
+        v = S5; acc[5] = fma(la, v, acc[5]); acc[13] = fma(lb, v, acc[13]);     \
+        v = S6; acc[6] = fma(la, v, acc[6]); acc[14] = fma(lb, v, acc[14]);     \
+        v = S7; acc[7] = fma(la, v, acc[7]); acc[15] = fma(lb, v, acc[15]);     \
+    }
+
+__kernel void fst_volume_pairs(
+    __global const float *fl, __global const float *fr, __global vol_t *cost,
+    int h, int w, int y0, int D, int wp)
+{
+    const int x0 = get_global_id(0) * 32;
+    const int yb = get_global_id(1);
+    if (x0 >= w)
+        return;
+    const int na = min(16, w - x0), nb = min(16, w - x0 - 16);   /* nb <= 0: no xb */
+    const int y = y0 + yb;
+    __global const float *L = fl + (size_t)yb * NK * (size_t)wp + PADL + x0;
+    __global const float *R = fr + (size_t)yb * NK * (size_t)wp + PADL + x0;
+    const int16 xa = LANES + (int16)(x0), xbv = xa + (int16)(16);
+    for (int e = -2; 8 * e < D; ++e) {
+        const int da = 8 * e;
+        if (x0 + 31 < da + 16) {                 /* both vectors invalid from here on */
+            for (int d = max(da, 0); d < D; ++d)
+                vol_store16_partial((float16)(INVALID_COST), cost + VIDX(d, y, x0, h, w), na);
+            if (nb > 0)
+                for (int d = da + 16; d < D; ++d)
+                    vol_store16_partial((float16)(INVALID_COST), cost + VIDX(d, y, x0 + 16, h, w), nb);
+            return;
+        }
+        float16 acc[16];
+#pragma unroll
+        for (int j = 0; j < 16; ++j)
+            acc[j] = (float16)(0.0f);
+        /* window i starts at right pixel x0 - da - i */
+        if ((e & 1) == 0) {                      /* x0 - da is a multiple of 16 */
+            const int base = -da - 16;           /* A = R[x0 - da - 16 ..], B = R[x0 - da ..] */
+            HALF_BLOCK(B, SHF(15), SHF(14), SHF(13), SHF(12), SHF(11), SHF(10), SHF(9))
+        } else {                                 /* x0 - da - 8 is a multiple of 16 */
+            const int base = -da - 8;
+            HALF_BLOCK(SHF(8), SHF(7), SHF(6), SHF(5), SHF(4), SHF(3), SHF(2), SHF(1))
+        }
+#pragma unroll
+        for (int i = 0; i < 8; ++i) {
+            const int d = da + i;
+            if (d >= 0 && d < D)
+                vol_store16_partial(select(-acc[i], (float16)(INVALID_COST), xa < (int16)(d)),
+                                    cost + VIDX(d, y, x0, h, w), na);
+            if (nb > 0 && d + 16 >= 0 && d + 16 < D)
+                vol_store16_partial(select(-acc[8 + i], (float16)(INVALID_COST), xbv < (int16)(d + 16)),
+                                    cost + VIDX(d + 16, y, x0 + 16, h, w), nb);
+        }
+    }
+}
+#endif

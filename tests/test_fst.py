@@ -149,3 +149,17 @@ def test_interface_and_errors(ctx):
         cost(img, img, 0)
     with pytest.raises(InputError):
         cost(img[:4], img[:4], 3)  # smaller than the 5 x 5 patch
+
+
+@pytest.mark.parametrize("variant", [0, 1, 2])
+@pytest.mark.parametrize("size", [(37 + 8, 53 + 8, 16), (12, 80, 70), (10, 40, 45)],
+                         ids=["37x53-D16", "D70-w72", "D>W"])
+def test_volume_forms(ctx, monkeypatch, variant, size):
+    """Every form of the volume kernel (fst.VARIANT: unaligned loads, shuffles,
+    shuffle-sharing pairs) against the reference; widths that end inside a
+    16- and a 32-pixel block, D not a multiple of 8 or 16."""
+    monkeypatch.setattr(fst_stage, "VARIANT", variant)
+    H, W, D = size
+    w = Weights.random([[16, 3]] * 4, architecture="mccnn-fst", seed=W)
+    left, right = random_pair(np.random.default_rng(H), H, W)
+    check(run_poisoned(ctx, FstCost(ctx, w), left, right, D), ref.fst_cost_volume(w, left, right, D))

@@ -137,10 +137,18 @@ def case_fst(ctx, rng, chk):
     from mccnn_cl.stages.fst import FstCost
     from mccnn_cl.weights import Weights
 
+    import mccnn_cl.stages.fst as fst_module
+
     w = Weights.random(conv_layers=[[6, 3], [5, 3]], architecture="mccnn-fst", seed=4)  # patch 5
-    cost = FstCost(ctx, w)
+    cost = FstCost(ctx, w)  # the default form (pairs of 16-pixel vectors)
+    saved = fst_module.VARIANT
+    fst_module.VARIANT = 1   # and the one-vector form (fst_volume)
+    try:
+        single = FstCost(ctx, w)
+    finally:
+        fst_module.VARIANT = saved
     # 2nd: D >= W (cropped W = 9), 3rd: cropped width 35 (a partial 16-pixel block)
-    for h, wd, D in ((9, 21, 7), (8, 13, 11), (7, 39, 20)):
+    for cost, (h, wd, D) in ((cost, (9, 21, 7)), (cost, (8, 13, 11)), (cost, (7, 39, 20)), (single, (7, 39, 20))):
         left, right = _images(rng, h, wd)
         H, W = h - 2 * w.margin, wd - 2 * w.margin
         out = _poisoned(ctx, D * H * W * 4)
@@ -462,7 +470,7 @@ CASES = {
 # they must cover every kernel the package uses (test_every_kernel_is_covered).
 CASE_KERNELS = {
     "network": {"network_conv", "network_head", "network_mark_invalid"},
-    "fst": {"network_conv", "fst_normalise", "fst_volume"},
+    "fst": {"network_conv", "fst_normalise", "fst_volume", "fst_volume_pairs"},
     "acrt": {"network_conv", "network_head", "network_mark_invalid"},
     "census": {"census_transform", "census_cost"},
     "cross": {"cross_build"},

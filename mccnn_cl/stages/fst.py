@@ -31,14 +31,14 @@ from .features import ConvStack, check_pair, default_tiles, normalise
 FST_CL = "fst.cl"
 #: bytes of one band's feature buffers (both images)
 BAND_BYTES = 256 << 20
-#: disparities per block of the volume kernel, and its form: VARIANT 1 (RD 16)
-#: builds the 16 shifted right vectors from two aligned loads by constant
-#: shuffles (VARIANT 0: one unaligned load each, most split across cache
-#: lines: 96 -> 63 ms per KITTI volume on PoCL, same process); PADL zero
-#: columns left of x = 0
-RD = 16
-VARIANT = 1
+#: the volume kernel's form (kernels/fst.cl), KITTI volume on PoCL, same process:
+#: 0 one unaligned load per shifted right vector (96 ms), 1 the 16 shifted
+#: vectors of a block from two aligned loads by constant shuffles (63-68 ms),
+#: 2 (default) as 1 for pairs of 16-pixel vectors sharing their shuffles
+#: (61 ms vs 68).  PADL: zero columns left of x = 0.
+VARIANT = 2
 PADL = 32
+_FORMS = {0: ("fst_volume", 8, 16), 1: ("fst_volume", 16, 16), 2: ("fst_volume_pairs", 8, 32)}
 
 
 class FstCost:
@@ -63,12 +63,13 @@ class FstCost:
         self.tiles = t
         self.stack = ConvStack(ctx, weights, int(t["RN"]), int(t["CONV_RM"]))
         self.nk = weights.feature_maps
-        defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL, RD=RD, VARIANT=VARIANT)
+        name, rd, self._vol_px = _FORMS[VARIANT]  # kernel, disparities per block, pixels per work-item
+        defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL, RD=rd, VARIANT=VARIANT)
         self._norm = ctx.kernel(FST_CL, "fst_normalise", **defs)
-        self._vol = ctx.kernel(FST_CL, "fst_volume", VOL_HALF=int(half), **defs)
+        self._vol = ctx.kernel(FST_CL, name, VOL_HALF=int(half), **defs)
 
     def _wp(self, w: int) -> int:
-        return PADL + round_up(w, 16)
+        return PADL + round_up(w, 32)  # whole 32-pixel blocks of the pairs form inside a row
 
     def _row_bytes(self, w: int) -> int:
         """Feature bytes per volume row, both images (pixel-major of one at a time + planar)."""
@@ -170,7 +171,7 @@ class FstCost:
             d_l = self._features(Ln[y0:y0 + hb + P - 1], hb, w)
             d_r = self._features(Rn[y0:y0 + hb + P - 1], hb, w)
             vh, vy0 = (h, y0) if host is None else (hb, 0)
-            self._vol(q, (-(-w // 16), hb), None, d_l, d_r, d_cost, i32(vh), i32(w), i32(vy0),
+            self._vol(q, (-(-w // self._vol_px), hb), None, d_l, d_r, d_cost, i32(vh), i32(w), i32(vy0),
                       i32(D), i32(wp))
             if progress is not None or host is not None:
                 q.finish()
