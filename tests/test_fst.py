@@ -163,3 +163,35 @@ def test_volume_forms(ctx, monkeypatch, variant, size):
     w = Weights.random([[16, 3]] * 4, architecture="mccnn-fst", seed=W)
     left, right = random_pair(np.random.default_rng(H), H, W)
     check(run_poisoned(ctx, FstCost(ctx, w), left, right, D), ref.fst_cost_volume(w, left, right, D))
+
+
+def test_fst_matcher_tiles_exact(ctx, shared_data, monkeypatch):
+    """The fst cost with the authors' settings (standardised thresholds, no
+    CBCA) through StereoMatcher's row tiles whose context spans the image:
+    bit for bit the whole-image run (the volume in host memory via to_host,
+    in bands of 5 rows; the thresholds' standardisation over the whole image)."""
+    from mccnn_cl.pipeline import StereoMatcher
+    from mccnn_cl.settings import authors_settings
+
+    lp, rp = "kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png"
+    left = cv2.imread(str(shared_data / lp), cv2.IMREAD_GRAYSCALE)[150:214, 500:700]
+    right = cv2.imread(str(shared_data / rp), cv2.IMREAD_GRAYSCALE)[150:214, 500:700]
+    w = Weights.random([[16, 3]] * 4, architecture="mccnn-fst", seed=8)
+    w.meta["stereo"] = authors_settings("mccnn-fst", "kitti")
+    m = StereoMatcher(w, max_disparity=24, device=ctx)
+    whole = m.compute(left, right, return_intermediates=True)
+    assert not whole.plan.tiled and "cross" not in whole.timings
+    H = left.shape[0] - 2 * m.margin
+    real_plan = m.memory_plan
+
+    def full_context(shape):
+        plan = real_plan(shape)
+        plan.tiles = [(0, 20, 0, H), (20, H, 0, H)]
+        plan.tiled, plan.tile_budget = True, 5 * 24 * (200 - 8) * 4
+        return plan
+
+    monkeypatch.setattr(m, "memory_plan", full_context)
+    tiled = m.compute(left, right, return_intermediates=True)
+    assert tiled.plan.tiled
+    np.testing.assert_array_equal(tiled.disparity, whole.disparity)
+    np.testing.assert_array_equal(tiled.intermediates["D_SE"], whole.intermediates["D_SE"])
