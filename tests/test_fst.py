@@ -169,7 +169,7 @@ def test_fst_matcher_tiles_exact(ctx, shared_data, monkeypatch):
     """The fst cost with the authors' settings (standardised thresholds, no
     CBCA) through StereoMatcher's row tiles whose context spans the image:
     bit for bit the whole-image run (the volume in host memory via to_host,
-    in bands of 5 rows; the thresholds' standardisation over the whole image)."""
+    in bands of 5 rows)."""
     from mccnn_cl.pipeline import StereoMatcher
     from mccnn_cl.settings import authors_settings
 
