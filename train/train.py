@@ -183,7 +183,7 @@ def _atomic_torch_save(obj, path: Path):
     os.replace(tmp, path)
 
 
-def plot_history(history: list, path) -> None:
+def plot_history(history: list, path, title: str = "MC-CNN training", loss_name: str = "cross-entropy") -> None:
     """PNG of train/val loss (left axis) and val WTA 3-px error (right axis) per epoch."""
     import matplotlib
     matplotlib.use("Agg")
@@ -194,7 +194,7 @@ def plot_history(history: list, path) -> None:
     if any("val_loss" in h for h in history):
         ax.plot(ep, [h.get("val_loss", np.nan) for h in history], "s-", label="val loss (held-out patches)")
     ax.set_xlabel("epoch")
-    ax.set_ylabel("cross-entropy")
+    ax.set_ylabel(loss_name)
     ax.grid(alpha=0.3)
     lines, labels = ax.get_legend_handles_labels()
     if any("val_err3" in h for h in history):
@@ -205,7 +205,7 @@ def plot_history(history: list, path) -> None:
         l2, lab2 = ax2.get_legend_handles_labels()
         lines, labels = lines + l2, labels + lab2
     ax.legend(lines, labels, loc="upper right", fontsize=8)
-    ax.set_title("MC-CNN training")
+    ax.set_title(title)
     fig.tight_layout()
     tmp = str(path) + ".tmp.png"
     fig.savefig(tmp, dpi=100)
@@ -428,7 +428,8 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         last_ck = time.time()
         with open(out_dir / "history.json", "w") as f:
             json.dump(history, f, indent=1)
-        plot_history(history, out_dir / "training.png")
+        plot_history(history, out_dir / "training.png", title=f"MC-CNN-{cfg.arch} training ({cfg.sampler} sampler)",
+                     loss_name={"paper": "cross-entropy", "fst": "hinge loss", "acrt": "binary cross-entropy"}[cfg.arch])
         log(json.dumps({k: (round(v, 5) if isinstance(v, float) else v) for k, v in rec.items()}))
         if steps_left == 0:
             break
