@@ -44,3 +44,20 @@ def test_standardise_on_a_real_image(kitti_bgr):
     np.testing.assert_array_equal(s, ((a - a.mean()) / a.std()).astype(np.float32))
     assert abs(float(s.mean())) < 1e-5 and abs(float(s.std()) - 1) < 1e-5
     np.testing.assert_array_equal(standardise(np.full((5, 6), 0.3, np.float32)), np.zeros((5, 6), np.float32))
+
+
+def test_training_and_inference_standardise_alike(shared_data):
+    """Training standardises the uint8 gray images it reads (train.patches); inference
+    standardises the matcher's [0, 1] gray input (stages.features, the networks' input):
+    on a real colour image the two are equal bit for bit (before issue 17 training took
+    float32 statistics and differed in about half the pixels by an ulp)."""
+    from mccnn_cl.datasets import load_kitti2015, load_middlebury
+    from mccnn_cl.stages.features import normalise as inference
+    from mccnn_cl.train.patches import normalise as training
+
+    for pair in (load_kitti2015(shared_data / "kitti2015", "000000"),
+                 load_middlebury(shared_data / "middlebury" / "Cones")):
+        gray_u8 = pair.gray()[0]  # what the training code standardises
+        a, b = training(gray_u8), inference(to_gray(pair.left, "left"))  # what the matcher hands the network
+        assert a.dtype == b.dtype == np.float32
+        np.testing.assert_array_equal(a.view(np.uint32), b.view(np.uint32))

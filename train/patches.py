@@ -31,15 +31,9 @@ import numpy as np
 
 from mccnn_cl.datasets import StereoPair
 from mccnn_cl.errors import InputError
+from mccnn_cl.imageops import standardise as normalise  # the network's, bit for bit (inference's too)
 
 __all__ = ["PatchSampler", "Batch", "normalise"]
-
-
-def normalise(gray: np.ndarray) -> np.ndarray:
-    """(I - mean(I)) / std(I) as float32 (the network's per-image normalisation)."""
-    g = gray.astype(np.float32)
-    std = float(g.std())
-    return ((g - np.float32(g.mean())) / np.float32(std if std > 0 else 1.0)).astype(np.float32)
 
 
 @dataclass

@@ -28,23 +28,9 @@ import numpy as np
 
 from ..cl import BufferPool, round_up
 from ..errors import InputError
+from ..imageops import standardise as normalise  # noqa: F401 (one standardisation: training's too)
 
 CONV_CL = "network_conv.cl"
-
-
-def normalise(img) -> np.ndarray:
-    """Per-image standardisation used by the network: ``(I - mean(I)) / std(I)``.
-
-    Mean and standard deviation are taken over the whole image (all channels),
-    in float64; the result is float32.  A constant image has std 0: it is then
-    divided by 1 instead (it becomes all zeros), so no NaN or inf appears.
-    """
-    a = np.asarray(img, dtype=np.float64)
-    mean = a.mean()
-    std = a.std()
-    if not std > 0:
-        std = 1.0
-    return ((a - mean) / std).astype(np.float32)
 
 
 def as_image(img, name: str, channels: int, patch: int) -> np.ndarray:
