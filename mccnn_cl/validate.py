@@ -3,7 +3,9 @@
 One place says what pair of images and which disparity range the method can
 match, so ``mccnn-cl match`` (on the images as read, before any OpenCL work)
 and ``StereoMatcher.compute`` (on the gray images) reject the same inputs with
-the same one-line :class:`~mccnn_cl.errors.InputError`.  The smallest image is
+the same one-line :class:`~mccnn_cl.errors.InputError`; the network costs
+check their own inputs here too (:func:`check_cost_inputs`: one gray image
+each, finite pixels, at least the network's patch).  The smallest image is
 the matching cost's patch (9 x 9 for census and the paper's networks; a
 network's own ``patch_size`` when larger); the disparity range must be smaller
 than the image width (disparities 0 .. D-1 need a right pixel x - d).
@@ -33,15 +35,57 @@ def check_disparity_range(max_disparity) -> int:
     return int(max_disparity)
 
 
+def _same_size(left, right, names=("left", "right")) -> tuple:
+    """(H, W) of two images of the same size (first two axes)."""
+    (h, w), (hr, wr) = np.shape(left)[:2], np.shape(right)[:2]
+    if (h, w) != (hr, wr):
+        raise InputError(f"{names[0]} ({w}x{h}) and {names[1]} ({wr}x{hr}) images differ in size")
+    return h, w
+
+
+def as_image(img, name: str, channels: int, patch: int) -> np.ndarray:
+    """One input image of a network cost, checked: numeric, H x W (or H x W x
+    ``channels``), at least ``patch`` x ``patch``, finite; returned as float64 H x W x C."""
+    try:
+        a = np.asarray(img)
+    except Exception as exc:  # noqa: BLE001 - anything numpy cannot take
+        raise InputError(f"{name} image: not an array ({exc})") from exc
+    if a.dtype.kind not in "buif":
+        raise InputError(f"{name} image: dtype {a.dtype} is not numeric")
+    if a.ndim == 2:
+        a = a[:, :, None]
+    elif a.ndim != 3:
+        raise InputError(f"{name} image: expected a 2-D gray image (H x W), got shape {a.shape}")
+    if a.shape[2] != channels:
+        raise InputError(f"{name} image has {a.shape[2]} channels, the network expects {channels}"
+                         + (" (a 2-D gray image)" if channels == 1 else ""))
+    if a.shape[0] < patch or a.shape[1] < patch:
+        raise InputError(f"{name} image is {a.shape[0]}x{a.shape[1]}, smaller than the network's "
+                         f"{patch}x{patch} patch")
+    a = a.astype(np.float64)
+    if not np.isfinite(a).all():
+        raise InputError(f"{name} image contains NaN or infinite pixels")
+    return a
+
+
+def check_cost_inputs(left, right, max_disparity, channels: int, patch: int) -> tuple:
+    """A network cost's inputs (:func:`as_image` each, same size, D by
+    :func:`check_disparity_range`); returns (L, R, D, h, w), h x w the volume's
+    domain (the patch centres).  D may reach the width: those cells are NaN."""
+    L = as_image(left, "left", channels, patch)
+    R = as_image(right, "right", channels, patch)
+    _same_size(L, R)
+    D = check_disparity_range(max_disparity)
+    return L, R, D, L.shape[0] - patch + 1, L.shape[1] - patch + 1
+
+
 def check_pair(left, right, max_disparity: int, patch: int = PATCH, names=("left", "right")) -> None:
     """Clear errors for a pair the method cannot match with ``max_disparity`` levels.
 
     ``left``, ``right``: arrays H x W or H x W x C (only the first two axes are
     looked at); ``patch``: the matching cost's patch side (see :func:`patch_size`);
     ``names``: what to call the two images in the messages (file names)."""
-    (h, w), (hr, wr) = np.shape(left)[:2], np.shape(right)[:2]
-    if (h, w) != (hr, wr):
-        raise InputError(f"{names[0]} ({w}x{h}) and {names[1]} ({wr}x{hr}) images differ in size")
+    h, w = _same_size(left, right, names)
     patch = max(int(patch), PATCH)
     if h < patch or w < patch:
         raise InputError(f"image {w}x{h} is smaller than the {patch}x{patch} patch the matching cost needs")

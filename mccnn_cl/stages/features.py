@@ -16,8 +16,8 @@ zero weights, zero bias).  The stack's output is the last layer's map on
 
 Also here: :func:`normalise`, the per-image standardisation the networks see
 (and that the stereo method's thresholds compare with
-``intensity_scale="standardised"``), and the input checks shared by the
-network costs.
+``intensity_scale="standardised"``).  The network costs' input checks live in
+:func:`mccnn_cl.validate.check_cost_inputs` (the one validator).
 """
 
 from __future__ import annotations
@@ -33,53 +33,10 @@ from ..imageops import standardise as normalise  # noqa: F401 (one standardisati
 CONV_CL = "network_conv.cl"
 
 
-def as_image(img, name: str, channels: int, patch: int) -> np.ndarray:
-    """Validate one input image; returns it as float64 H x W x C."""
-    try:
-        a = np.asarray(img)
-    except Exception as exc:  # noqa: BLE001 - anything numpy cannot take
-        raise InputError(f"{name} image: not an array ({exc})") from exc
-    if a.dtype.kind not in "buif":
-        raise InputError(f"{name} image: dtype {a.dtype} is not numeric")
-    if a.ndim == 2:
-        a = a[:, :, None]
-    elif a.ndim != 3:
-        raise InputError(f"{name} image: expected a 2-D gray image (H x W), got shape {a.shape}")
-    if a.shape[2] != channels:
-        raise InputError(f"{name} image has {a.shape[2]} channels, the network expects {channels}"
-                         + (" (a 2-D gray image)" if channels == 1 else ""))
-    if a.shape[0] < patch or a.shape[1] < patch:
-        raise InputError(f"{name} image is {a.shape[0]}x{a.shape[1]}, smaller than the network's "
-                         f"{patch}x{patch} patch")
-    a = a.astype(np.float64)
-    if not np.isfinite(a).all():
-        raise InputError(f"{name} image contains NaN or infinite pixels")
-    return a
-
-
-def check_pair(left, right, max_disparity, channels: int, patch: int):
-    """Both images and D checked; returns (L, R, D, h, w) with h x w the volume's domain."""
-    L = as_image(left, "left", channels, patch)
-    R = as_image(right, "right", channels, patch)
-    if L.shape != R.shape:
-        raise InputError(f"left and right images differ in size: {L.shape[:2]} vs {R.shape[:2]}")
-    if isinstance(max_disparity, (bool, np.bool_)) or not isinstance(max_disparity, (int, np.integer)):
-        raise InputError(f"max_disparity must be an integer, got {max_disparity!r}")
-    D = int(max_disparity)
-    if D < 1:
-        raise InputError(f"max_disparity must be >= 1, got {D}")
-    return L, R, D, L.shape[0] - patch + 1, L.shape[1] - patch + 1
-
-
 def default_tiles(ctx) -> dict:
-    """Starting tile sizes for a device (refined against its limits by the costs)."""
-    cl = ctx.cl
-    dev = ctx.device
-    if dev.type & cl.device_type.CPU:
-        width = max(int(dev.preferred_vector_width_float), int(dev.native_vector_width_float), 1)
-        rn = 16 if width >= 16 else 8 if width >= 8 else 4
-        return dict(TM=64, RM=8, RN=rn, ROWS_FASTEST=1, CONV_RM=8)
-    return dict(TM=32, RM=4, RN=4, ROWS_FASTEST=0, CONV_RM=4)
+    """Starting tile sizes for a device (refined against its limits by the costs):
+    the profile's ``network_tiles`` rule (:mod:`mccnn_cl.device`)."""
+    return ctx.profile.network_tiles()
 
 
 class ConvStack:

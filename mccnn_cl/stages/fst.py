@@ -26,7 +26,8 @@ import numpy as np
 from ..cl import round_up
 from ..errors import InputError, OpenCLError, WeightsError
 from ..weights import FST, Weights
-from .features import ConvStack, check_pair, default_tiles, normalise
+from ..validate import check_cost_inputs
+from .features import ConvStack, default_tiles, normalise
 
 FST_CL = "fst.cl"
 #: bytes of one band's feature buffers (both images)
@@ -103,7 +104,7 @@ class FstCost:
     def features(self, img):
         """Host copy of the normalised features of a whole image (h x w x maps,
         float32), for tests: the conv stack and fst_normalise."""
-        I = check_pair(img, img, 1, self.channels, self.patch)[0]
+        I = check_cost_inputs(img, img, 1, self.channels, self.patch)[0]
         h, w = I.shape[0] - self.patch + 1, I.shape[1] - self.patch + 1
         d = self._features(normalise(I), h, w)
         wp = self._wp(w)
@@ -124,7 +125,7 @@ class FstCost:
         buffer of at least the volume's bytes to write into; ``progress``:
         ``callable(done, D)`` after each band."""
         ctx = self.ctx
-        L, R, D, h, w = check_pair(left, right, max_disparity, self.channels, self.patch)
+        L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
         nbytes = D * h * w * self.vdtype.itemsize
         ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
         if out is None:
@@ -142,7 +143,7 @@ class FstCost:
         buffer of at most ``max_bytes`` (default: the max allocation); values
         identical to :meth:`__call__`'s."""
         ctx = self.ctx
-        L, R, D, h, w = check_pair(left, right, max_disparity, self.channels, self.patch)
+        L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
         row = D * w * self.vdtype.itemsize
         limit = ctx.max_alloc if max_bytes is None else min(int(max_bytes), ctx.max_alloc)
         if row > limit:

@@ -36,7 +36,8 @@ import numpy as np
 from ..cl import round_up
 from ..errors import InputError, OpenCLError, WeightsError
 from ..weights import ACRT, PAPER, Weights
-from .features import ConvStack, check_pair, default_tiles, normalise  # noqa: F401 (normalise re-exported)
+from ..validate import check_cost_inputs
+from .features import ConvStack, default_tiles, normalise  # noqa: F401 (normalise re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -236,7 +237,7 @@ class PaperCost:
         the next band's by P - 1 rows, so the band seams are exact.
         """
         ctx = self.ctx
-        L, R, D, h, w = self._check(left, right, max_disparity)
+        L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
         nbytes = D * h * w * self.vdtype.itemsize
         ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
         rows = self.band_rows(h, w)
@@ -254,9 +255,6 @@ class PaperCost:
                               f"{exc}") from exc
         return d_cost
 
-    def _check(self, left, right, max_disparity):
-        return check_pair(left, right, max_disparity, self.channels, self.patch)
-
     def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
         """C_CNN as a host array (``[D][H_img-8][W_img-8]``, float32 or float16
         with half storage), for
@@ -265,7 +263,7 @@ class PaperCost:
         (default: the device's max allocation) and copied out.  Values are
         identical to :meth:`__call__`'s (same kernels, same bands' seams)."""
         ctx = self.ctx
-        L, R, D, h, w = self._check(left, right, max_disparity)
+        L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
         row = D * w * self.vdtype.itemsize
         limit = ctx.max_alloc if max_bytes is None else min(int(max_bytes), ctx.max_alloc)
         if row > limit:
