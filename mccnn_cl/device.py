@@ -32,7 +32,10 @@ CLASSES = (CPU, LLVMPIPE, GPU)
 #: Mesa 22.3), after which every loop of the work-item ends silently.
 LLVMPIPE_LOOP_LIMIT = 65535
 
-#: option -> {device class: value}.  SGM's one-direction kernels: ``sgm_prefetch``
+#: option -> {device class: value}.  ``sgm_stage``: SGM's implementation
+#: (:func:`~mccnn_cl.stages.sgm.make_sgm`): "lines" (:class:`~mccnn_cl.stages.sgm.SGM`,
+#: a work-item walks whole path lines) or "workgroup" (:class:`~mccnn_cl.stages.sgm_wg.SGMWorkGroup`,
+#: a work-group per line; Oclgrind takes it too).  SGM's one-direction kernels: ``sgm_prefetch``
 #: (host prefetch instructions where the kernel is compiled to x86/AArch64),
 #: ``sgm_cols`` (columns per sgm_columns work-item), ``sgm_fused_rows`` (both
 #: row directions in one pass; never under a loop limit), ``sgm_specialize``
@@ -44,6 +47,7 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: iterations per launch, the same), ``cbca_multi_group_of_one``.  Network:
 #: ``network_tiles`` (register tiles; RN grows with the float vector width on CPUs).
 RULES = {
+    "sgm_stage":               {CPU: "lines", LLVMPIPE: "lines", GPU: "workgroup"},
     "sgm_prefetch":            {CPU: True,  LLVMPIPE: True,  GPU: False},
     "sgm_cols":                {CPU: 128,   LLVMPIPE: 32,    GPU: 32},
     "sgm_fused_rows":          {CPU: True,  LLVMPIPE: True,  GPU: False},

@@ -307,12 +307,12 @@ class StereoMatcher:
         self.margin = self.cost.margin
 
         from .stages.cbca import CBCA
-        from .stages.sgm import SGM
+        from .stages.sgm import make_sgm
 
         ctx = self.ctx
         self.cross = CrossArms(ctx)
         self.cbca = CBCA(ctx, half=self.half)
-        self.sgm = SGM(ctx, half=self.half)
+        self.sgm = make_sgm(ctx, half=self.half)  # SGM or SGMWorkGroup, by the device's profile
         self.wta = WinnerTakeAll(ctx, half=self.half)
         self.right_ref = RightReference(ctx, half=self.half)
         self.lr_check = LeftRightCheck(ctx)

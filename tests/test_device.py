@@ -9,7 +9,8 @@ import pytest
 
 from mccnn_cl.device import CLASSES, CPU, GPU, LLVMPIPE, LLVMPIPE_LOOP_LIMIT, RULES, DeviceProfile, device_class
 from mccnn_cl.stages.cbca import CBCA, SHORT_MAX
-from mccnn_cl.stages.sgm import SGM
+from mccnn_cl.stages.sgm import SGM, make_sgm
+from mccnn_cl.stages.sgm_wg import SGMWorkGroup
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mccnn_cl"
 
@@ -93,6 +94,17 @@ def test_stages_take_their_defaults_from_the_profile(ctx):
     assert SGM(ctx, cols=48, paired=False).cols == 48
     assert CBCA(ctx).path(3) == ctx.profile.cbca_path(3, SHORT_MAX)
     assert CBCA(ctx, fused=False).path(3) == "short"
+
+
+@pytest.mark.parametrize("key, stage", [("pocl", SGM), ("llvmpipe", SGM), ("oclgrind", SGMWorkGroup),
+                                        ("gpu", SGMWorkGroup)])
+def test_sgm_stage_per_device(ctx, monkeypatch, key, stage):
+    """make_sgm (StereoMatcher's SGM) by the profile: the line-walking SGM on
+    CPUs, the work-group-per-line one on GPU-classed devices (Oclgrind too)."""
+    monkeypatch.setattr(ctx, "profile", DeviceProfile.of(DEVICES[key], cl))
+    for half in (False, True):
+        st = make_sgm(ctx, half=half)
+        assert type(st) is stage and st.half is half
 
 
 def test_no_device_type_test_outside_the_profile():

@@ -484,7 +484,7 @@ CASE_KERNELS = {
     "confidence": {"confidence_curve"},
     "half": {"network_head", "network_mark_invalid", "census_cost", "cbca_fused_multi_short", "cbca_fused_short",
              "cbca_rows_short",
-             "cbca_columns_short", "sgm_rows", "sgm_columns", "disparity_wta_left", "disparity_right_volume",
+             "cbca_columns_short", "sgm_wg_path", "disparity_wta_left", "disparity_right_volume",
              "subpixel_refine"},
 }
 SELFTESTS = {"selftest_bad_kernel": selftest_bad_kernel}

@@ -228,3 +228,36 @@ def test_bad_input(ctx):
     too_big = ctx.work_group_size(SGMWorkGroup(ctx).kernel()) + 1
     with pytest.raises(InputError):
         SGMWorkGroup(ctx, local_size=too_big)(d_cost, d_img, d_img, 2, 3, 4)
+
+
+# -- the stage a device gets (the profile's "sgm_stage" rule) -------------------
+@pytest.fixture
+def workgroup_sgm(ctx, monkeypatch):
+    """This device's profile told to take the GPU-shaped SGM (its "sgm_stage" rule)."""
+    from mccnn_cl.device import RULES
+
+    monkeypatch.setitem(RULES["sgm_stage"], ctx.profile.kind, "workgroup")
+
+
+def test_stereo_matcher_with_the_workgroup_stage(ctx, shared_data, workgroup_sgm):
+    """StereoMatcher with the GPU path forced runs SGMWorkGroup; its disparity
+    map and every volume equal, bit for bit, the run with SGM's one-direction
+    kernels (SGM(paired=False)); the CPU default on two compute units is the
+    paired sweeps, equal to rounding only, so it is not the reference here."""
+    from mccnn_cl.pipeline import StereoMatcher
+
+    left, right = kitti_crop(shared_data, 150, 300, 37, 83)
+    D = 21
+    m = StereoMatcher(cost="census", max_disparity=D, device=ctx)
+    assert isinstance(m.sgm, SGMWorkGroup)
+    got = m.compute(left, right, return_intermediates=True)
+    ref_m = StereoMatcher(cost="census", max_disparity=D, device=ctx)
+    ref_m.sgm = SGM(ctx, paired=False)
+    want = ref_m.compute(left, right, return_intermediates=True)
+    assert "C_SGM" in got.intermediates and set(got.intermediates) == set(want.intermediates)
+    for name, a in got.intermediates.items():
+        b = want.intermediates[name]
+        assert a.shape == b.shape and a.dtype == b.dtype, name
+        np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8), err_msg=name)
+    np.testing.assert_array_equal(got.disparity.view(np.uint8), want.disparity.view(np.uint8))
+    assert np.isfinite(got.disparity).mean() > 0.5 and np.nanstd(got.disparity) > 0.5
