@@ -274,6 +274,8 @@ class StereoMatcher:
         if unknown:
             raise TypeError(f"unknown hyperparameter(s) {', '.join(unknown)}; valid names: "
                             + ", ".join(Hyperparameters.names()))
+        if cost == "census" and weights is not None:
+            raise InputError("weights are for cost='cnn'; cost='census' uses no network (drop weights= or the cost)")
         # the network's own settings (Weights.stereo), then the caller's explicit overrides
         self.weights = _resolve_weights(weights) if cost == "cnn" else None
         settings = self.weights.stereo if self.weights is not None else {}

@@ -161,6 +161,10 @@ def test_bad_sizes_rejected(ctx, census_matcher):
         StereoMatcher(cost="sad", device=ctx)
     with pytest.raises(InputError):
         StereoMatcher(cost="census", device=ctx, interpolation="nearest")
+    # a network with the census cost would be ignored: refused, whatever form the weights take
+    for w in (Weights.random(conv_layers=[[4, 3]] * 4, fc_layers=[8, 2], seed=1), "some-net.npz"):
+        with pytest.raises(InputError, match="cost='census' uses no network"):
+            StereoMatcher(weights=w, cost="census", device=ctx)
 
 
 def test_smallest_and_constant_images(census_matcher):
