@@ -1,6 +1,17 @@
 """Helpers shared by several test modules (test modules import from here, never from each other)."""
 
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
 import numpy as np
+
+#: The worker that runs the stage cases (``case_<name>``) on one OpenCL implementation.
+WORKER = Path(__file__).resolve().parent / "test_oclgrind.py"
 
 
 def invalid_mask(D, H, W):
@@ -27,3 +38,83 @@ def ad_volume(img_l, img_r, D):
     for d in range(D):
         c[d, :, d:] = np.abs(img_l[:, d:] - img_r[:, :W - d])
     return c
+
+
+# -- network costs (test_fst.py, test_acrt.py) -----------------------------------
+def random_pair(rng, H, W, shift=3):
+    """A random left image and its right, shifted by ``shift`` with a little noise."""
+    left = rng.random((H, W)).astype(np.float32)
+    right = np.roll(left, -shift, axis=1) + 0.05 * rng.random((H, W)).astype(np.float32)
+    return left, right
+
+
+def run_poisoned(ctx, cost, left, right, D, half=False):
+    """A cost's volume written into a poisoned buffer (conftest.POISON; -1e4 in half)."""
+    from conftest import POISON  # not at the top: the Oclgrind worker imports this module without pytest
+
+    m = cost.margin
+    h, w = left.shape[0] - 2 * m, left.shape[1] - 2 * m
+    item = 2 if half else 4
+    d_out = ctx.empty(D * h * w * item, "test volume")
+    ctx.fill(d_out, np.float16(-1e4) if half else POISON, D * h * w * item,
+             dtype=np.float16 if half else np.float32)
+    assert cost(left, right, D, out=d_out) is d_out
+    return ctx.from_device(d_out, (D, h, w), np.float16 if half else np.float32)
+
+
+# -- the stage cases of test_oclgrind.py (also run by test_portability.py) --------
+# The kernels each case must have fetched (checked in the worker): together
+# they must cover every kernel the package uses (test_every_kernel_is_covered).
+CASE_KERNELS = {
+    "network": {"network_conv", "network_head", "network_mark_invalid"},
+    "fst": {"network_conv", "fst_normalise", "fst_volume", "fst_volume_pairs"},
+    "acrt": {"network_conv", "network_head", "network_mark_invalid"},
+    "census": {"census_transform", "census_cost"},
+    "cross": {"cross_build"},
+    "cbca": {"cbca_rows", "cbca_columns", "cbca_rows_short", "cbca_columns_short", "cbca_fused_short",
+             "cbca_fused_multi_short"},
+    "sgm": {"sgm_rows", "sgm_columns", "sgm_paired"},
+    "sgm_wg": {"sgm_wg_path"},
+    "disparity": {"disparity_wta_left", "disparity_wta_right", "disparity_lr_check",
+                  "disparity_right_volume", "disparity_mirror", "interpolate_fill", "subpixel_refine"},
+    "refine": {"refine_enlarge", "refine_median", "refine_median16", "refine_bilateral"},
+    "confidence": {"confidence_curve"},
+    "half": {"network_head", "network_mark_invalid", "census_cost", "cbca_fused_multi_short", "cbca_fused_short",
+             "cbca_rows_short",
+             "cbca_columns_short", "sgm_rows", "sgm_columns", "sgm_wg_path", "disparity_wta_left", "disparity_right_volume",
+             "subpixel_refine"},
+}
+
+
+def run_isolated(impl: str, case: str, timeout: float = 600) -> dict:
+    """Run one case in a subprocess that sees only ``impl``.
+
+    Returns ``{"ok", "result" (the worker's dict or None), "oclgrind_errors",
+    "stdout", "stderr", "seconds"}``.  Raises ``conftest.ImplUnavailable``
+    when the implementation is not installed.
+    """
+    from conftest import CL_IMPLS, impl_environ, oclgrind_errors  # noqa: E402
+
+    with tempfile.TemporaryDirectory(prefix="mccnn-impl-") as tmp:
+        log = Path(tmp) / "oclgrind.log"
+        env = {k: v for k, v in os.environ.items()
+               if not k.startswith(("OCLGRIND_", "PYOPENCL_CTX", "RUSTICL_", "OCL_ICD_"))}
+        env.update(impl_environ(impl, oclgrind_log=log))
+        t0 = time.perf_counter()
+        proc = subprocess.run([sys.executable, str(WORKER), case,
+                               "--expect-platform", CL_IMPLS[impl]["platform"]],
+                              env=env, capture_output=True, text=True, timeout=timeout)
+        seconds = time.perf_counter() - t0
+        log_text = log.read_text(errors="replace") if log.exists() else ""
+    result = None
+    for line in proc.stdout.splitlines():
+        if line.startswith("RESULT "):
+            result = json.loads(line[7:])
+    errors = ""
+    if impl == "oclgrind":
+        # the log holds only kernel diagnostics: any content fails; API errors go to stderr
+        errors = "\n\n".join(e for e in (log_text.strip(), oclgrind_errors(
+            "\n\n".join(b for b in proc.stderr.split("\n\n") if "Oclgrind" in b))) if e)
+    ok = proc.returncode == 0 and result is not None and result["ok"] and not errors
+    return {"ok": ok, "result": result, "oclgrind_errors": errors, "stdout": proc.stdout,
+            "stderr": proc.stderr, "seconds": seconds, "returncode": proc.returncode}

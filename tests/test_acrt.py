@@ -18,7 +18,7 @@ from mccnn_cl.stages.costs import make_cost
 from mccnn_cl.stages.network import AcrtCost, PaperCost
 from mccnn_cl.weights import Weights
 
-from test_fst import random_pair, run_poisoned
+from helpers import random_pair, run_poisoned
 
 TOL = 1e-4
 

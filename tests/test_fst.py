@@ -23,25 +23,9 @@ from mccnn_cl.stages.fst import FstCost
 from mccnn_cl.weights import Weights
 
 from conftest import POISON
+from helpers import random_pair, run_poisoned
 
 TOL = 2e-5
-
-
-def random_pair(rng, H, W, shift=3):
-    left = rng.random((H, W)).astype(np.float32)
-    right = np.roll(left, -shift, axis=1) + 0.05 * rng.random((H, W)).astype(np.float32)
-    return left, right
-
-
-def run_poisoned(ctx, cost, left, right, D, half=False):
-    m = cost.margin
-    h, w = left.shape[0] - 2 * m, left.shape[1] - 2 * m
-    item = 2 if half else 4
-    d_out = ctx.empty(D * h * w * item, "test volume")
-    ctx.fill(d_out, np.float16(-1e4) if half else POISON, D * h * w * item,
-             dtype=np.float16 if half else np.float32)
-    assert cost(left, right, D, out=d_out) is d_out
-    return ctx.from_device(d_out, (D, h, w), np.float16 if half else np.float32)
 
 
 def check(got, expected, tol=TOL):

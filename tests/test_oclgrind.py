@@ -13,7 +13,8 @@ install hint (``scripts/test.sh`` installs it).
 
 The same worker runs the cases on any implementation
 (``python tests/test_oclgrind.py --impl rusticl --all``); test_portability.py
-uses that for Rusticl.
+uses that for Rusticl, through ``helpers.run_isolated``; the kernels each
+case must fetch are ``helpers.CASE_KERNELS`` (shared with test_portability.py).
 
 Inputs are tiny (Oclgrind interprets every work-item, ~1000x slower than
 PoCL): images of 12 x 20 (cropped domain 4 x 12) and 13 x 21, D = 5, plus one
@@ -25,14 +26,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from helpers import CASE_KERNELS, run_isolated
 
 HERE = Path(__file__).resolve().parent
 POISON = np.float32(-1.2345e30)  # same value as conftest.POISON (not imported: worker runs standalone)
@@ -100,6 +100,8 @@ def case_network(ctx, rng, chk):
     """network_conv.cl + network_head.cl: a tiny random net (9x9 patch)."""
     from mccnn_cl.reference import network as ref
     from mccnn_cl.stages.network import NetworkCost
+    from mccnn_cl.stages.sgm import SGM
+    from mccnn_cl.stages.sgm_wg import SGMWorkGroup
     from mccnn_cl.weights import Weights
 
     w = Weights.random(conv_layers=[[4, 3], [4, 3], [4, 3], [4, 3]], fc_layers=[8, 8, 8, 2], seed=3)
@@ -403,10 +405,13 @@ def case_sgm_wg(ctx, rng, chk):
 def case_half(ctx, rng, chk):
     """Half-precision volume storage (VOL_HALF=1) in every kernel that reads or
     writes a volume: the network head and its NaN marking, then the whole
-    method (census cost) with fused and with two-pass CBCA, against the same
-    runs in float32 (the storage rounds to 11 significant bits)."""
+    method (census cost) with fused and with two-pass CBCA and with both SGM
+    stages (SGM, SGMWorkGroup), against the same runs in float32 (the storage
+    rounds to 11 significant bits)."""
     from mccnn_cl.pipeline import StereoMatcher
     from mccnn_cl.stages.network import NetworkCost
+    from mccnn_cl.stages.sgm import SGM
+    from mccnn_cl.stages.sgm_wg import SGMWorkGroup
     from mccnn_cl.weights import Weights
 
     w = Weights.random(conv_layers=[[4, 3], [4, 3], [4, 3], [4, 3]], fc_layers=[8, 8, 8, 2], seed=3)
@@ -420,10 +425,13 @@ def case_half(ctx, rng, chk):
               full.astype(np.float16))
     left, right = _images(rng, 14, 24)
     ref = StereoMatcher(cost="census", max_disparity=D, device=ctx).compute(left, right, return_intermediates=True)
-    for fused, multi in ((True, True), (True, False), (False, False)):
+    # the device's SGM stage (make_sgm), then each SGM stage explicitly, whatever the device
+    for (fused, multi), sgm_stage in (((True, True), None), ((True, False), SGM), ((False, False), SGMWorkGroup)):
         m = StereoMatcher(cost="census", max_disparity=D, device=ctx, volume_dtype="float16")
         m.cbca.fused, m.cbca.multi = fused, multi
-        label = f"fused={fused}, multi={multi}"
+        if sgm_stage is not None:
+            m.sgm = sgm_stage(ctx, half=True)
+        label = f"fused={fused}, multi={multi}, {type(m.sgm).__name__}"
         got = m.compute(left, right, return_intermediates=True)
         chk.close(f"half census volume ({label})", got.intermediates["C_CNN"],
                   ref.intermediates["C_CNN"].astype(np.float16))
@@ -465,27 +473,6 @@ CASES = {
     "refine": case_refine,
     "half": case_half,
     "confidence": case_confidence,
-}
-# The kernels each case must have fetched (checked in the worker): together
-# they must cover every kernel the package uses (test_every_kernel_is_covered).
-CASE_KERNELS = {
-    "network": {"network_conv", "network_head", "network_mark_invalid"},
-    "fst": {"network_conv", "fst_normalise", "fst_volume", "fst_volume_pairs"},
-    "acrt": {"network_conv", "network_head", "network_mark_invalid"},
-    "census": {"census_transform", "census_cost"},
-    "cross": {"cross_build"},
-    "cbca": {"cbca_rows", "cbca_columns", "cbca_rows_short", "cbca_columns_short", "cbca_fused_short",
-             "cbca_fused_multi_short"},
-    "sgm": {"sgm_rows", "sgm_columns", "sgm_paired"},
-    "sgm_wg": {"sgm_wg_path"},
-    "disparity": {"disparity_wta_left", "disparity_wta_right", "disparity_lr_check",
-                  "disparity_right_volume", "disparity_mirror", "interpolate_fill", "subpixel_refine"},
-    "refine": {"refine_enlarge", "refine_median", "refine_median16", "refine_bilateral"},
-    "confidence": {"confidence_curve"},
-    "half": {"network_head", "network_mark_invalid", "census_cost", "cbca_fused_multi_short", "cbca_fused_short",
-             "cbca_rows_short",
-             "cbca_columns_short", "sgm_wg_path", "disparity_wta_left", "disparity_right_volume",
-             "subpixel_refine"},
 }
 SELFTESTS = {"selftest_bad_kernel": selftest_bad_kernel}
 # everything the worker can run by name (cases of stages not committed yet included)
@@ -550,41 +537,6 @@ def main(argv=None) -> int:
     return rc
 
 
-def run_isolated(impl: str, case: str, timeout: float = 600) -> dict:
-    """Run one case in a subprocess that sees only ``impl``.
-
-    Returns ``{"ok", "result" (the worker's dict or None), "oclgrind_errors",
-    "stdout", "stderr", "seconds"}``.  Raises ``conftest.ImplUnavailable``
-    when the implementation is not installed.
-    """
-    sys.path.insert(0, str(HERE))
-    from conftest import CL_IMPLS, impl_environ, oclgrind_errors  # noqa: E402
-
-    with tempfile.TemporaryDirectory(prefix="mccnn-impl-") as tmp:
-        log = Path(tmp) / "oclgrind.log"
-        env = {k: v for k, v in os.environ.items()
-               if not k.startswith(("OCLGRIND_", "PYOPENCL_CTX", "RUSTICL_", "OCL_ICD_"))}
-        env.update(impl_environ(impl, oclgrind_log=log))
-        t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), case,
-                               "--expect-platform", CL_IMPLS[impl]["platform"]],
-                              env=env, capture_output=True, text=True, timeout=timeout)
-        seconds = time.perf_counter() - t0
-        log_text = log.read_text(errors="replace") if log.exists() else ""
-    result = None
-    for line in proc.stdout.splitlines():
-        if line.startswith("RESULT "):
-            result = json.loads(line[7:])
-    errors = ""
-    if impl == "oclgrind":
-        # the log holds only kernel diagnostics: any content fails; API errors go to stderr
-        errors = "\n\n".join(e for e in (log_text.strip(), oclgrind_errors(
-            "\n\n".join(b for b in proc.stderr.split("\n\n") if "Oclgrind" in b))) if e)
-    ok = proc.returncode == 0 and result is not None and result["ok"] and not errors
-    return {"ok": ok, "result": result, "oclgrind_errors": errors, "stdout": proc.stdout,
-            "stderr": proc.stderr, "seconds": seconds, "returncode": proc.returncode}
-
-
 # ---------------------------------------------------------------------------
 # the pytest side
 # ---------------------------------------------------------------------------
@@ -636,6 +588,7 @@ if pytest is not None:
                 defined[k] = cl_file.name
         used_text = "\n".join(p.read_text(encoding="utf-8") for p in sorted((repo / "mccnn_cl").rglob("*.py")))
         used = {k for k in defined if re.search(rf"[\"']{k}[\"']", used_text)}
+        assert set(CASE_KERNELS) == set(CASES), "helpers.CASE_KERNELS and CASES name different cases"
         covered = set().union(*(CASE_KERNELS[c] for c in CASES))
         assert used, "no kernel names found in mccnn_cl/"
         missing = sorted(f"{k} ({defined[k]})" for k in used - covered)

@@ -29,7 +29,7 @@ import pytest
 
 from conftest import CL_IMPLS, REPO, ImplUnavailable, impl_environ
 
-import test_oclgrind
+from helpers import CASE_KERNELS, run_isolated
 
 IMPLS = [s.strip() for s in os.environ.get("MCCNN_CL_IMPLS", "pocl,oclgrind,rusticl").split(",") if s.strip()]
 KERNEL_DIR = REPO / "kernels"
@@ -83,11 +83,11 @@ def test_unknown_or_missing_implementation_fails_loudly(tmp_path):
     assert "intel-opencl-rt" in proc.stderr, proc.stderr[-2000:]
 
 
-@pytest.mark.parametrize("case", sorted(test_oclgrind.CASES))
+@pytest.mark.parametrize("case", sorted(CASE_KERNELS))
 @pytest.mark.parametrize("impl", [i for i in IMPLS if i in ("rusticl", "intel")])
 def test_stage_matches_reference_on(impl, case, tmp_path):
     _env(impl, tmp_path)  # fails loudly if unavailable
-    res = test_oclgrind.run_isolated(impl, case, timeout=300)
+    res = run_isolated(impl, case, timeout=300)
     if res["result"] is None:
         pytest.fail(f"{case} on {impl} crashed (rc {res['returncode']}):\n{res['stderr'][-6000:]}")
     bad = [r for r in res["result"]["checks"] if not r["ok"]]

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from conftest import POISON
+from helpers import ad_volume, blocky_image, invalid_mask, random_volume
 from mccnn_cl.errors import InputError
 from mccnn_cl.reference.aggregation import SGM_DIRECTIONS, sgm, sgm_direction
 from mccnn_cl.stages.sgm import SGM
@@ -29,31 +30,6 @@ from mccnn_cl.stages.sgm_wg import SGMWorkGroup
 
 F16_POISON = np.float16(-65504.0)
 GROUP_SIZES = (1, 4, 16, 64, "max")
-
-
-# -- small helpers (as tests/test_cbca.py and tests/test_sgm.py) ----------------
-def invalid_mask(D, H, W):
-    return np.broadcast_to(np.arange(W)[None, None, :] < np.arange(D)[:, None, None], (D, H, W))
-
-
-def random_volume(rng, D, H, W, scale=1.0):
-    c = (scale * rng.random((D, H, W))).astype(np.float32)
-    c[invalid_mask(D, H, W)] = np.nan
-    return c
-
-
-def blocky_image(rng, H, W, block=3, noise=0.02):
-    """Piecewise-constant image with a little noise: small and large gradients."""
-    img = np.repeat(np.repeat(rng.random((H // block + 1, W // block + 1)), block, 0), block, 1)[:H, :W]
-    return (img + noise * rng.random((H, W))).astype(np.float32)
-
-
-def ad_volume(img_l, img_r, D):
-    H, W = img_l.shape
-    c = np.full((D, H, W), np.nan, np.float32)
-    for d in range(D):
-        c[d, :, d:] = np.abs(img_l[:, d:] - img_r[:, :W - d])
-    return c
 
 
 def kitti_crop(shared_data, y0, x0, H, W):
