@@ -16,8 +16,9 @@ zero weights, zero bias).  The stack's output is the last layer's map on
 
 Also here: :func:`normalise`, the per-image standardisation the networks see
 (and that the stereo method's thresholds compare with
-``intensity_scale="standardised"``).  The network costs' input checks live in
-:func:`mccnn_cl.validate.check_cost_inputs` (the one validator).
+``intensity_scale="standardised"``), and the banded volume's two entry points
+the network costs share (:func:`volume_on_device`, :func:`volume_to_host`;
+inputs checked by :func:`mccnn_cl.validate.check_cost_inputs`).
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ import math
 import numpy as np
 
 from ..cl import BufferPool, round_up
-from ..errors import InputError
+from ..errors import InputError, OpenCLError
+from ..validate import check_cost_inputs
 from ..imageops import standardise as normalise  # noqa: F401 (one standardisation: training's too)
 
 CONV_CL = "network_conv.cl"
@@ -131,3 +133,48 @@ class ConvStack:
             hh, ww = hh - ks + 1, ww - ks + 1
             total += 2 * 2 * hh * ww * ks * ks * cin * cout
         return total, hh, ww
+
+
+def volume_on_device(cost, left, right, max_disparity, out, progress, label: str):
+    """A network cost's ``__call__``: inputs checked, the volume's buffer (``out``
+    or a new one), ``cost._enqueue`` over ``cost.band_rows`` bands; ``label``
+    names the cost in an OpenCL error."""
+    ctx = cost.ctx
+    L, R, D, h, w = check_cost_inputs(left, right, max_disparity, cost.channels, cost.patch)
+    nbytes = D * h * w * cost.vdtype.itemsize
+    ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
+    rows = cost.band_rows(h, w)
+    if out is None:
+        out = ctx.empty(nbytes, "cost volume")
+    elif out.size < nbytes:
+        raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
+    try:
+        cost._enqueue(L, R, D, h, w, rows, out, progress)
+    except ctx.cl.Error as exc:
+        raise OpenCLError(f"{label} ({D} x {h} x {w}) failed on {ctx.describe()}: {exc}") from exc
+    return out
+
+
+def volume_to_host(cost, left, right, max_disparity, max_bytes, progress, label: str):
+    """A network cost's ``to_host``: each band computed into one device buffer of
+    at most ``max_bytes`` (default: the max allocation) and copied into the host
+    volume (``cost._enqueue(..., host=)``); values identical to :func:`volume_on_device`'s."""
+    ctx = cost.ctx
+    L, R, D, h, w = check_cost_inputs(left, right, max_disparity, cost.channels, cost.patch)
+    row = D * w * cost.vdtype.itemsize
+    limit = ctx.max_alloc if max_bytes is None else min(int(max_bytes), ctx.max_alloc)
+    if row > limit:
+        raise InputError(f"one row of the cost volume ({D} x {w} {cost.vdtype.name}, {row / 2**20:.1f} MiB) "
+                         f"does not fit in {limit / 2**20:.1f} MiB of device memory; reduce the "
+                         "disparity range or the image width")
+    rows = min(cost.band_rows(h, w), limit // row)
+    host = np.empty((D, h, w), cost.vdtype)
+    d_band = ctx.empty(D * rows * w * cost.vdtype.itemsize, "cost volume band")
+    try:
+        cost._enqueue(L, R, D, h, w, rows, d_band, progress, host=host)
+    except ctx.cl.Error as exc:
+        raise OpenCLError(f"{label} ({D} x {h} x {w}, in bands of {rows} rows) failed on "
+                          f"{ctx.describe()}: {exc}") from exc
+    finally:
+        d_band.release()
+    return host

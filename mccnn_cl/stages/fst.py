@@ -24,10 +24,10 @@ from __future__ import annotations
 import numpy as np
 
 from ..cl import round_up
-from ..errors import InputError, OpenCLError, WeightsError
+from ..errors import WeightsError
 from ..weights import FST, Weights
 from ..validate import check_cost_inputs
-from .features import ConvStack, default_tiles, normalise
+from .features import ConvStack, default_tiles, normalise, volume_on_device, volume_to_host
 
 FST_CL = "fst.cl"
 #: bytes of one band's feature buffers (both images)
@@ -124,43 +124,13 @@ class FstCost:
         """Cost volume on the device (``[D][H_img-2m][W_img-2m]``); ``out``: a
         buffer of at least the volume's bytes to write into; ``progress``:
         ``callable(done, D)`` after each band."""
-        ctx = self.ctx
-        L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
-        nbytes = D * h * w * self.vdtype.itemsize
-        ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
-        if out is None:
-            out = ctx.empty(nbytes, "cost volume")
-        elif out.size < nbytes:
-            raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
-        try:
-            self._enqueue(L, R, D, h, w, self.band_rows(h, w), out, progress)
-        except ctx.cl.Error as exc:
-            raise OpenCLError(f"fst cost ({D} x {h} x {w}) failed on {ctx.describe()}: {exc}") from exc
-        return out
+        return volume_on_device(self, left, right, max_disparity, out, progress, "fst cost")
 
     def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
         """The volume as a host array, computed band by band into one device
         buffer of at most ``max_bytes`` (default: the max allocation); values
         identical to :meth:`__call__`'s."""
-        ctx = self.ctx
-        L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
-        row = D * w * self.vdtype.itemsize
-        limit = ctx.max_alloc if max_bytes is None else min(int(max_bytes), ctx.max_alloc)
-        if row > limit:
-            raise InputError(f"one row of the cost volume ({D} x {w} {self.vdtype.name}, {row / 2**20:.1f} MiB) "
-                             f"does not fit in {limit / 2**20:.1f} MiB of device memory; reduce the "
-                             "disparity range or the image width")
-        rows = min(self.band_rows(h, w), limit // row)
-        host = np.empty((D, h, w), self.vdtype)
-        d_band = ctx.empty(D * rows * w * self.vdtype.itemsize, "cost volume band")
-        try:
-            self._enqueue(L, R, D, h, w, rows, d_band, progress, host=host)
-        except ctx.cl.Error as exc:
-            raise OpenCLError(f"fst cost ({D} x {h} x {w}, bands of {rows} rows) failed on "
-                              f"{ctx.describe()}: {exc}") from exc
-        finally:
-            d_band.release()
-        return host
+        return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "fst cost")
 
     def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
         q, P, i32 = self.ctx.queue, self.patch, np.int32

@@ -34,10 +34,9 @@ import math
 import numpy as np
 
 from ..cl import round_up
-from ..errors import InputError, OpenCLError, WeightsError
+from ..errors import InputError, WeightsError
 from ..weights import ACRT, PAPER, Weights
-from ..validate import check_cost_inputs
-from .features import ConvStack, default_tiles, normalise  # noqa: F401 (normalise re-exported)
+from .features import ConvStack, default_tiles, normalise, volume_on_device, volume_to_host  # noqa: F401 (normalise re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -236,24 +235,7 @@ class PaperCost:
         feature maps of a band are smaller); each band's input rows overlap
         the next band's by P - 1 rows, so the band seams are exact.
         """
-        ctx = self.ctx
-        L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
-        nbytes = D * h * w * self.vdtype.itemsize
-        ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
-        rows = self.band_rows(h, w)
-        if out is None:
-            d_cost = ctx.empty(nbytes, "cost volume")
-        else:
-            if out.size < nbytes:
-                raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
-            d_cost = out
-
-        try:
-            self._enqueue(L, R, D, h, w, rows, d_cost, progress)
-        except ctx.cl.Error as exc:
-            raise OpenCLError(f"network (C_CNN, {D} x {h} x {w}) failed on {ctx.describe()}: "
-                              f"{exc}") from exc
-        return d_cost
+        return volume_on_device(self, left, right, max_disparity, out, progress, "network (C_CNN)")
 
     def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
         """C_CNN as a host array (``[D][H_img-8][W_img-8]``, float32 or float16
@@ -262,25 +244,7 @@ class PaperCost:
         computed into one band-sized device buffer of at most ``max_bytes``
         (default: the device's max allocation) and copied out.  Values are
         identical to :meth:`__call__`'s (same kernels, same bands' seams)."""
-        ctx = self.ctx
-        L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
-        row = D * w * self.vdtype.itemsize
-        limit = ctx.max_alloc if max_bytes is None else min(int(max_bytes), ctx.max_alloc)
-        if row > limit:
-            raise InputError(f"one row of the cost volume ({D} x {w} {self.vdtype.name}, {row / 2**20:.1f} MiB) does not "
-                             f"fit in {limit / 2**20:.1f} MiB of device memory; reduce the disparity range "
-                             "or the image width")
-        rows = min(self.band_rows(h, w), limit // row)
-        out = np.empty((D, h, w), self.vdtype)
-        d_band = ctx.empty(D * rows * w * self.vdtype.itemsize, "cost volume band")
-        try:
-            self._enqueue(L, R, D, h, w, rows, d_band, progress, host=out)
-        except ctx.cl.Error as exc:
-            raise OpenCLError(f"network (C_CNN, {D} x {h} x {w}, in bands of {rows} rows) failed on "
-                              f"{ctx.describe()}: {exc}") from exc
-        finally:
-            d_band.release()
-        return out
+        return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "network (C_CNN)")
 
     def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
         """The launches of :meth:`__call__` (inputs already checked).  With
