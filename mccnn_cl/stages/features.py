@@ -28,7 +28,7 @@ import math
 import numpy as np
 
 from ..cl import BufferPool, round_up
-from ..errors import InputError, OpenCLError
+from ..errors import InputError, OpenCLError, WeightsError
 from ..validate import check_cost_inputs
 from ..imageops import standardise as normalise  # noqa: F401 (one standardisation: training's too)
 
@@ -133,6 +133,27 @@ class ConvStack:
             hh, ww = hh - ks + 1, ww - ks + 1
             total += 2 * 2 * hh * ww * ks * ks * cin * cout
         return total, hh, ww
+
+
+def setup_network_cost(cost, ctx, weights, tiles, half: bool) -> None:
+    """A network cost's common state: the weights checked against
+    ``cost.architecture``, volume storage (float16 with ``half``), patch,
+    margin, channels, the tiles (the profile's, updated by ``tiles``) and the
+    conv stack (:class:`ConvStack`)."""
+    weights.validate()
+    if weights.architecture != cost.architecture:
+        raise WeightsError(f"{type(cost).__name__} runs {cost.architecture} networks, "
+                           f"these weights are {weights.architecture}")
+    cost.ctx = ctx
+    cost.weights = weights
+    cost.half = bool(half)
+    cost.vdtype = np.dtype(np.float16 if half else np.float32)  # volume storage (kernels/common.h)
+    cost.patch = weights.patch_size
+    cost.margin = weights.margin
+    cost.channels = weights.input_channels
+    cost.tiles = default_tiles(ctx)
+    cost.tiles.update(tiles or {})
+    cost.stack = ConvStack(ctx, weights, int(cost.tiles["RN"]), int(cost.tiles["CONV_RM"]))
 
 
 def volume_on_device(cost, left, right, max_disparity, out, progress, label: str):

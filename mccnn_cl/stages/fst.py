@@ -24,10 +24,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..cl import round_up
-from ..errors import WeightsError
 from ..weights import FST, Weights
 from ..validate import check_cost_inputs
-from .features import ConvStack, default_tiles, normalise, volume_on_device, volume_to_host
+from .features import normalise, setup_network_cost, volume_on_device, volume_to_host
 
 FST_CL = "fst.cl"
 #: bytes of one band's feature buffers (both images)
@@ -49,20 +48,7 @@ class FstCost:
     local = False  # see mccnn_cl.stages.costs
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False):
-        weights.validate()
-        if weights.architecture != FST:
-            raise WeightsError(f"FstCost runs {FST} networks, these weights are {weights.architecture}")
-        self.ctx = ctx
-        self.weights = weights
-        self.half = bool(half)
-        self.vdtype = np.dtype(np.float16 if half else np.float32)
-        self.patch = weights.patch_size
-        self.margin = weights.margin
-        self.channels = weights.input_channels
-        t = default_tiles(ctx)
-        t.update(tiles or {})
-        self.tiles = t
-        self.stack = ConvStack(ctx, weights, int(t["RN"]), int(t["CONV_RM"]))
+        setup_network_cost(self, ctx, weights, tiles, half)
         self.nk = weights.feature_maps
         name, rd, self._vol_px = _FORMS[VARIANT]  # kernel, disparities per block, pixels per work-item
         defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL, RD=rd, VARIANT=VARIANT)

@@ -34,9 +34,9 @@ import math
 import numpy as np
 
 from ..cl import round_up
-from ..errors import InputError, WeightsError
+from ..errors import InputError
 from ..weights import ACRT, PAPER, Weights
-from .features import ConvStack, default_tiles, normalise, volume_on_device, volume_to_host  # noqa: F401 (normalise re-exported)
+from .features import normalise, setup_network_cost, volume_on_device, volume_to_host  # noqa: F401 (normalise re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -77,21 +77,8 @@ class PaperCost:
     local = False
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False):
-        weights.validate()
-        if weights.architecture != self.architecture:
-            raise WeightsError(f"{type(self).__name__} runs {self.architecture} networks, "
-                               f"these weights are {weights.architecture}")
-        self.ctx = ctx
-        self.half = bool(half)
-        self.vdtype = np.dtype(np.float16 if half else np.float32)  # volume storage (kernels/common.h)
-        self.weights = weights
-        self.patch = weights.patch_size
-        self.margin = weights.margin
-        self.channels = weights.input_channels
-        t = default_tiles(ctx)
-        t.update(tiles or {})
-        self.tiles = t
-        self.stack = ConvStack(ctx, weights, int(t["RN"]), int(t["CONV_RM"]))
+        setup_network_cost(self, ctx, weights, tiles, half)
+        t = self.tiles
         rn = self.rn = self.stack.rn
         cs = self.feat_stride = self.stack.stride
         maps = weights.feature_maps
