@@ -40,6 +40,18 @@ def ad_volume(img_l, img_r, D):
     return c
 
 
+
+def kitti_crop(shared_data, y0, x0, H, W):
+    """The H x W crop at (y0, x0) of KITTI 2015 training 000000, left and right, gray in [0, 1]."""
+    import cv2  # not at the top: the Oclgrind worker imports this module
+
+    imgs = []
+    for rel in ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png"):
+        img = cv2.imread(str(shared_data / rel), cv2.IMREAD_GRAYSCALE)
+        assert img is not None, rel
+        imgs.append(img[y0:y0 + H, x0:x0 + W].astype(np.float32) / 255.0)
+    return imgs
+
 # -- network costs (test_fst.py, test_acrt.py) -----------------------------------
 def random_pair(rng, H, W, shift=3):
     """A random left image and its right, shifted by ``shift`` with a little noise."""

@@ -17,7 +17,7 @@ from conftest import POISON
 from mccnn_cl.errors import InputError
 from mccnn_cl.reference.aggregation import SGM_DIRECTIONS, sgm, sgm_direction
 from mccnn_cl.stages.sgm import SGM, state_bytes
-from helpers import ad_volume, blocky_image, invalid_mask, random_volume
+from helpers import ad_volume, blocky_image, invalid_mask, kitti_crop, random_volume
 
 
 def run_sgm(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None,
@@ -43,17 +43,6 @@ def check(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_ro
     scale = np.nanmax(cost) - np.nanmin(cost) + kw.get("pi2", 32.0)
     np.testing.assert_allclose(got, want, rtol=0, atol=2e-5 * scale)
     return got, want
-
-
-def kitti_crop(shared_data, y0, x0, H, W):
-    """The H x W crop at (y0, x0) of KITTI 2015 training 000000, left and
-    right, gray in [0, 1]."""
-    imgs = []
-    for rel in ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png"):
-        img = cv2.imread(str(shared_data / rel), cv2.IMREAD_GRAYSCALE)
-        assert img is not None, rel
-        imgs.append(img[y0:y0 + H, x0:x0 + W].astype(np.float32) / 255.0)
-    return imgs
 
 
 def test_random_odd_size(ctx):

@@ -17,12 +17,11 @@ poisoned first, so a cell left unwritten fails.  On CPU implementations
 and local-memory logic that a GPU runs.
 """
 
-import cv2
 import numpy as np
 import pytest
 
 from conftest import POISON
-from helpers import ad_volume, blocky_image, invalid_mask, random_volume
+from helpers import ad_volume, blocky_image, invalid_mask, kitti_crop, random_volume
 from mccnn_cl.errors import InputError
 from mccnn_cl.reference.aggregation import SGM_DIRECTIONS, sgm, sgm_direction
 from mccnn_cl.stages.sgm import SGM
@@ -30,16 +29,6 @@ from mccnn_cl.stages.sgm_wg import SGMWorkGroup
 
 F16_POISON = np.float16(-65504.0)
 GROUP_SIZES = (1, 4, 16, 64, "max")
-
-
-def kitti_crop(shared_data, y0, x0, H, W):
-    """The H x W crop at (y0, x0) of KITTI 2015 training 000000, left and right, gray in [0, 1]."""
-    imgs = []
-    for rel in ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png"):
-        img = cv2.imread(str(shared_data / rel), cv2.IMREAD_GRAYSCALE)
-        assert img is not None, rel
-        imgs.append(img[y0:y0 + H, x0:x0 + W].astype(np.float32) / 255.0)
-    return imgs
 
 
 def group_sizes(ctx, sizes):

@@ -178,12 +178,7 @@ class SGM:
                  out=None):
         """Enqueue the four directions; returns ``out`` (allocated when None,
         must not be ``d_cost``) holding C_SGM, NaN where invalid."""
-        H, W = check_size(H, W, "cost volume")
-        D = int(D)
-        if not 1 <= D <= MAX_LEVELS:
-            raise InputError(f"SGM takes 1 to {MAX_LEVELS} disparity levels, got D = {D}")
-        if out is not None and out is d_cost:
-            raise InputError("SGM cannot work in place: out must differ from d_cost")
+        D, H, W = check_call(d_cost, D, H, W, out)
         if out is None:
             out = self.ctx.empty(volume_bytes(self.half) * D * H * W, "SGM output volume")
         dims = (np.int32(D), np.int32(H), np.int32(W))
@@ -258,6 +253,17 @@ class SGM:
         # second sweep: + C_bt, divided by 4
         columns_banded(-1, 2, 0, H)
         return out
+
+
+def check_call(d_cost, D, H, W, out) -> tuple:
+    """(D, H, W) of an SGM stage's call, checked (both stages): 1 <= D <= MAX_LEVELS, not in place."""
+    H, W = check_size(H, W, "cost volume")
+    D = int(D)
+    if not 1 <= D <= MAX_LEVELS:
+        raise InputError(f"SGM takes 1 to {MAX_LEVELS} disparity levels, got D = {D}")
+    if out is not None and out is d_cost:
+        raise InputError("SGM cannot work in place: out must differ from d_cost")
+    return D, H, W
 
 
 def make_sgm(ctx, half: bool = False):

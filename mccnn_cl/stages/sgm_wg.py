@@ -32,9 +32,8 @@ import numpy as np
 
 from ..cl import launch, round_up
 from ..errors import InputError
-from .cross import check_size
 from .disparity import volume_bytes
-from .sgm import MAX_LEVELS, penalty_table
+from .sgm import check_call, penalty_table
 
 #: The four launches (dx, dy, output mode), in SGM's accumulation order.
 PASSES = ((1, 0, 0), (-1, 0, 1), (0, 1, 1), (0, -1, 2))
@@ -103,12 +102,7 @@ class SGMWorkGroup:
                  out=None):
         """Enqueue the four directions; returns ``out`` (allocated when None,
         must not be ``d_cost``) holding C_SGM, NaN where invalid."""
-        H, W = check_size(H, W, "cost volume")
-        D = int(D)
-        if not 1 <= D <= MAX_LEVELS:
-            raise InputError(f"SGM takes 1 to {MAX_LEVELS} disparity levels, got D = {D}")
-        if out is not None and out is d_cost:
-            raise InputError("SGM cannot work in place: out must differ from d_cost")
+        D, H, W = check_call(d_cost, D, H, W, out)
         pen = {False: penalty_table(pi1, pi2, q1, q2, v, False, variant, p2_times_pi1),
                True: penalty_table(pi1, pi2, q1, q2, v, True, variant, p2_times_pi1)}
         if out is None:
