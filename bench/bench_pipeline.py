@@ -53,10 +53,10 @@ def time_cnn(ctx, left, right, ndisp, repeat):
     """(seconds for 228 disparities, how it was obtained, weights description)."""
     from mccnn_cl.pipeline import to_gray
     from mccnn_cl.stages.network import NetworkCost
-    from mccnn_cl.weights import Weights, default_weights_path
+    from mccnn_cl.weights import Weights, default_weights_path, shipped_models
 
     if os.path.exists(default_weights_path()):
-        weights, what = Weights.load(), "shipped weights"
+        weights, what = Weights.load(shipped_models()["kitti-paper"]), "shipped paper weights (kitti-paper)"
     else:
         weights, what = Weights.random(seed=0), "random weights, paper architecture"
     net = NetworkCost(ctx, weights)

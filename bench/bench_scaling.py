@@ -164,7 +164,7 @@ def time_network(ctx, net, left, right, W, H, D, repeat):
 def measure(args):
     from mccnn_cl.cl import ClContext
     from mccnn_cl.stages.network import NetworkCost
-    from mccnn_cl.weights import Weights
+    from mccnn_cl.weights import Weights, shipped_models
 
     spec = QUICK if args.quick else FULL
     ctx = ClContext(args.device)
@@ -187,7 +187,7 @@ def measure(args):
         if args.only and method not in args.only.split(","):
             continue
         if method == "network" and net is None:
-            weights = Weights.load()
+            weights = Weights.load(shipped_models()["kitti-paper"])  # the paper network
             net = NetworkCost(ctx, weights)
         rows = []
         for W, H, D in points:

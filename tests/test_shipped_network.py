@@ -1,21 +1,59 @@
-"""The shipped, trained checkpoint gives the same cost volume in torch and in OpenCL."""
+"""The shipped, trained networks give the same cost volume on the device as
+their references (torch for the paper network, numpy for fst), and the
+default is the fst network."""
 
 import cv2
 import numpy as np
 
-from mccnn_cl.reference.network import cost_volume_torch
+from mccnn_cl.reference.network import cost_volume_torch, fst_cost_volume
+from mccnn_cl.settings import authors_settings
+from mccnn_cl.stages.costs import make_cost
 from mccnn_cl.stages.network import NetworkCost
-from mccnn_cl.weights import Weights
+from mccnn_cl.weights import FST, PAPER, Weights, resolve, shipped_models
 
 
-def test_trained_weights_torch_vs_opencl(ctx, shared_data):
-    w = Weights.load()  # the shipped model
-    assert w.meta.get("training"), "shipped weights carry their provenance"
+def _kitti_crop(shared_data):
     # a held-out pair (KITTI 2015 000000), a textured crop: road, car and background
     left = cv2.imread(str(shared_data / "kitti2015/training/image_2/000000_10.png"), cv2.IMREAD_GRAYSCALE)
     right = cv2.imread(str(shared_data / "kitti2015/training/image_3/000000_10.png"), cv2.IMREAD_GRAYSCALE)
     left, right = left[180:228, 500:580].astype(np.float32), right[180:228, 500:580].astype(np.float32)
     assert left.std() > 5 and right.std() > 5
+    return left, right
+
+
+def test_shipped_names_and_default():
+    models = shipped_models()
+    assert {"kitti-fst", "kitti-paper"} <= set(models)
+    assert Weights.load().architecture == FST  # the default: kitti-fst (README, model card)
+    assert resolve("kitti-paper").architecture == PAPER
+    assert resolve("mccnn_kitti_mb_v1").architecture == PAPER  # the paper net's earlier name
+
+
+def test_shipped_fst_opencl_vs_reference(ctx, shared_data):
+    w = resolve("kitti-fst")
+    t = w.meta["training"]
+    assert {"kitti2015/000000", "middlebury/Cones"} <= set(t["held_out"])
+    assert not set(t["held_out"]) & set(t["trained_on"])
+    assert w.stereo == authors_settings(FST, "kitti")  # the settings travel with the file
+    left, right = _kitti_crop(shared_data)
+    D = 24
+    ref = fst_cost_volume(w, left, right, D)
+    d_out = ctx.empty(ref.nbytes)
+    ctx.fill(d_out, np.float32(-1.2345e30), ref.nbytes)
+    make_cost(ctx, w)(left, right, D, out=d_out)
+    got = ctx.from_device(d_out, ref.shape)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+    ok = ~np.isnan(ref)
+    # trained fst features: costs spread over most of [-1, 1] (not a constant answer)
+    assert ref[ok].min() < -0.9 and ref[ok].max() > 0.0
+    # 2e-5: float32 dot products of 64 unit-vector terms and 4 conv layers in another order
+    np.testing.assert_allclose(got[ok], ref[ok], rtol=0, atol=2e-5)
+
+
+def test_trained_weights_torch_vs_opencl(ctx, shared_data):
+    w = resolve("kitti-paper")  # the shipped paper network
+    assert w.meta.get("training"), "shipped weights carry their provenance"
+    left, right = _kitti_crop(shared_data)
     D = 24
     ref = cost_volume_torch(w, left, right, D)
     d_out = ctx.empty(ref.nbytes)

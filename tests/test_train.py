@@ -14,7 +14,7 @@ from mccnn_cl.train.evaluate import census_wta_error, make_validation, row_featu
 from mccnn_cl.train.model import MCCNN
 from mccnn_cl.train.patches import PatchSampler, normalise
 from mccnn_cl.train.train import TrainConfig, augment_batch, lr_at, main, select_pairs, train
-from mccnn_cl.weights import Weights
+from mccnn_cl.weights import Weights, shipped_models
 
 SMALL_CONV = [[8, 3], [16, 3], [16, 1]]  # patch 5x5
 SMALL_FC = [32, 32, 2]
@@ -215,8 +215,8 @@ def test_cli_selects_pairs_and_exports(shared_data, tmp_path, capsys):
 
 
 def test_shipped_weights(shared_data):
-    """The packaged model loads, is the paper's net, says what it was trained on, and works on held-out Cones."""
-    w = Weights.load()
+    """The packaged paper model loads, is the paper's net, says what it was trained on, and works on held-out Cones."""
+    w = Weights.load(shipped_models()["kitti-paper"])
     assert w.conv_layers() == [[32, 5], [200, 5], [200, 1]] and w.fc_layers() == [300, 300, 300, 300, 2]
     t = w.meta["training"]
     assert {"kitti2015/000000", "middlebury/Cones"} <= set(t["held_out"])
