@@ -9,7 +9,8 @@ timing without data.  :func:`rate_table` sets each stage's time beside a
 floor measured in the same run: the network's FLOP over numpy's float32 GEMM
 rate (:func:`numpy_gemm_rate`), the volume stages' least traffic over the
 device's buffer-copy bandwidth (:func:`copy_bandwidth`).  :func:`run` is the
-``bench`` sub-command's body (the parser lives in :mod:`mccnn_cl.cli`).
+``bench`` sub-command's body (the parser lives in :mod:`mccnn_cl.cli`, the
+shared helpers in :mod:`mccnn_cl.commands`).
 """
 
 from __future__ import annotations
@@ -151,18 +152,18 @@ def rate_table(matcher, shape, groups, total, sgbm_time, vol, say=print):
 def run(args) -> int:
     """``mccnn-cl bench``: time each stage (best of ``--repeat`` runs after a
     warm-up) beside OpenCV SGBM, then the rate table and the memory plan."""
-    from . import cli
+    from . import commands
     from .baseline import sgbm
     from .io import read_image
     from .validate import check_pair, patch_size
-    say = cli._say
-    cli._positive("--max-disp", args.max_disp)
-    cli._positive("--repeat", args.repeat)
+    say = commands._say
+    commands._positive("--max-disp", args.max_disp)
+    commands._positive("--repeat", args.repeat)
     max_disp = args.max_disp or 228
     if args.left or args.right:
         if not (args.left and args.right):
             raise InputError("bench needs both --left and --right (or neither for a synthetic pair)")
-        left, right = cli._gray(read_image(args.left)), cli._gray(read_image(args.right))
+        left, right = commands._gray(read_image(args.left)), commands._gray(read_image(args.right))
         what = f"{args.left} / {args.right}"
     else:
         try:
@@ -173,9 +174,9 @@ def run(args) -> int:
             raise InputError(f"--size must be positive, got {args.size!r}")
         left, right = synthetic_pair(w, h, max_disp)
         what = f"synthetic textured pair {w}x{h}"
-    weights = cli._load_weights(args)
+    weights = commands._load_weights(args)
     check_pair(left, right, max_disp, patch_size(weights))
-    matcher = cli._make_matcher(args, max_disp, weights)
+    matcher = commands._make_matcher(args, max_disp, weights)
     h, w = left.shape
     margin = int(matcher.margin)
     vol = max_disp * (h - 2 * margin) * (w - 2 * margin) * 4

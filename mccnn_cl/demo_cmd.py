@@ -1,7 +1,8 @@
 """``mccnn-cl demo``: the bundled Middlebury Cones pair (``mccnn_cl/demo/``, a
 data folder; hence this module's name) matched with the shipped network,
 beside OpenCV SGBM and the ground truth, and one picture of the four
-(:func:`compose_picture`).  The parser lives in :mod:`mccnn_cl.cli`.
+(:func:`compose_picture`).  The parser lives in :mod:`mccnn_cl.cli`, the
+shared helpers in :mod:`mccnn_cl.commands`.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ def run(args) -> int:
     """The ``demo`` sub-command: match, print the error table, write the picture."""
     import cv2
 
-    from . import cli
+    from . import commands
     from .baseline import sgbm
     from .datasets import load_middlebury
     from .evaluate import training_status
@@ -52,20 +53,20 @@ def run(args) -> int:
     from .metrics import evaluate_disparity, fill_invalid
     from .validate import check_pair, patch_size
     from .weights import default_weights_path
-    say = cli._say
+    say = commands._say
     out = args.output
     if not out.lower().endswith((".png", ".jpg", ".jpeg", ".bmp")):
         raise InputError(f"{out}: the demo writes a picture; use a .png or .jpg name")
-    cli._check_outputs([out], args.force)
+    commands._check_outputs([out], args.force)
     with ExitStack() as stack:
         pair = load_middlebury(stack.enter_context(demo_dir()))
     max_disp = args.max_disp or pair.ndisp or 32
-    weights = cli._load_weights(args)
+    weights = commands._load_weights(args)
     left, right = pair.gray()
     check_pair(left, right, max_disp, patch_size(weights))
     status = training_status(weights.meta, "middlebury/Cones", "Cones") if weights is not None else "n/a"
     t0 = time.perf_counter()
-    matcher = cli._make_matcher(args, max_disp, weights, progress=cli._tty())
+    matcher = commands._make_matcher(args, max_disp, weights, progress=commands._tty())
     t_setup = time.perf_counter() - t0
     t0 = time.perf_counter()
     ours = matcher.compute(left, right)

@@ -442,7 +442,8 @@ def test_cli_models(capsys):
 
 def test_cli_weights_option_resolves(t7_bytes, tmp_path):
     """--weights takes a .t7, a shipped model's name, or fails in one line for an unknown name."""
-    from mccnn_cl.cli import _load_weights, build_parser
+    from mccnn_cl.cli import build_parser
+    from mccnn_cl.commands import _load_weights
 
     p = build_parser()
     args = p.parse_args(["match", "l.png", "r.png", "-o", "o.pfm", "--weights", str(T7)])
