@@ -37,7 +37,7 @@ from .validate import PATCH, check_disparity_range, check_hyperparameters, check
 from .stages.costs import make_cost
 from .stages.features import normalise
 from .stages.cross import CrossArms, max_arm
-from .stages.confidence import Confidence, cost_floor
+from .stages.confidence import Confidence
 from .stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpixel, WinnerTakeAll
 from .stages.refine import BilateralFilter, Enlarge, MedianFilter
 from .weights import Weights
@@ -274,6 +274,8 @@ class StereoMatcher:
         if unknown:
             raise TypeError(f"unknown hyperparameter(s) {', '.join(unknown)}; valid names: "
                             + ", ".join(Hyperparameters.names()))
+        if cost not in ("cnn", "census"):
+            raise InputError(f"cost must be 'cnn' or 'census', not {cost!r}")
         if cost == "census" and weights is not None:
             raise InputError("weights are for cost='cnn'; cost='census' uses no network (drop weights= or the cost)")
         # the network's own settings (Weights.stereo), then the caller's explicit overrides
@@ -285,8 +287,6 @@ class StereoMatcher:
         settings.update(hyperparameters)
         self.params = Hyperparameters(**settings)
         self.max_disparity = check_disparity_range(max_disparity)
-        if cost not in ("cnn", "census"):
-            raise InputError(f"cost must be 'cnn' or 'census', not {cost!r}")
         self.cost_name = cost
         self.progress = bool(progress)
         if volume_dtype not in ("float32", "float16"):
@@ -321,12 +321,16 @@ class StereoMatcher:
         self.interpolate = Interpolate(ctx)
         self.subpixel = Subpixel(ctx, half=self.half)
         self.confidence = Confidence(ctx, half=self.half)
-        self.cost_floor = cost_floor(self.weights.architecture if self.weights is not None else "census")
         self.enlarge = Enlarge(ctx)
         self.median = MedianFilter(ctx, self.params.median_size)
         self.bilateral = BilateralFilter(ctx)
         # cost volumes are reused between stages and calls (see release_buffers)
         self._pool = BufferPool(ctx)
+
+    @property
+    def cost_floor(self) -> float:
+        """The matching cost's lower bound (``cost.floor``), which the confidence measures from."""
+        return self.cost.floor
 
     def release_buffers(self) -> None:
         """Free the device volumes kept from the last :meth:`compute` (up to
@@ -465,7 +469,7 @@ class StereoMatcher:
         D_INT = rec("D_INT", self.interpolate(D_L, labels, H, W, p.interpolation), crop, np.int32)
         D_SE = rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp), crop)
         if "confidence" in rec.wanted:
-            rec("confidence", self.confidence(C, labels, D, H, W, self.cost_floor), crop)
+            rec("confidence", self.confidence(C, labels, D, H, W, self.cost.floor), crop)
         self._pool.give(C)  # the in-order queue runs any later user after subpixel
         return D_SE
 

@@ -30,6 +30,7 @@ class CensusCost:
 
     margin = MARGIN
     local = True  # a row tile's volume needs only the tile's rows (mccnn_cl.stages.costs)
+    floor = 0.0  # lower bound of the cost: a Hamming distance
 
     def __init__(self, ctx, half: bool = False):
         self.ctx = ctx

@@ -21,22 +21,24 @@ import numpy as np
 
 from ..cl import launch
 from ..errors import InputError
-from ..weights import ACRT, FST, PAPER
 
 _F32 = np.dtype(np.float32).itemsize
 
-#: Lower bound of each matching cost (and so of every volume after it):
-#: census (Hamming / bits), paper (softmax) and acrt (sigmoid) costs >= 0,
-#: fst's -cosine of unit vectors >= -1.
-COST_FLOORS = {"census": 0.0, PAPER: 0.0, ACRT: 0.0, FST: -1.0}
-
 
 def cost_floor(kind: str) -> float:
-    """f for a cost ``kind``: "census" or a network architecture (``Weights.architecture``)."""
+    """f for a cost ``kind``: "census" or a network architecture
+    (``Weights.architecture``): the ``floor`` of its cost class
+    (:mod:`mccnn_cl.stages.costs`), the one place it is stated."""
+    from .census import CensusCost
+    from .fst import FstCost
+    from .network import AcrtCost, PaperCost
+
+    classes = {"census": CensusCost}
+    classes.update((c.architecture, c) for c in (PaperCost, AcrtCost, FstCost))
     try:
-        return COST_FLOORS[kind]
+        return classes[kind].floor
     except KeyError:
-        raise InputError(f"no cost floor known for {kind!r}; known: {', '.join(COST_FLOORS)}") from None
+        raise InputError(f"no cost floor known for {kind!r}; known: {', '.join(classes)}") from None
 
 
 class Confidence:

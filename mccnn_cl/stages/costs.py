@@ -25,6 +25,10 @@ Every one of them has
     alone at the cost of a launch (census); False when the volume is best
     computed once for the whole image (the networks: into host memory when
     the stereo method runs on row tiles).
+``floor``
+    the cost's lower bound (and so every aggregated volume's, as CBCA and SGM
+    take means): 0 for census, paper and acrt, -1 for fst; the confidence
+    measures costs from it (:mod:`mccnn_cl.stages.confidence`).
 ``scratch_bytes(H, W)``
     upper bound of the device bytes a call allocates besides the H x W volume.
 ``__call__(I_L, I_R, D, out=None, progress=None) -> device buffer``

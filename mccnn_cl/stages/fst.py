@@ -46,6 +46,7 @@ class FstCost:
 
     architecture = FST
     local = False  # see mccnn_cl.stages.costs
+    floor = -1.0  # lower bound of the cost: -cosine of unit vectors
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False):
         setup_network_cost(self, ctx, weights, tiles, half)

@@ -75,6 +75,8 @@ class PaperCost:
     #: per-tile cost (see mccnn_cl.stages.costs): False, the volume is
     #: computed once for the whole image (into host memory when tiled)
     local = False
+    #: lower bound of the cost (a softmax or sigmoid probability)
+    floor = 0.0
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False):
         setup_network_cost(self, ctx, weights, tiles, half)
