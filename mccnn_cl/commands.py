@@ -355,7 +355,7 @@ def cmd_evaluate(args):
     from .datasets import discover
     from .evaluate import default_max_disparity, evaluate_pair, format_table, mean_metrics, training_status
     _positive("--max-disp", args.max_disp)
-    refs = discover(args.dataset_dir, args.dataset)
+    refs = discover(args.dataset_dir, args.dataset, labeled=True)  # scores need ground truth
     if args.pairs:
         wanted = [w.strip() for w in args.pairs.split(",") if w.strip()]
         def names(r):  # "Cones", "middlebury/Cones"; MiddEval3 "trainingQ/Motorcycle" also as "Motorcycle"
@@ -366,7 +366,7 @@ def cmd_evaluate(args):
         if missing:
             raise InputError(f"pairs not found under {args.dataset_dir}: {', '.join(missing)}")
     if not refs:
-        raise InputError(f"no stereo pairs found under {args.dataset_dir}"
+        raise InputError(f"no stereo pairs with ground truth found under {args.dataset_dir}"
                          + (f" for dataset {args.dataset}" if args.dataset else ""))
     weights = _load_weights(args)
     meta = weights.meta if weights is not None else None

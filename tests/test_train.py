@@ -401,3 +401,10 @@ def test_cli_fst_crop_run_exports_fst(shared_data, tmp_path):
     c = t["config"]
     assert (c["lr"], c["margin"], c["n_lo"], c["n_hi"], c["p_hi"]) == (0.002, 0.2, 4, 10, 1)  # fst defaults
     assert c["sampler"] == "crop" and t["examples"] > 0 and t["architecture"] == "mccnn-fst"
+
+
+def test_select_pairs_skips_unlabeled(shared_data):
+    """The shared data holds 39 pairs without ground truth (unlabeled/): training never draws from them."""
+    train_refs, held = select_pairs([shared_data], holdout=["kitti2015/000000", "middlebury/Cones"])
+    assert all(r.labeled for r in train_refs + held) and len(train_refs) == 17
+    assert not any("eth3d" in r.key or "middeval3" in r.key for r in train_refs)

@@ -285,7 +285,7 @@ def main(argv=None) -> int:
         torch.set_num_threads(args.threads)
     try:
         model = MCCNN.from_weights(Weights.load(args.weights)).eval()
-        refs = [r for root in args.data for r in discover(root)
+        refs = [r for root in args.data for r in discover(root, labeled=True)
                 if any(fnmatch.fnmatchcase(r.key, p) or r.key.split("/", 1)[-1] == p for p in args.pairs)]
         if not refs:
             raise InputError("no pair matches --pairs")

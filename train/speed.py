@@ -75,7 +75,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    pairs = [r.load() for root in args.data for r in discover(root) if r.key.startswith(args.include)]
+    pairs = [r.load() for root in args.data for r in discover(root, labeled=True) if r.key.startswith(args.include)]
     pairs = [p for p in pairs if p.disp is not None][:4]
     d = ARCH_DEFAULTS[args.arch]
     torch.manual_seed(0)

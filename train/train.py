@@ -159,7 +159,7 @@ def select_pairs(data_roots, holdout=(), include=("*",), dataset=None):
     """
     refs = []
     for root in data_roots:
-        refs.extend(discover(root, dataset))
+        refs.extend(discover(root, dataset, labeled=True))  # examples need ground truth
     seen, uniq = set(), []
     for r in refs:
         if r.key not in seen:
