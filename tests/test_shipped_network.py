@@ -21,6 +21,18 @@ def _kitti_crop(shared_data):
     return left, right
 
 
+def _on_device(ctx, cost, left, right, D, ref):
+    """``cost``'s volume on the device into a poisoned buffer, the NaN cells checked
+    against ``ref``; returns (device values, reference values) of the valid cells."""
+    d_out = ctx.empty(ref.nbytes)
+    ctx.fill(d_out, np.float32(-1.2345e30), ref.nbytes)
+    cost(left, right, D, out=d_out)
+    got = ctx.from_device(d_out, ref.shape)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+    ok = ~np.isnan(ref)
+    return got[ok], ref[ok]
+
+
 def test_shipped_names_and_default():
     models = shipped_models()
     assert {"kitti-fst", "kitti-paper"} <= set(models)
@@ -37,17 +49,11 @@ def test_shipped_fst_opencl_vs_reference(ctx, shared_data):
     assert w.stereo == authors_settings(FST, "kitti")  # the settings travel with the file
     left, right = _kitti_crop(shared_data)
     D = 24
-    ref = fst_cost_volume(w, left, right, D)
-    d_out = ctx.empty(ref.nbytes)
-    ctx.fill(d_out, np.float32(-1.2345e30), ref.nbytes)
-    make_cost(ctx, w)(left, right, D, out=d_out)
-    got = ctx.from_device(d_out, ref.shape)
-    np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
-    ok = ~np.isnan(ref)
+    got, want = _on_device(ctx, make_cost(ctx, w), left, right, D, fst_cost_volume(w, left, right, D))
     # trained fst features: costs spread over most of [-1, 1] (not a constant answer)
-    assert ref[ok].min() < -0.9 and ref[ok].max() > 0.0
+    assert want.min() < -0.9 and want.max() > 0.0
     # 2e-5: float32 dot products of 64 unit-vector terms and 4 conv layers in another order
-    np.testing.assert_allclose(got[ok], ref[ok], rtol=0, atol=2e-5)
+    np.testing.assert_allclose(got, want, rtol=0, atol=2e-5)
 
 
 def test_trained_weights_torch_vs_opencl(ctx, shared_data):
@@ -55,14 +61,8 @@ def test_trained_weights_torch_vs_opencl(ctx, shared_data):
     assert w.meta.get("training"), "shipped weights carry their provenance"
     left, right = _kitti_crop(shared_data)
     D = 24
-    ref = cost_volume_torch(w, left, right, D)
-    d_out = ctx.empty(ref.nbytes)
-    ctx.fill(d_out, np.float32(-1.2345e30), ref.nbytes)
-    NetworkCost(ctx, w)(left, right, D, out=d_out)
-    got = ctx.from_device(d_out, ref.shape)
-    np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
-    ok = ~np.isnan(ref)
+    got, want = _on_device(ctx, NetworkCost(ctx, w), left, right, D, cost_volume_torch(w, left, right, D))
     # trained weights give costs spread over [0, 1] (not a constant answer)
-    assert ref[ok].min() < 0.05 and ref[ok].max() > 0.95
+    assert want.min() < 0.05 and want.max() > 0.95
     # 1e-4: float32 sums of up to 800 products in a different order; observed ~1e-6
-    np.testing.assert_allclose(got[ok], ref[ok], rtol=0, atol=1e-4)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-4)
