@@ -36,7 +36,7 @@ import torch.nn.functional as F
 
 from mccnn_cl.errors import InputError
 
-from .patches import normalise
+from .patches import normalise, training_view
 
 __all__ = ["Augment", "CropSampler", "CropBatch", "gather", "KITTI_AUGMENT", "MIDDLEBURY_AUGMENT"]
 
@@ -148,13 +148,8 @@ class CropSampler:
         self.subpixel, self.aug = subpixel, augment
         self.keys, self.imgs, self.gt, self.weights = [], [], [], []
         for p in pairs:
-            if p.disp is None:
-                raise InputError(f"{p.key}: no ground truth, cannot make training examples")
-            valid = p.valid_noc if (use == "noc" and p.valid_noc is not None) else p.valid_all
-            lg, rg = p.gray()
+            lg, rg, valid = training_view(p, use, patch_size)
             hh, ww = lg.shape
-            if hh < patch_size or ww < patch_size:
-                raise InputError(f"{p.key}: image {ww}x{hh} smaller than a {patch_size}x{patch_size} patch")
             disp = np.where(valid, np.nan_to_num(p.disp, nan=0.0), 0.0).astype(np.float32)
             ys, xs = np.nonzero(valid)
             self.keys.append(p.key)

@@ -33,6 +33,21 @@ from mccnn_cl.datasets import StereoPair
 from mccnn_cl.errors import InputError
 from mccnn_cl.imageops import standardise as normalise  # the network's, bit for bit (inference's too)
 
+
+def training_view(p: StereoPair, use: str, patch_size: int):
+    """(left gray, right gray, valid GT mask) of a pair that examples are drawn
+    from: ``use`` "noc" takes the non-occluded mask where the pair has one, else
+    all GT; a pair without GT or smaller than one patch is an InputError.
+    Shared by the patch and crop samplers."""
+    if p.disp is None:
+        raise InputError(f"{p.key}: no ground truth, cannot make training examples")
+    valid = p.valid_noc if (use == "noc" and p.valid_noc is not None) else p.valid_all
+    left, right = p.gray()
+    h, w = left.shape
+    if h < patch_size or w < patch_size:
+        raise InputError(f"{p.key}: image {w}x{h} smaller than a {patch_size}x{patch_size} patch")
+    return left, right, valid
+
 __all__ = ["PatchSampler", "Batch", "normalise"]
 
 
@@ -71,13 +86,8 @@ class PatchSampler:
         base = 0
         r = self.r
         for p in pairs:
-            if p.disp is None:
-                raise InputError(f"{p.key}: no ground truth, cannot make training examples")
-            valid = p.valid_noc if (use == "noc" and p.valid_noc is not None) else p.valid_all
-            left, right = p.gray()
+            left, right, valid = training_view(p, use, patch_size)
             h, w = left.shape
-            if h < patch_size or w < patch_size:
-                raise InputError(f"{p.key}: image {w}x{h} smaller than a {patch_size}x{patch_size} patch")
             chunks += [normalise(left).ravel(), normalise(right).ravel()]
             ys, xs = np.nonzero(valid)
             d = p.disp[ys, xs]
