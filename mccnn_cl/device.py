@@ -42,7 +42,9 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: and ``sgm_whole_tiles`` (faster code, longer compiles), ``sgm_group_of_one``
 #: (work-groups of 1, else the kernel's preferred multiple); the paired sweeps
 #: (``sgm_paired_max_units``: taken on devices with at most this many compute
-#: units; two work-items per launch).  CBCA: ``cbca_fused`` (both passes in one
+#: units; two work-items per launch).  CBCA: ``cbca_workgroup`` (the GPU-shaped
+#: two passes of kernels/cbca_wg.cl, a work-group per row or column tile and
+#: disparity; before the fused rules), ``cbca_fused`` (both passes in one
 #: launch, one work-item per plane walking it whole), ``cbca_multi`` (several
 #: iterations per launch, the same), ``cbca_multi_group_of_one``.  Network:
 #: ``network_tiles`` (register tiles; RN grows with the float vector width on CPUs).
@@ -55,6 +57,7 @@ RULES = {
     "sgm_whole_tiles":         {CPU: True,  LLVMPIPE: False, GPU: True},
     "sgm_group_of_one":        {CPU: True,  LLVMPIPE: True,  GPU: False},
     "sgm_paired_max_units":    {CPU: 2,     LLVMPIPE: 0,     GPU: 0},
+    "cbca_workgroup":          {CPU: False, LLVMPIPE: False, GPU: True},
     "cbca_fused":              {CPU: True,  LLVMPIPE: False, GPU: False},
     "cbca_multi":              {CPU: True,  LLVMPIPE: True,  GPU: False},
     "cbca_multi_group_of_one": {CPU: True,  LLVMPIPE: True,  GPU: False},
@@ -127,13 +130,20 @@ class DeviceProfile:
                     paired=self.compute_units <= self.rule("sgm_paired_max_units"),
                     group_of_one=self.rule("sgm_group_of_one"))
 
-    def cbca_path(self, max_arm: int, short_max: int, short=True, fused=None, multi=None) -> str:
-        """CBCA's kernel path for arms of at most ``max_arm``: "multi"
-        (cbca_fused_multi_short), "fused" (cbca_fused_short), "short" (the
-        two short-arm passes) or "running" (the running-sum passes, any arm).
-        ``short``/``fused``/``multi`` False exclude a path (None: the rule)."""
+    def cbca_path(self, max_arm: int, short_max: int, short=True, fused=None, multi=None, workgroup=None) -> str:
+        """CBCA's kernel path for arms of at most ``max_arm``: "workgroup"
+        (cbca_rows_wg / cbca_columns_wg), "multi" (cbca_fused_multi_short),
+        "fused" (cbca_fused_short), "short" (the two short-arm passes) or
+        "running" (the running-sum passes, any arm).  ``short``/``fused``/
+        ``multi``/``workgroup`` False exclude a path, ``workgroup=True`` takes
+        it (None: the rules; the work-group rule only when neither ``fused``
+        nor ``multi`` is given)."""
         if not short or max_arm > short_max:
             return "running"
+        if workgroup is None:
+            workgroup = self.rule("cbca_workgroup") and fused is None and multi is None
+        if workgroup:
+            return "workgroup"
         if not (self.rule("cbca_fused") if fused is None else fused):
             return "short"
         return "multi" if (self.rule("cbca_multi") if multi is None else multi) else "fused"

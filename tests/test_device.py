@@ -59,16 +59,16 @@ def test_declared_loop_limit_and_the_rules_it_changes():
 
 @pytest.mark.parametrize("key, sgm, cbca, rn", [
     # the defaults each stage had before the profile (one device of each kind seen here), except
-    # Oclgrind's CBCA: "multi" before (its CPU bit), now the generic column's two short passes,
-    # bit-identical to the fused kernels (tests/test_cbca.py)
+    # Oclgrind's CBCA: "multi" before (its CPU bit), now the generic column's work-group passes
+    # (kernels/cbca_wg.cl), bit-identical to the short and fused kernels (tests/test_cbca_gpu.py)
     ("pocl", dict(prefetch=True, cols=128, fused_rows=True, specialize=True, whole_tiles=True, paired=True,
                   group_of_one=True, loop_limit=None), "multi", 16),
     ("llvmpipe", dict(prefetch=True, cols=32, fused_rows=False, specialize=False, whole_tiles=False, paired=False,
                       group_of_one=True, loop_limit=65535), "short", 4),
     ("oclgrind", dict(prefetch=False, cols=32, fused_rows=False, specialize=True, whole_tiles=True, paired=False,
-                      group_of_one=False, loop_limit=None), "short", 4),
+                      group_of_one=False, loop_limit=None), "workgroup", 4),
     ("gpu", dict(prefetch=False, cols=32, fused_rows=False, specialize=True, whole_tiles=True, paired=False,
-                 group_of_one=False, loop_limit=None), "short", 4),
+                 group_of_one=False, loop_limit=None), "workgroup", 4),
 ])
 def test_rules_per_device(key, sgm, cbca, rn):
     p = DeviceProfile.of(DEVICES[key], cl)
@@ -76,6 +76,9 @@ def test_rules_per_device(key, sgm, cbca, rn):
     assert p.cbca_path(3, SHORT_MAX) == cbca
     assert p.cbca_path(9, SHORT_MAX) == "running" and p.cbca_path(3, SHORT_MAX, short=False) == "running"
     assert p.cbca_path(3, SHORT_MAX, fused=True, multi=False) == "fused"
+    assert p.cbca_path(3, SHORT_MAX, fused=False, multi=False) == "short"
+    assert p.cbca_path(3, SHORT_MAX, workgroup=True) == "workgroup"
+    assert p.cbca_path(9, SHORT_MAX, workgroup=True) == "running"  # longer arms: the running sums
     tiles = p.network_tiles()
     assert tiles["RN"] == rn and tiles["ROWS_FASTEST"] == int(p.is_cpu)
 

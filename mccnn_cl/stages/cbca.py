@@ -11,17 +11,40 @@ released code's "min of both arms"), so a mean is a column sum of row sums
 Intervals are clamped by index to the valid cells [d, W-1], so NaN never
 enters a sum; p is always in U_d(p).
 
-Four kernel paths compute these two passes (:meth:`DeviceProfile.cbca_path
+Five kernel paths compute these two passes (:meth:`DeviceProfile.cbca_path
 <mccnn_cl.device.DeviceProfile.cbca_path>` picks one from ``max_arm``, the
 bound of the arm lengths compiled in, and the device): "running" (``cbca_rows``
 / ``cbca_columns``, any arm length: compensated running prefix sums),
 "short" (``*_short``, max_arm <= SHORT_MAX: direct masked sums on float16
 lanes), "fused" (``cbca_fused_short``: both passes in one launch, one
-work-item walking each disparity plane, a ring of row sums in scratch) and
+work-item walking each disparity plane, a ring of row sums in scratch),
 "multi" (``cbca_fused_multi_short``: up to MULTI_K iterations per launch, the
-volume read and written once).  All work in place; the fused paths are
-bit-identical to the short passes, all agree with the float64 reference.
-Scratch: :meth:`CBCA.scratch_bytes`.  Measurements: BENCHMARKS.md, "History".
+volume read and written once) and "workgroup" (below).  All work in place;
+the fused paths are bit-identical to the short passes, all agree with the
+float64 reference.  Scratch: :meth:`CBCA.scratch_bytes`.  Measurements:
+BENCHMARKS.md, "History".
+
+The "workgroup" path (``kernels/cbca_wg.cl``, max_arm <= SHORT_MAX; the
+default on the profile's ``gpu`` column, rule ``cbca_workgroup``) is the
+short path laid out for GPUs, where the others run one work-item per line
+or per plane: ``cbca_rows_wg`` runs one work-group per (row, disparity) with
+its L work-items over L consecutive columns at a time, ``cbca_columns_wg``
+one work-group per (tile of TX columns, disparity) with TX x TY work-items
+over TY rows at a time (H x D and ceil(W / TX) x D groups: ~84 000 and
+~9 000 at KITTI size).  A work-group owns its line, so both passes stay in
+place: the original values a chunk's windows need wait in a ring in local
+memory (L + 2 max_arm floats; (TY + 2 max_arm) x TX row sums and byte row
+counts) until the group has read them, two barriers per chunk.  The float
+operations per cell are those of the short passes in the same order, so the
+results equal the short path bit for bit (float32 and half storage), and
+the fused paths in float32.  Work-group sizes (:meth:`CBCA.work_group_sizes`):
+L the kernel's preferred multiple times enough to cover the row, at most
+256; TX the columns kernel's preferred multiple (a warp, a wavefront), TY
+filling 256 work-items; each within the kernel's CL_KERNEL_WORK_GROUP_SIZE,
+the device's item sizes and local memory.  ``local_size=`` forces them (the
+tests run 1 up to the kernel maximum on PoCL and Oclgrind).  Longer arms
+(max_arm > SHORT_MAX) fall back to the running sums, as on every device.
+No scratch.
 """
 
 from __future__ import annotations
@@ -40,6 +63,8 @@ _VW = 16  # float16 lanes
 _GROUPS = 8  # 16-column groups per work-item of cbca_columns_short (CBCA_GROUPS)
 #: Iterations per launch of cbca_fused_multi_short (CBCA_K; its scratch grows with it).
 MULTI_K = 4
+#: Work-items per group the "workgroup" path aims at by default (both kernels).
+WG_TARGET = 256
 
 
 class CBCA:
@@ -52,7 +77,13 @@ class CBCA:
     short-arm kernels.  Arms longer than ``max_arm`` are truncated to it.
     ``short=False`` forces the running-sum path, ``fused=False`` the two short
     passes, ``multi=False`` the one-iteration fused kernel (for comparisons);
-    None: the device's rule (:meth:`mccnn_cl.device.DeviceProfile.cbca_path`).
+    ``workgroup=True`` the GPU-shaped passes (it takes precedence over the
+    fused rule; ``workgroup=False`` excludes them); None: the device's rule
+    (:meth:`mccnn_cl.device.DeviceProfile.cbca_path`; the work-group rule
+    applies only when neither ``fused`` nor ``multi`` is given).
+    ``local_size``: the "workgroup" path's work-group sizes, an int L (rows
+    groups of L, column groups :meth:`columns_shape` of L) or a pair
+    ``(L, (TX, TY))``; default :meth:`work_group_sizes`.
     ``half=True``: volumes stored as half (``VOL_HALF``, kernels/common.h);
     sums stay float (the two-pass kernels store their row sums in the volume,
     so they round them to half too).  ``__init__``'s ``max_arm`` only
@@ -64,21 +95,28 @@ class CBCA:
     scratch_volumes = 0
 
     def __init__(self, ctx, max_arm: int = ARM_LIMIT, short: bool = True, fused: bool | None = None,
-                 half: bool = False, multi: bool | None = None):
+                 half: bool = False, multi: bool | None = None, workgroup: bool | None = None,
+                 local_size=None):
         self.ctx = ctx
         self.short = bool(short)
         rule = ctx.profile.rule
+        if workgroup and fused:
+            raise InputError("CBCA: workgroup=True and fused=True exclude each other")
+        self.workgroup = bool((rule("cbca_workgroup") and fused is None and multi is None)
+                              if workgroup is None else workgroup)
         self.fused = bool(rule("cbca_fused") if fused is None else fused)
         self.multi = bool(rule("cbca_multi") if multi is None else multi)
         self.half = bool(half)
+        self.local_size = _check_local_size(local_size)
         self._kernels = {}
         self._ring = None  # (nbytes, row-sum ring, count ring) of cbca_fused_short
         self._multi = None  # (sizes, [float, byte, row scratch]) of cbca_fused_multi_short
         self._get(max_arm)
 
     def path(self, max_arm) -> str:
-        """The kernel path for arms of at most ``max_arm``: "multi", "fused", "short" or "running"."""
-        return self.ctx.profile.cbca_path(int(max_arm), SHORT_MAX, self.short, self.fused, self.multi)
+        """The kernel path for arms of at most ``max_arm``: "workgroup", "multi", "fused", "short" or "running"."""
+        return self.ctx.profile.cbca_path(int(max_arm), SHORT_MAX, self.short, self.fused, self.multi,
+                                          self.workgroup)
 
     def scratch_bytes(self, D, W, params) -> int:
         """Device bytes of the scratch a call with ``params`` (the
@@ -99,6 +137,10 @@ class CBCA:
                 kern = ctx.kernel("cbca.cl", "cbca_fused_multi_short", MAX_ARM=max_arm, CBCA_K=MULTI_K, VOL_HALF=half)
                 # a work-item walks a whole plane: on CPUs groups of one spread the D planes evenly over the cores
                 k = [(kern, ctx.profile.line_group(ctx, kern, ctx.profile.rule("cbca_multi_group_of_one")))]
+            elif path == "workgroup":
+                defs = dict(MAX_ARM=max_arm, VOL_HALF=half)
+                k = [(ctx.kernel("cbca_wg.cl", "cbca_rows_wg", **defs), None),
+                     (ctx.kernel("cbca_wg.cl", "cbca_columns_wg", **defs), None)]
             elif path == "fused":
                 kern = ctx.kernel("cbca.cl", "cbca_fused_short", MAX_ARM=max_arm, CBCA_GROUPS=_GROUPS, VOL_HALF=half)
                 k = [(kern, ctx.profile.line_group(ctx, kern))]
@@ -153,6 +195,19 @@ class CBCA:
             return out
         dims = (np.int32(D), np.int32(H), np.int32(W))
         src = d_cost
+        if path == "workgroup":
+            (k_rows, _), (k_cols, _) = kerns
+            L, (TX, TY) = self.work_group_sizes(W, max_arm)
+            cl, A = self.ctx.cl, int(max_arm)
+            ring = cl.LocalMemory(4 * (L + 2 * A))
+            rsum, rcnt = cl.LocalMemory(4 * (TY + 2 * A) * TX), cl.LocalMemory((TY + 2 * A) * TX)
+            for _ in range(iterations):
+                launch(self.ctx, "CBCA rows (work-groups)", k_rows, (L, H, D),
+                       src, out, d_arms_left, d_arms_right, ring, *dims, local_size=(L, 1, 1))
+                launch(self.ctx, "CBCA columns (work-groups)", k_cols, (round_up(W, TX), TY, D),
+                       out, d_arms_left, d_arms_right, rsum, rcnt, *dims, local_size=(TX, TY, 1))
+                src = out
+            return out
         if path == "multi":
             (k_multi, l_multi), = kerns
             scratch = self._multi_scratch(D, W, max_arm)
@@ -183,11 +238,81 @@ class CBCA:
         return out
 
 
+    # -- the "workgroup" path's work-group sizes ------------------------------
+    def _limits(self, kern, dim):
+        """(preferred multiple, largest size) of ``kern`` along local dimension ``dim``."""
+        cl, dev = self.ctx.cl, self.ctx.device
+        pref = int(kern.get_work_group_info(cl.kernel_work_group_info.PREFERRED_WORK_GROUP_SIZE_MULTIPLE, dev))
+        return max(1, pref), min(self.ctx.work_group_size(kern), int(dev.max_work_item_sizes[dim]))
+
+    def columns_shape(self, L, max_arm=SHORT_MAX):
+        """(TX, TY) of the columns kernel for groups of about ``L`` work-items:
+        TX the kernel's preferred multiple (coalesced rows of a warp or
+        wavefront; L if smaller), TY = L // TX."""
+        kern = self._get(max_arm)[0][1][0]
+        pref, _ = self._limits(kern, 0)
+        TX = max(1, min(int(L), pref))
+        return TX, max(1, int(L) // TX)
+
+    def work_group_sizes(self, W, max_arm):
+        """(L, (TX, TY)): the rows kernel's groups of L, the columns kernel's of
+        TX x TY (module docstring), forced ones checked against the kernels'
+        limits (InputError)."""
+        (k_rows, _), (k_cols, _) = self._get(max_arm)[0]
+        A = int(max_arm)
+        pref_r, max_r = self._limits(k_rows, 0)
+        pref_c, max_c = self._limits(k_cols, 0)
+        _, max_cy = self._limits(k_cols, 1)
+        local = self.ctx.local_mem
+        rows_bytes = lambda L: 4 * (L + 2 * A)  # noqa: E731
+        cols_bytes = lambda tx, ty: 5 * (ty + 2 * A) * tx  # noqa: E731
+        if self.local_size is None:
+            L = max(1, min(max_r, WG_TARGET, round_up(int(W), pref_r)))
+            TX = max(1, min(pref_c, max_c))
+            TY = max(1, min(max_cy, max_c // TX, WG_TARGET // TX))
+            while L > 1 and rows_bytes(L) > local:
+                L //= 2
+            while TY > 1 and cols_bytes(TX, TY) > local:
+                TY //= 2
+            while TX > 1 and cols_bytes(TX, TY) > local:
+                TX //= 2
+        else:
+            L, shape = self.local_size
+            TX, TY = self.columns_shape(L, A) if shape is None else shape
+            where = self.ctx.describe()
+            if L > max_r:
+                raise InputError(f"CBCA rows work-group {L} exceeds the kernel's maximum {max_r} on {where}")
+            if TX * TY > self.ctx.work_group_size(k_cols) or TX > max_c or TY > max_cy:
+                raise InputError(f"CBCA columns work-group {TX} x {TY} exceeds the kernel's limits on {where}")
+        for what, n in (("rows", rows_bytes(L)), ("columns", cols_bytes(TX, TY))):
+            if n > local:
+                raise InputError(f"CBCA {what} work-groups ({L}; {TX} x {TY}) need {n} bytes of local memory, "
+                                 f"more than the {local} of {self.ctx.describe()}")
+        return L, (TX, TY)
+
+
+def _check_local_size(local_size):
+    """``local_size`` as (L, (TX, TY) or None), or None."""
+    if local_size is None:
+        return None
+    if isinstance(local_size, (int, np.integer)):
+        L, shape = int(local_size), None
+    else:
+        L, shape = local_size
+        L, shape = int(L), tuple(int(v) for v in shape)
+        if len(shape) != 2 or min(shape) < 1:
+            raise InputError(f"CBCA columns work-group shape must be (TX, TY) >= 1, got {local_size}")
+    if L < 1:
+        raise InputError(f"CBCA work-group size must be >= 1, got {local_size}")
+    return L, shape
+
+
 def path_scratch_bytes(D, W, max_arm, path) -> int:
     """Scratch a path keeps: "fused": rings of D x (2 max_arm + 1) x W float32
     row sums and as many byte counts (9.8 MB for D = 228, W = 1232, max_arm =
     3); "multi": :func:`_multi_scratch` (58.8 MB there, 14.3 % of a
-    228 x 367 x 1232 float32 volume); 0 on the two-pass paths."""
+    228 x 367 x 1232 float32 volume); 0 on the two-pass paths ("running",
+    "short", "workgroup": local memory only)."""
     if path == "multi":
         return sum(_multi_scratch(D, W, max_arm))
     if path == "fused":
