@@ -72,6 +72,7 @@ class TrainConfig:
     gt: str = "all"                         # GT pixels making examples: "all" or "noc"
     max_per_pair: int | None = None         # cap on locations drawn from one pair per epoch
     augment: bool = False
+    augment_preset: str | None = None       # crop sampler: "kitti" | "middlebury"; None: the pairs' majority
     conv_layers: list = field(default_factory=lambda: [list(c) for c in PAPER_CONV])
     fc_layers: list = field(default_factory=lambda: list(PAPER_FC))
     margin: float = 0.2                     # fst hinge margin
@@ -238,7 +239,7 @@ def _export(model, path: Path, meta: dict) -> None:
 
 
 def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None, log=print,
-          stop_after: int | None = None, stop_after_steps: int | None = None) -> dict:
+          stop_after: int | None = None, stop_after_steps: int | None = None, init=None) -> dict:
     """Train on ``train_pairs`` (StereoPairs with GT), validate on ``val_pairs`` each epoch.
 
     Writes ``checkpoint.pt`` (every epoch and every ``cfg.checkpoint_minutes``
@@ -249,6 +250,8 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
     also from a mid-epoch checkpoint).  ``stop_after``: run at most this many
     epochs in this call; ``stop_after_steps``: stop (with a checkpoint) after
     this many steps in this call (the schedule still spans ``cfg.epochs``).
+    ``init``: a :class:`~mccnn_cl.weights.Weights` of ``cfg``'s layers to start
+    from instead of He initialisation (fine-tuning; :mod:`.selftrain`).
     Returns ``{"model": MCCNN (on device), "history": [...], "provenance": {...}}``.
     """
     if cfg.arch not in ARCHS:
@@ -263,6 +266,11 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
     torch.manual_seed(cfg.seed)
     model = MCCNN(cfg.conv_layers, cfg.fc_layers, architecture=ARCHS[cfg.arch],
                   margin=cfg.margin).he_init_().to(device)
+    if init is not None:
+        if init.conv_layers() != cfg.conv_layers or init.fc_layers() != cfg.fc_layers \
+                or init.architecture != ARCHS[cfg.arch]:
+            raise InputError(f"init weights ({init.architecture}) do not have the run's layers ({cfg.arch})")
+        model.load_state_dict(MCCNN.from_weights(init).state_dict())
     opt = torch.optim.SGD(model.parameters(), lr=cfg.lr, momentum=cfg.momentum,
                           weight_decay=cfg.weight_decay)
     half = cfg.batch_size // 2
@@ -277,6 +285,8 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         aug = None
         if cfg.augment:
             kitti = sum(p.key.startswith("kitti") for p in train_pairs) * 2 >= len(train_pairs)
+            if cfg.augment_preset is not None:
+                kitti = {"kitti": True, "middlebury": False}[cfg.augment_preset]
             aug = KITTI_AUGMENT if kitti else MIDDLEBURY_AUGMENT
         sampler = CropSampler(train_pairs, model.patch_size, p_hi=cfg.p_hi, n_lo=cfg.n_lo, n_hi=cfg.n_hi,
                               crop=tuple(cfg.crop), spread=cfg.spread, per_crop=cfg.per_crop,
