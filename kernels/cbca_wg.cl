@@ -17,9 +17,11 @@
  * floats, or (TY + 2 MAX_ARM) x TX row sums and row counts) until the whole
  * group has summed them; a cell of the line is written only after its value
  * went into the ring, and the global cells loaded later lie beyond every
- * cell written so far.  Two barriers per chunk: after the ring is filled,
- * and after every work-item has read the ring (before the next chunk
- * overwrites the slots no longer needed).  Any L, TX, TY >= 1 and any W, H,
+ * cell written so far.  Two barriers per chunk: after the ring is filled
+ * (also a global fence: the group's loads of a cell from the volume come
+ * before another work-item of the group writes it, as Oclgrind checks), and
+ * after every work-item has read the ring (before the next chunk overwrites
+ * the slots no longer needed).  Any L, TX, TY >= 1 and any W, H,
  * D: work-items beyond the line take part in the barriers and write nothing.
  *
  * Bit-identity with the two short passes: cbca_rows_short forms
@@ -79,7 +81,9 @@ __kernel void cbca_rows_wg(__global const vol_t *src,     /* D x H x W cost C^{i
         ring[j] = (x >= d && x < W) ? VOL_GET(src, row + x) : 0.0f;
     }
     for (int x0 = 0; x0 < W; x0 += L) {
-        barrier(CLK_LOCAL_MEM_FENCE); /* the ring holds cells x0 - MAX_ARM .. x0 + L + MAX_ARM - 1 */
+        /* the ring holds cells x0 - MAX_ARM .. x0 + L + MAX_ARM - 1; the global
+         * fence orders every load of a cell before the chunk that writes it */
+        barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
         const int x = x0 + i;
         const int valid = x < W && x >= d;
         float s = 0.0f;
@@ -143,7 +147,9 @@ __kernel void cbca_columns_wg(__global vol_t *buf,           /* row sums in, C^i
                                : (uchar)0;
     }
     for (int y0 = 0; y0 < H; y0 += TY) {
-        barrier(CLK_LOCAL_MEM_FENCE); /* the ring holds rows y0 - MAX_ARM .. y0 + TY + MAX_ARM - 1 */
+        /* the ring holds rows y0 - MAX_ARM .. y0 + TY + MAX_ARM - 1; the global
+         * fence orders every load of a row before the chunk that writes it */
+        barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
         const int y = y0 + ty;
         const int out = valid && y < H;
         float res = 0.0f;

@@ -85,6 +85,7 @@ CASE_KERNELS = {
     "cross": {"cross_build"},
     "cbca": {"cbca_rows", "cbca_columns", "cbca_rows_short", "cbca_columns_short", "cbca_fused_short",
              "cbca_fused_multi_short"},
+    "cbca_wg": {"cbca_rows_wg", "cbca_columns_wg"},
     "sgm": {"sgm_rows", "sgm_columns", "sgm_paired"},
     "sgm_wg": {"sgm_wg_path"},
     "disparity": {"disparity_wta_left", "disparity_wta_right", "disparity_lr_check",

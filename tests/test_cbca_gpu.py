@@ -198,7 +198,7 @@ def test_small_local_memory_shrinks_the_groups(ctx, monkeypatch):
     got, _ = run(ctx, cost, arms_l, arms_r, 2, 8, workgroup=True)
     compare(got, cbca(cost, arms_l, arms_r, 2), cost)
     with pytest.raises(InputError, match="local memory"):
-        CBCA(ctx, workgroup=True, local_size=(8, (8, 8))).work_group_sizes(W, 8)
+        CBCA(ctx, workgroup=True, local_size=(8, (8, 2))).work_group_sizes(W, 8)  # 720 bytes
 
 
 def test_long_arms_fall_back_to_running_sums(ctx):

@@ -341,6 +341,53 @@ def case_cbca(ctx, rng, chk):
                   ctx.from_device(out, (D, H, W)), want, atol=1e-5)
 
 
+def case_cbca_wg(ctx, rng, chk):
+    """cbca_wg.cl (CBCA's work-group path: a group per row / column tile and
+    disparity, rings in local memory, two barriers per chunk): groups of
+    several work-items (rows 3 to 8; column tiles 2 x 2 to 8 x 2, shapes that
+    do not divide W or H), several chunks per line, in place and out of
+    place, arms up to 8, half storage; so that Oclgrind's race and barrier
+    checks see the local memory shared."""
+    from mccnn_cl.reference.aggregation import cbca, cross_arms
+    from mccnn_cl.stages.cbca import CBCA
+    from mccnn_cl.stages.cross import CrossArms, max_arm
+
+    for (D, H, W), eta, nb, ls, it, in_place, half in (
+            ((5, 4, 13), 4, False, (4, (3, 2)), 2, False, False),
+            ((4, 7, 9), 4, False, (3, (2, 3)), 1, True, False),
+            ((3, 6, 21), 9, True, (8, (8, 2)), 1, False, False),
+            ((4, 5, 11), 4, False, (5, (2, 2)), 2, True, True)):
+        img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
+        C = _volume(rng, D, H, W)
+        if half:
+            C = C.astype(np.float16)
+        d_al = CrossArms(ctx)(ctx.to_device(img_l), H, W, eta=eta, include_neighbor=nb)
+        d_ar = CrossArms(ctx)(ctx.to_device(img_r), H, W, eta=eta, include_neighbor=nb)
+        if in_place:
+            out = ctx.empty(C.nbytes, "test in-place volume")
+            ctx.cl.enqueue_copy(ctx.queue, out, C)
+            src = out
+        else:
+            if half:
+                out = ctx.empty(C.nbytes, "test output")
+                ctx.fill(out, -65504.0, C.nbytes, np.float16)
+            else:
+                out = _poisoned(ctx, C.nbytes)
+            src = ctx.to_device(C)
+        bound = max_arm(eta, nb)
+        st = CBCA(ctx, max_arm=bound, workgroup=True, local_size=ls, half=half)
+        assert st.path(bound) == "workgroup"
+        st(src, d_al, d_ar, D, H, W, iterations=it, max_arm=bound, out=out)
+        got = ctx.from_device(out, (D, H, W), np.float16 if half else np.float32).astype(np.float32)
+        want = cbca(C.astype(np.float32), cross_arms(img_l, eta=eta, include_neighbor=nb),
+                    cross_arms(img_r, eta=eta, include_neighbor=nb), it)
+        # float32: tests/test_cbca.py's 1e-5 of the cost range; half: tests/test_half.py's
+        # 2 x iterations x 2^-11 relative (costs < 1)
+        chk.close(f"CBCA work-group D={D} {H}x{W} eta={eta} nb={nb} local={ls} iterations={it} "
+                  f"in_place={in_place} half={half}", got, want,
+                  atol=1e-7 if half else 1e-5, rtol=2 * it * 2 ** -11 if half else 0.0)
+
+
 def case_sgm(ctx, rng, chk):
     """sgm.cl: the four directions (rows and columns kernels), both penalty
     variants; the default configuration of this device and the CPU one (128
@@ -429,6 +476,7 @@ def case_half(ctx, rng, chk):
     for (fused, multi), sgm_stage in (((True, True), None), ((True, False), SGM), ((False, False), SGMWorkGroup)):
         m = StereoMatcher(cost="census", max_disparity=D, device=ctx, volume_dtype="float16")
         m.cbca.fused, m.cbca.multi = fused, multi
+        m.cbca.workgroup = False  # the CPU paths (Oclgrind's default, "workgroup", is case cbca_wg's)
         if sgm_stage is not None:
             m.sgm = sgm_stage(ctx, half=True)
         label = f"fused={fused}, multi={multi}, {type(m.sgm).__name__}"
@@ -467,6 +515,7 @@ CASES = {
     "census": case_census,
     "cross": case_cross,
     "cbca": case_cbca,
+    "cbca_wg": case_cbca_wg,
     "sgm": case_sgm,
     "sgm_wg": case_sgm_wg,
     "disparity": case_disparity,
