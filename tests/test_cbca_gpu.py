@@ -269,6 +269,43 @@ def test_profile_selects_the_path(ctx, monkeypatch, kind, name, type_, path):
     np.testing.assert_array_equal(got.view(np.uint32), short_path(ctx, cost, arms_l, arms_r, 3, 3).view(np.uint32))
 
 
+@pytest.mark.parametrize("dtype", ["float32", "float16"])
+def test_stereo_matcher_with_the_gpu_profile(ctx, shared_data, monkeypatch, dtype):
+    """StereoMatcher on this device with the gpu column of the rules (a profile
+    built for a GPU): both CBCA runs take the work-group path and SGM is
+    SGMWorkGroup.  Its disparity map and every volume equal, bit for bit, the
+    run with the CPU paths that compute the same sums in the same order: SGM's
+    one-direction kernels (SGM(paired=False)) and, for CBCA, this device's
+    default in float32 (fused or multi on CPUs, bit-identical to the short
+    passes there) or the short passes in half (the fused kernels keep their row
+    sums in float, the short and work-group passes store them as half)."""
+    import pyopencl as cl
+
+    from mccnn_cl.pipeline import StereoMatcher
+    from mccnn_cl.stages.sgm import SGM
+    from mccnn_cl.stages.sgm_wg import SGMWorkGroup
+
+    left, right = kitti_crop(shared_data, 150, 300, 37, 83)
+    D, half = 21, dtype == "float16"
+    cpu = StereoMatcher(cost="census", max_disparity=D, device=ctx, volume_dtype=dtype)
+    cpu.sgm = SGM(ctx, half=half, paired=False)
+    if half:
+        cpu.cbca = CBCA(ctx, half=True, fused=False, multi=False, workgroup=False)
+    assert cpu.cbca.path(3) != "workgroup"
+    want = cpu.compute(left, right, return_intermediates=True)
+    monkeypatch.setattr(ctx, "profile", DeviceProfile.of(fake_device("Some GPU", cl.device_type.GPU, 64, 1), cl))
+    m = StereoMatcher(cost="census", max_disparity=D, device=ctx, volume_dtype=dtype)
+    assert m.cbca.path(3) == "workgroup" and isinstance(m.sgm, SGMWorkGroup) and m.cbca.half == half
+    got = m.compute(left, right, return_intermediates=True)
+    assert "C_CBCA" in got.intermediates and set(got.intermediates) == set(want.intermediates)
+    for name, a in got.intermediates.items():
+        b = want.intermediates[name]
+        assert a.shape == b.shape and a.dtype == b.dtype, name
+        np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8), err_msg=name)
+    np.testing.assert_array_equal(got.disparity.view(np.uint8), want.disparity.view(np.uint8))
+    assert np.isfinite(got.disparity).mean() > 0.5 and np.nanstd(got.disparity) > 0.5
+
+
 @pytest.fixture
 def workgroup_cbca(ctx, monkeypatch):
     """This device's profile told to take the GPU-shaped CBCA (its "cbca_workgroup" rule)."""
