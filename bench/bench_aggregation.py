@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 from mccnn_cl.cl import ClContext
-from mccnn_cl.stages.cbca import CBCA, MULTI_K, SHORT_MAX
+from mccnn_cl.stages.cbca import CBCA, MULTI_K
 from mccnn_cl.stages.cross import CrossArms, max_arm
 from mccnn_cl.stages.sgm import SGM
 
@@ -94,19 +94,24 @@ def main(argv=None):
 
     cbca = CBCA(ctx)
     runs = [(max_arm(4), cbca), (255, cbca)]
-    if cbca.fused and cbca.multi:  # the default's one-iteration-per-launch alternative, for comparison
+    if cbca.path(max_arm(4)) == "multi":  # the default's one-iteration-per-launch alternative, for comparison
         runs.insert(1, (max_arm(4), CBCA(ctx, multi=False)))
+    if cbca.path(max_arm(4)) != "workgroup":  # the GPU-shaped passes (the gpu column's default), forced,
+        # beside the short passes, which compute the same sums in the same order
+        if cbca.path(max_arm(4)) != "short":
+            runs.append((max_arm(4), CBCA(ctx, fused=False, multi=False, workgroup=False)))
+        runs.append((max_arm(4), CBCA(ctx, workgroup=True)))
     for bound, st in runs if "cbca" in args.stages else ():
         t = timed(ctx, lambda: st(d_cost, d_al, d_ar, D, H, W, iterations=4, max_arm=bound, out=d_out),
                   args.repeat)
         # volume passes (a read + a write each) per round of 4 iterations: the
         # multi-iteration fused kernel 1 (MULTI_K = 4 iterations per launch),
-        # the one-iteration fused kernel 4, the two-pass kernels 8
-        short = st.short and bound <= SHORT_MAX
-        passes = (-(-4 // MULTI_K) if st.multi else 4) if (short and st.fused) else 8
-        kind = ("multi" if st.multi else "fused") if (short and st.fused) else "2-pass"
+        # the one-iteration fused kernel 4, the two-pass kernels 8 (short,
+        # running and work-group passes alike)
+        kind = st.path(bound)
+        passes = {"multi": -(-4 // MULTI_K), "fused": 4}.get(kind, 8)
         moved = passes * 2 * V
-        print(f"CBCA 4 it (max_arm={bound:3d}, {kind:6s}) {t * 1e3:8.1f} ms  {moved / t / 1e9:6.2f} GB/s "
+        print(f"CBCA 4 it (max_arm={bound:3d}, {kind:9s}) {t * 1e3:8.1f} ms  {moved / t / 1e9:6.2f} GB/s "
               f"({t / 4 * 1e3:.1f} ms per iteration), cpu {CPU['last'] * 1e3:.0f} ms")
 
     sgm = SGM(ctx)
