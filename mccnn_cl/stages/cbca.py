@@ -108,6 +108,7 @@ class CBCA:
         self.multi = bool(rule("cbca_multi") if multi is None else multi)
         self.half = bool(half)
         self.local_size = _check_local_size(local_size)
+        self._wg_sizes = {}  # (W, max_arm, local_size, local memory) -> work_group_sizes
         self._kernels = {}
         self._ring = None  # (nbytes, row-sum ring, count ring) of cbca_fused_short
         self._multi = None  # (sizes, [float, byte, row scratch]) of cbca_fused_multi_short
@@ -258,16 +259,27 @@ class CBCA:
         """(L, (TX, TY)): the rows kernel's groups of L, the columns kernel's of
         TX x TY (module docstring), forced ones checked against the kernels'
         limits (InputError)."""
-        (k_rows, _), (k_cols, _) = self._get(max_arm)[0]
-        A = int(max_arm)
+        key = (int(W), int(max_arm), self.local_size, self.ctx.local_mem)
+        sizes = self._wg_sizes.get(key)
+        if sizes is None:
+            sizes = self._wg_sizes[key] = self._work_group_sizes(int(W), int(max_arm))
+        return sizes
+
+    def _work_group_sizes(self, W, A):
+        (k_rows, _), (k_cols, _) = self._get(A)[0]
         pref_r, max_r = self._limits(k_rows, 0)
         pref_c, max_c = self._limits(k_cols, 0)
         _, max_cy = self._limits(k_cols, 1)
         local = self.ctx.local_mem
-        rows_bytes = lambda L: 4 * (L + 2 * A)  # noqa: E731
-        cols_bytes = lambda tx, ty: 5 * (ty + 2 * A) * tx  # noqa: E731
+
+        def rows_bytes(L):  # the rows kernel's ring
+            return 4 * (L + 2 * A)
+
+        def cols_bytes(tx, ty):  # the columns kernel's rings: float row sums, byte counts
+            return 5 * (ty + 2 * A) * tx
+
         if self.local_size is None:
-            L = max(1, min(max_r, WG_TARGET, round_up(int(W), pref_r)))
+            L = max(1, min(max_r, WG_TARGET, round_up(W, pref_r)))
             TX = max(1, min(pref_c, max_c))
             TY = max(1, min(max_cy, max_c // TX, WG_TARGET // TX))
             while L > 1 and rows_bytes(L) > local:
