@@ -47,6 +47,7 @@ TEST_GROUPS = (
     ("network paper", ["tests/test_network.py", "-k",
                        "paper_net_random_image or small_nets or constant_images or real_crops"], ("torch",)),
     ("cross arms", ["tests/test_cross.py"], ()),
+    ("CBCA, work-groups (GPU layout)", ["tests/test_cbca_gpu.py"], ()),
     ("CBCA", ["tests/test_cbca.py", "-k",
               "random_odd_size or real_images or d_at_least_w or multi_iteration_counts_kitti"], ()),
     ("disparity, interpolation, sub-pixel", ["tests/test_disparity.py"], ()),
