@@ -3,7 +3,8 @@
 Sub-commands: ``match`` (one pair or a batch → disparity files, colour
 pictures, depth, point clouds), ``evaluate`` (a dataset, beside OpenCV
 SGBM), ``devices`` (OpenCL devices and the choice), ``bench`` (per-stage
-timings) and ``demo`` (the bundled Middlebury Cones pair).  See docs/cli.md.
+timings), ``demo`` (the bundled Middlebury Cones pair) and ``adapt``
+(self-training on unlabeled pairs, :mod:`mccnn_cl.adapt_cmd`).  See docs/cli.md.
 This module only parses and dispatches (:data:`COMMANDS`): ``match``,
 ``evaluate`` and ``devices`` and the helpers they share are implemented in
 :mod:`mccnn_cl.commands`, ``bench`` in :mod:`mccnn_cl.bench`, ``demo`` in
@@ -38,6 +39,7 @@ COMMANDS = {
     "devices": ("mccnn_cl.commands", "cmd_devices"),
     "bench": ("mccnn_cl.bench", "run"),
     "demo": ("mccnn_cl.demo_cmd", "run"),
+    "adapt": ("mccnn_cl.adapt_cmd", "run"),
 }
 
 
@@ -149,6 +151,32 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"picture to write (default {DEMO_OUTPUT})")
     dm.add_argument("--force", action="store_true", help="overwrite OUT.png if it exists")
     _matcher_options(dm, "default: 32 (the demo's ndisp)")
+
+    a = sub.add_parser("adapt", parents=[verbose], help="fine-tune a network to your camera without ground truth",
+                       description="Self-training: pseudo-label your rectified pairs with the network (pixels the "
+                                   "left-right check labels correct and whose confidence passes --min-confidence), "
+                                   "fine-tune it on them, relabel, --rounds times; write the adapted weights. "
+                                   "Needs PyTorch. See docs/training.md, 'Self-training and adapt'.")
+    a.add_argument("left_glob", metavar="LEFT_GLOB", help="left images (glob or folder)")
+    a.add_argument("right_glob", metavar="RIGHT_GLOB", help="right images (glob or folder), paired with the "
+                                                            "left ones by sorted order")
+    a.add_argument("--weights", required=True, metavar="FILE",
+                   help="network to start from: a shipped name (kitti-fst), a .npz, or a published .t7/.pt")
+    a.add_argument("-o", "--output", required=True, metavar="OUT.npz", help="adapted weights to write")
+    a.add_argument("--ndisp", type=int, required=True, metavar="D",
+                   help="disparity levels of your pairs (disparities 0..D-1), as for match --max-disp")
+    a.add_argument("--rounds", type=int, default=2, help="label -> fine-tune rounds")
+    a.add_argument("--steps", type=int, default=250, help="crop-sampler SGD steps per round")
+    a.add_argument("--min-confidence", type=float, default=None, metavar="C",
+                   help="confidence a pseudo-labeled pixel needs, in [0, 1] (default: the threshold chosen "
+                        "on labeled training pairs, train.selftrain.DEFAULT_MIN_CONFIDENCE; docs/training.md)")
+    a.add_argument("--lr", type=float, default=2e-4, help="fine-tuning learning rate (constant)")
+    a.add_argument("--seed", type=int, default=0)
+    a.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    a.add_argument("--device", metavar="SPEC", default=None, help="OpenCL device for the labelling (as for match)")
+    a.add_argument("--run-dir", metavar="DIR", default=None,
+                   help="keep each round's training files here (default: a temporary folder)")
+    a.add_argument("--force", action="store_true", help="overwrite OUT.npz if it exists")
 
     from .importers.commands import add_parsers  # convert-weights, models
     add_parsers(sub, [verbose])
