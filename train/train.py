@@ -525,6 +525,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--out", required=True, help="run folder (checkpoint, history, plot)")
     g.add_argument("--export", default=None, help="weights .npz to write at the end (default OUT/weights.npz)")
     g.add_argument("--resume", default=None, help="checkpoint.pt to continue from")
+    g.add_argument("--init", default=None, metavar="WEIGHTS",
+                   help="start from these weights (.npz or a shipped name, same layers) instead of He init")
     g.add_argument("--stop-after", type=int, default=None,
                    help="run at most this many epochs now (continue later with --resume)")
     g.add_argument("--stop-after-steps", type=int, default=None,
@@ -587,8 +589,16 @@ def main(argv=None) -> int:
         if not train_pairs:
             raise InputError("none of the training pairs has ground truth")
         val_pairs = [r.load() for r in held_refs]
+        init = None
+        if args.init is not None:
+            from mccnn_cl.errors import WeightsError
+            from mccnn_cl.weights import resolve
+            try:
+                init = resolve(args.init)
+            except WeightsError as exc:
+                raise InputError(f"--init {args.init}: {exc}") from exc
         result = train(cfg, train_pairs, val_pairs, device, args.out, resume=args.resume,
-                       stop_after=args.stop_after, stop_after_steps=args.stop_after_steps)
+                       stop_after=args.stop_after, stop_after_steps=args.stop_after_steps, init=init)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
