@@ -212,8 +212,19 @@ class CropSampler:
         grid = torch.from_numpy(np.stack([gx, gy], -1).reshape(1, hh, ww, 2).astype(np.float32))
         return F.grid_sample(img, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
 
-    def sample(self, rng: np.random.Generator, n_crops: int) -> CropBatch:
-        """Draw ``n_crops`` crop pairs and their examples (``rng`` drives everything: reproducible)."""
+    def sample(self, rng: np.random.Generator, n_crops: int, take: tuple | None = None) -> CropBatch:
+        """Draw ``n_crops`` crop pairs and their examples (``rng`` drives everything: reproducible).
+
+        ``take=(start, stop)``: return only crops ``start..stop-1`` of those
+        ``n_crops`` (renumbered from 0).  Every crop's random numbers are still
+        drawn, so the crops taken are exactly those of the full draw, and the
+        ranks of a distributed step, each taking its own range of one draw,
+        together hold exactly the batch one process would get; crops outside
+        the range are not cut.
+        """
+        start, stop = (0, n_crops) if take is None else take
+        if not 0 <= start < stop <= n_crops:
+            raise InputError(f"take must be a non-empty range within 0..{n_crops}, got {take}")
         r, h, w, wr = self.r, self.h, self.w, self.wr
         Hc, Wc, Wrc = h + 2 * r, w + 2 * r, wr + 2 * r
         exact = not self.subpixel and self.aug is None
@@ -270,11 +281,14 @@ class CropSampler:
                 continue
             if len(idx) > self.per_crop:
                 idx = np.sort(rng.choice(idx, self.per_crop, replace=False))
+            if not start <= b < stop:  # another rank's crop: its random numbers are drawn, nothing is cut
+                b += 1
+                continue
             lc = self._cut(L, (xa, ya), A, Hc, Wc, 0.0, exact) * cl + bl
             rc = self._cut(R, (xra, ya), B, Hc, Wrc, ty, exact) * cr + br
             lefts.append(lc)
             rights.append(rc)
-            crops.append(np.full(len(idx), b, np.int64))
+            crops.append(np.full(len(idx), b - start, np.int64))
             qls.append(np.stack([qlx[idx], qly[idx]], -1))
             qps.append(np.stack([qpx[idx], qpy[idx]], -1))
             qns.append(np.stack([qnx[idx], qny[idx]], -1))
