@@ -20,11 +20,19 @@ improves, ``best.npz``; ``checkpoint.pt`` is also written every
 ``--seed`` (per epoch, and per step for crops), so a run is deterministic for
 a seed and thread count, and ``--resume`` continues it bit for bit, also from
 a mid-epoch checkpoint.
+
+Launched by torchrun (``WORLD_SIZE`` > 1) it trains with
+DistributedDataParallel, one process per device (gloo on the CPU, NCCL on
+CUDA ``cuda:LOCAL_RANK``): each step every rank takes its own share of one
+draw (``--crops-per-step`` crops, or ``--batch-size`` patch pairs, per rank),
+so the ranks together train on exactly the batch one process would get with
+N times as many; only rank 0 validates, logs and writes files.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import fnmatch
 import json
 import math
@@ -35,10 +43,12 @@ import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass, field
+from datetime import timedelta
 from pathlib import Path
 
 import numpy as np
 import torch
+import torch.distributed as dist
 import torch.nn.functional as F
 
 from mccnn_cl.datasets import discover
@@ -50,7 +60,7 @@ from .evaluate import make_validation, validate
 from .model import DEFAULT_LAYERS, MCCNN
 from .patches import PatchSampler
 
-__all__ = ["TrainConfig", "train", "select_pairs", "lr_at", "augment_batch", "main"]
+__all__ = ["TrainConfig", "train", "select_pairs", "lr_at", "augment_batch", "init_distributed", "main"]
 
 
 @dataclass
@@ -112,7 +122,8 @@ def lr_at(cfg: TrainConfig, it: int, total: int) -> float:
 
 def augment_batch(left: torch.Tensor, right: torch.Tensor, gen: torch.Generator,
                   rotate: float = 7.0, scale: float = 0.9, shear: float = 0.1,
-                  brightness: float = 0.7, contrast: float = 1.3, right_brightness: float = 0.3):
+                  brightness: float = 0.7, contrast: float = 1.3, right_brightness: float = 0.3,
+                  rows: torch.Tensor | None = None, n_draw: int | None = None):
     """Random geometric and photometric jitter of patch pairs (N, 1, P, P), in torch.
 
     Per pair one affine map (rotation up to ``rotate`` degrees, horizontal
@@ -122,12 +133,19 @@ def augment_batch(left: torch.Tensor, right: torch.Tensor, gen: torch.Generator,
     ``+U(-b, b)`` and contrast ``*exp(U(-log c, log c))`` on the normalised
     intensities, and an extra ``U(-rb, rb)`` brightness on the right patch.
     The released code's ranges (NOTES.md) applied to normalised patches.
+
+    ``rows``/``n_draw`` (distributed training): the parameters are drawn for a
+    batch of ``n_draw`` pairs and those at ``rows`` (a CPU index tensor, one
+    per pair given) are applied, so each rank jitters its share of a step's
+    batch exactly as one process would jitter the whole batch.
     """
     n = left.shape[0]
     dev = left.device
 
     def u(lo, hi):
-        return torch.rand(n, generator=gen).to(dev) * (hi - lo) + lo
+        if rows is None:
+            return torch.rand(n, generator=gen).to(dev) * (hi - lo) + lo
+        return torch.rand(n_draw, generator=gen)[rows].to(dev) * (hi - lo) + lo
     th = u(-rotate, rotate) * math.pi / 180
     sx = u(scale, 1.0)
     sh = u(-shear, shear)
@@ -174,6 +192,61 @@ def select_pairs(data_roots, holdout=(), include=("*",), dataset=None):
     if not train_refs:
         raise InputError("no training pairs left after --include/--holdout")
     return train_refs, held
+
+
+# -- distributed training (torchrun) ---------------------------------------------
+
+#: how long a rank waits for the others at a collective (rank 0 validates and
+#: writes files at each epoch's end while the others wait at a barrier)
+DIST_TIMEOUT = timedelta(minutes=60)
+
+
+def init_distributed(device=None):
+    """Join the process group when launched by torchrun (``WORLD_SIZE`` > 1).
+
+    Returns ``(device, created)``: the device this process trains on (on CUDA
+    ``cuda:LOCAL_RANK``, whatever index ``device`` names; default CUDA when
+    available, else the CPU) and whether this call created the process group
+    (the caller then destroys it).  Backend: NCCL on CUDA, gloo on the CPU.
+    Without torchrun (or with one process) nothing is initialised.
+    """
+    device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return device, False
+    if not dist.is_available():
+        raise InputError("WORLD_SIZE > 1 but this torch build has no torch.distributed")
+    if device.type == "cuda":
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(device)
+    if dist.is_initialized():
+        return device, False
+    dist.init_process_group("nccl" if device.type == "cuda" else "gloo", timeout=DIST_TIMEOUT)
+    return device, True
+
+
+def _rank_world():
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+class _StepLoss(torch.nn.Module):
+    """``forward(fn, *args) = fn(net, *args)``: the step's loss as a forward pass, so that
+    DistributedDataParallel sees it (the crop loss calls the net's parts, not its forward)."""
+
+    def __init__(self, net):
+        super().__init__()
+        self.net = net
+
+    def forward(self, fn, *args):
+        return fn(self.net, *args)
+
+
+def _patch_loss(net, left, right):
+    """Loss of a patch batch laid out as positives, then negatives (``PatchSampler.batch``)."""
+    out = net(left, right)
+    h = out.shape[0] // 2
+    return net.loss(out[:h], out[h:])
 
 
 # -- the loop ------------------------------------------------------------------
@@ -232,9 +305,7 @@ def _machine(device) -> str:
 def _export(model, path: Path, meta: dict) -> None:
     """Write the weights .npz atomically (a reader never sees half a file)."""
     tmp = path.with_name(path.name + ".tmp.npz")
-    was = next(model.parameters()).device
-    model.cpu().to_weights(meta).save(tmp)
-    model.to(was)
+    copy.deepcopy(model).cpu().to_weights(meta).save(tmp)  # a copy: the trained (maybe DDP-held) net stays put
     os.replace(tmp, path)
 
 
@@ -253,6 +324,20 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
     ``init``: a :class:`~mccnn_cl.weights.Weights` of ``cfg``'s layers to start
     from instead of He initialisation (fine-tuning; :mod:`.selftrain`).
     Returns ``{"model": MCCNN (on device), "history": [...], "provenance": {...}}``.
+
+    Inside an initialised process group of N > 1 ranks (:func:`init_distributed`)
+    this is one rank of a DistributedDataParallel run: every rank draws the
+    same step plan and takes its share (crop sampler: crops ``rank * C ..
+    (rank + 1) * C - 1`` of the step's ``N * C`` crops, ``C`` =
+    ``crops_per_step``; patch sampler: locations ``rank * B/2 ..`` of the
+    step's ``N * B/2``, ``B`` = ``batch_size``, with the augmentation drawn for
+    the whole step), so the ranks together train on exactly the batch of one
+    process with ``N * C`` crops / batch ``N * B``.  Each rank's mean loss is
+    weighted by ``N * n_rank / n_step`` (its share of the step's examples), so
+    DDP's gradient average is the gradient of the step's mean loss, also when
+    the ranks' crops hold different numbers of examples.  Only rank 0
+    validates, logs and writes files; the others wait at a barrier after each
+    epoch.  All ranks load ``resume``.
     """
     if cfg.arch not in ARCHS:
         raise InputError(f"unknown architecture {cfg.arch!r} (expected one of {', '.join(ARCHS)})")
@@ -261,8 +346,13 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
     if cfg.sampler == "patch" and (cfg.batch_size < 2 or cfg.batch_size % 2):
         raise InputError(f"batch size must be even (half positive, half negative), got {cfg.batch_size}")
     device = torch.device(device)
+    rank, world = _rank_world()
+    lead = rank == 0
+    if not lead:
+        log = lambda *a, **k: None  # noqa: E731
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    if lead:
+        out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     model = MCCNN(cfg.conv_layers, cfg.fc_layers, architecture=ARCHS[cfg.arch],
                   margin=cfg.margin).he_init_().to(device)
@@ -279,7 +369,8 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
                                p_hi=cfg.p_hi, use=cfg.gt, max_per_pair=cfg.max_per_pair)
         per_epoch_locs = sum(sampler.locations_per_epoch().values())
         locs = per_epoch_locs if cfg.examples_per_epoch is None else cfg.examples_per_epoch // 2
-        iters_per_epoch = max(1, locs // half)
+        step_locs = half * world  # locations per step, all ranks together
+        iters_per_epoch = max(1, locs // step_locs)
         unit = f"{cfg.batch_size} examples"
     else:
         aug = None
@@ -295,7 +386,9 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         per_epoch_locs = sum(sampler.counts().values())
         iters_per_epoch = cfg.steps_per_epoch
         unit = f"{cfg.crops_per_step} crops"
-    vset = make_validation(val_pairs, model.patch_size, n_examples=cfg.val_examples,
+    if world > 1:
+        unit = f"{world} processes x {unit}"
+    vset = make_validation(val_pairs if lead else [], model.patch_size, n_examples=cfg.val_examples,
                            n_pixels=cfg.val_pixels, seed=cfg.seed + 1, n_lo=int(round(cfg.n_lo)),
                            n_hi=int(round(cfg.n_hi)), p_hi=int(round(cfg.p_hi)), ndisp=cfg.val_ndisp)
     total_iters = cfg.epochs * iters_per_epoch
@@ -308,6 +401,9 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         if (c["conv_layers"] != cfg.conv_layers or c["fc_layers"] != cfg.fc_layers
                 or c.get("arch", "paper") != cfg.arch):
             raise InputError(f"{resume}: checkpoint has another architecture")
+        if ck.get("mid") is not None and ck.get("world_size", 1) != world:
+            raise InputError(f"{resume}: a mid-epoch checkpoint of a run with {ck.get('world_size', 1)} "
+                             f"process(es): resume it with as many (here {world}), or from an epoch's end")
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         history, elapsed0 = ck["history"], ck.get("elapsed", 0.0)
@@ -322,7 +418,14 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
             log(f"resumed from {resume} after epoch {ck['epoch'] + 1}")
     log(f"{cfg.arch} net, {cfg.sampler} sampler: training on {len(train_pairs)} pairs ({', '.join(sampler.keys)}), "
         f"{per_epoch_locs} GT locations; validating on {', '.join(vset.keys) or 'nothing'}")
-    log(f"{cfg.epochs} epochs x {iters_per_epoch} steps x {unit}; device {device}")
+    log(f"{cfg.epochs} epochs x {iters_per_epoch} steps x {unit}; device {device}"
+        + (f" (rank 0 of {world}, {dist.get_backend()})" if world > 1 else ""))
+    step_net = None
+    if world > 1:
+        # After init/resume (all ranks hold the same weights; DDP broadcasts rank 0's anyway).
+        step_net = torch.nn.parallel.DistributedDataParallel(_StepLoss(model))
+        ar = torch.arange(half)
+        aug_rows = torch.cat([rank * half + ar, step_locs + rank * half + ar]) if cfg.sampler == "patch" else None
     t_start = time.time()
     examples_seen = examples0
     steps_left = stop_after_steps
@@ -332,12 +435,14 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         return {"arch": cfg.arch, "sampler": cfg.sampler, "epoch": step_epoch, "step": step_epoch * iters_per_epoch
                 + step_i, "total_steps": total_iters, "examples_seen": int(examples_seen),
                 "wall_time_s": round(elapsed0 + time.time() - t_start, 1), "best_val_err3": best,
-                "updated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+                "updated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                **({"processes": world} if world > 1 else {})}
 
     def save_ck(epoch, mid_state):
         _atomic_torch_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
                             "history": history, "config": asdict(cfg), "elapsed": elapsed0 + time.time() - t_start,
-                            "examples_seen": examples_seen, "best_err3": best, "mid": mid_state},
+                            "examples_seen": examples_seen, "best_err3": best, "mid": mid_state,
+                            "world_size": world},
                            out_dir / "checkpoint.pt")
         with open(out_dir / "run.json.tmp", "w") as f:
             json.dump(progress(mid_state["epoch"] if mid_state else epoch + 1,
@@ -350,8 +455,8 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         rng = np.random.default_rng([cfg.seed, epoch])
         gen = torch.Generator().manual_seed(int(rng.integers(2**62)))
         if cfg.sampler == "patch":
-            plan = sampler.epoch(rng, n_locations=iters_per_epoch * half)
-            n_it = min(iters_per_epoch, len(plan[0]) // half)
+            plan = sampler.epoch(rng, n_locations=iters_per_epoch * step_locs)
+            n_it = min(iters_per_epoch, len(plan[0]) // step_locs)
         else:
             n_it = iters_per_epoch
         i0, loss_sum, seen, t0 = 0, 0.0, 0, time.time()
@@ -361,7 +466,7 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
             mid = None
         model.train()
         bar = None
-        if cfg.progress:
+        if cfg.progress and lead:
             from tqdm import tqdm
             bar = tqdm(total=n_it, initial=i0, desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="it",
                        mininterval=1.0 if sys.stderr.isatty() else 30.0, leave=False)
@@ -372,25 +477,43 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
             for g in opt.param_groups:
                 g["lr"] = lr
             if cfg.sampler == "patch":
-                b = sampler.batch(plan, i * half, (i + 1) * half)
+                s0 = i * step_locs + rank * half  # this rank's share of the step's locations
+                b = sampler.batch(plan, s0, s0 + half)
                 left = torch.from_numpy(b.left).to(device)
                 right = torch.from_numpy(b.right).to(device)
                 if cfg.augment:
-                    left, right = augment_batch(left, right, gen)
-                out = model(left, right)
-                loss = model.loss(out[:half], out[half:])
+                    if world > 1:  # the whole step's jitter drawn, this rank's rows applied
+                        left, right = augment_batch(left, right, gen, rows=aug_rows, n_draw=2 * step_locs)
+                    else:
+                        left, right = augment_batch(left, right, gen)
+                step = (_patch_loss, left, right)
                 n_ex = len(b.labels)
             else:
-                cb = sampler.sample(np.random.default_rng([cfg.seed, epoch, i]), cfg.crops_per_step)
-                loss = crop_loss(model, cb, device)
+                cps = cfg.crops_per_step
+                cb = sampler.sample(np.random.default_rng([cfg.seed, epoch, i]), cps * world,
+                                    take=None if world == 1 else (rank * cps, (rank + 1) * cps))
+                step = (crop_loss, cb, device)
                 n_ex = cb.n * (1 + cfg.negatives)
+            if step_net is None:
+                loss = step[0](model, *step[1:])
+                step_loss, n_step = None, n_ex
+            else:
+                loss = step_net(*step)
+                # The step's example count and loss sum over all ranks; weighting each rank's mean
+                # loss by N * n_ex / n_step makes DDP's gradient average the gradient of the step's
+                # mean loss (the crop loss averages over a count proportional to n_ex).
+                tot = torch.tensor([float(n_ex), float(loss.detach()) * n_ex], dtype=torch.float64, device=device)
+                dist.all_reduce(tot)
+                n_tot, loss_tot = tot.tolist()
+                loss = loss * (world * n_ex / n_tot)
+                step_loss, n_step = loss_tot / n_tot, int(round(n_tot))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            loss_sum += float(loss.detach()) * n_ex
-            seen += n_ex
-            seen_here += n_ex
-            examples_seen += n_ex
+            loss_sum += (float(loss.detach()) if step_loss is None else step_loss) * n_step
+            seen += n_step
+            seen_here += n_step
+            examples_seen += n_step
             if bar is not None:
                 bar.update(1)
                 if i % 50 == 0:
@@ -399,7 +522,7 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
             last = i + 1 == n_it
             if steps_left is not None:
                 steps_left -= 1
-            if not last and (time.time() - last_ck > 60 * cfg.checkpoint_minutes or steps_left == 0):
+            if lead and not last and (time.time() - last_ck > 60 * cfg.checkpoint_minutes or steps_left == 0):
                 save_ck(epoch - 1, {"epoch": epoch, "i": i + 1, "loss_sum": loss_sum, "seen": seen,
                                     "gen": gen.get_state()})
                 last_ck = time.time()
@@ -416,33 +539,43 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         rec = {"epoch": epoch + 1, "train_loss": loss_sum / max(seen, 1), "examples": seen,
                "lr": lr_at(cfg, epoch * iters_per_epoch + max(n_it - 1, 0), total_iters),
                "examples_per_s": seen_here / max(time.time() - t_here, 1e-9)}
-        tv = time.time()
-        rec.update(validate(model, vset, device))
-        rec["val_time_s"] = time.time() - tv
-        rec["examples_seen"] = int(examples_seen)
-        rec["wall_time_s"] = round(elapsed0 + time.time() - t_start, 1)
-        history.append(rec)
-        err = rec.get("val_err3")
-        improved = err is not None and err < best
-        if improved:
-            best = err
-        snap = {"training": {"arch": cfg.arch, "epoch": epoch + 1, "examples_seen": int(examples_seen),
-                             "wall_time_s": rec["wall_time_s"], "held_out": vset.keys,
-                             "trained_on": {k: int(v) for k, v in sampler.counts().items()},
-                             "validation": {k: v for k, v in rec.items() if k.startswith("val_")},
-                             "config": {k: v for k, v in asdict(cfg).items() if k != "progress"}}}
-        _export(model, out_dir / "latest.npz", snap)
-        if improved:
-            _export(model, out_dir / "best.npz", snap)
-        save_ck(epoch, None)
-        last_ck = time.time()
-        with open(out_dir / "history.json", "w") as f:
-            json.dump(history, f, indent=1)
-        plot_history(history, out_dir / "training.png", title=f"MC-CNN-{cfg.arch} training ({cfg.sampler} sampler)",
-                     loss_name={"paper": "cross-entropy", "fst": "hinge loss", "acrt": "binary cross-entropy"}[cfg.arch])
-        log(json.dumps({k: (round(v, 5) if isinstance(v, float) else v) for k, v in rec.items()}))
+        if not lead:  # rank 0 validates and writes; the others wait at the barrier below
+            rec["examples_seen"] = int(examples_seen)
+            history.append(rec)
+        else:
+            tv = time.time()
+            rec.update(validate(model, vset, device))
+            rec["val_time_s"] = time.time() - tv
+            rec["examples_seen"] = int(examples_seen)
+            rec["wall_time_s"] = round(elapsed0 + time.time() - t_start, 1)
+            history.append(rec)
+            err = rec.get("val_err3")
+            improved = err is not None and err < best
+            if improved:
+                best = err
+            snap = {"training": {"arch": cfg.arch, "epoch": epoch + 1, "examples_seen": int(examples_seen),
+                                 "wall_time_s": rec["wall_time_s"], "held_out": vset.keys,
+                                 "trained_on": {k: int(v) for k, v in sampler.counts().items()},
+                                 "validation": {k: v for k, v in rec.items() if k.startswith("val_")},
+                                 "config": {k: v for k, v in asdict(cfg).items() if k != "progress"}}}
+            _export(model, out_dir / "latest.npz", snap)
+            if improved:
+                _export(model, out_dir / "best.npz", snap)
+            save_ck(epoch, None)
+            last_ck = time.time()
+            with open(out_dir / "history.json", "w") as f:
+                json.dump(history, f, indent=1)
+            plot_history(history, out_dir / "training.png",
+                         title=f"MC-CNN-{cfg.arch} training ({cfg.sampler} sampler)",
+                         loss_name={"paper": "cross-entropy", "fst": "hinge loss",
+                                    "acrt": "binary cross-entropy"}[cfg.arch])
+            log(json.dumps({k: (round(v, 5) if isinstance(v, float) else v) for k, v in rec.items()}))
+        if world > 1:
+            dist.barrier()
         if steps_left == 0:
             break
+    if world > 1:
+        dist.barrier()  # rank 0's files (also a mid-epoch checkpoint at a stop) are written when train returns
     elapsed = elapsed0 + (time.time() - t_start)
     prov = {
         "architecture": ARCHS[cfg.arch],
@@ -452,8 +585,11 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         "epochs_done": len(history),
         "examples": int(examples_seen),
         "iterations": total_iters,
+        **({"processes": world, "batch_per_step": (f"{world} x {cfg.crops_per_step} crops" if cfg.sampler == "crop"
+                                                  else f"{world} x {cfg.batch_size} examples")}
+           if world > 1 else {}),
         "wall_time_s": round(elapsed, 1),
-        "machine": _machine(device),
+        "machine": _machine(device) if world == 1 else f"{world} processes x {_machine(device)}",
         "torch": torch.__version__,
         "config": {k: v for k, v in asdict(cfg).items() if k != "progress"},
         "final_validation": {k: v for k, v in (history[-1] if history else {}).items()
@@ -534,8 +670,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--checkpoint-minutes", type=float, default=d.checkpoint_minutes,
                    help="also checkpoint within an epoch this often")
     g.add_argument("--seed", type=int, default=d.seed)
-    g.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    g.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
+    g.add_argument("--threads", type=int, default=None, help="torch CPU threads (per process under torchrun)")
+    g.add_argument("--device", default=None,
+                   help="torch device (default: cuda if available, else cpu; under torchrun cuda means "
+                        "cuda:LOCAL_RANK)")
     g.add_argument("--val-examples", type=int, default=d.val_examples)
     g.add_argument("--val-pixels", type=int, default=d.val_pixels)
     g.add_argument("--val-ndisp", type=int, default=None,
@@ -554,13 +692,22 @@ def _git_commit() -> str | None:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    if args.threads:
+    if args.threads:  # per process under torchrun
         torch.set_num_threads(args.threads)
         try:
             torch.set_num_interop_threads(1)
         except RuntimeError:
             pass
-    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    device, created = init_distributed(args.device)  # torchrun: join the group, cuda:LOCAL_RANK
+    try:
+        return _main(args, argv, device)
+    finally:
+        if created:
+            dist.destroy_process_group()
+
+
+def _main(args, argv, device) -> int:
+    rank, world = _rank_world()
     commit = _git_commit()  # the code that trains, not whatever HEAD is when it ends
     ad = ARCH_DEFAULTS[args.arch]
 
@@ -602,14 +749,18 @@ def main(argv=None) -> int:
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    prov = result["provenance"]
-    prov["command"] = "python -m mccnn_cl.train.train " + " ".join(shlex.quote(a) for a in
-                                                                   (argv if argv is not None else sys.argv[1:]))
-    prov["git_commit"] = commit
-    prov["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-    export = args.export or str(Path(args.out) / "weights.npz")
-    result["model"].cpu().to_weights({"training": prov}).save(export)
-    print(f"exported {export}")
+    if rank == 0:
+        prov = result["provenance"]
+        launcher = "python -m" if world == 1 else f"torchrun --nproc_per_node={world} -m"
+        prov["command"] = f"{launcher} mccnn_cl.train.train " + " ".join(
+            shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+        prov["git_commit"] = commit
+        prov["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        export = args.export or str(Path(args.out) / "weights.npz")
+        result["model"].cpu().to_weights({"training": prov}).save(export)
+        print(f"exported {export}")
+    if world > 1:
+        dist.barrier()  # every rank ends once the export is written
     return 0
 
 
