@@ -1,0 +1,44 @@
+"""train/ship.py: a run's weights become a shipped file with name, licence and stereo settings."""
+
+import pytest
+
+from mccnn_cl.errors import InputError
+from mccnn_cl.pipeline import Hyperparameters
+from mccnn_cl.settings import authors_settings
+from mccnn_cl.weights import Weights, shipped_models
+
+pytest.importorskip("torch")  # mccnn_cl.train needs torch (the train extra); set-up installs it
+from mccnn_cl.train import ship  # noqa: E402
+
+
+def test_ship_adds_metadata_and_keeps_weights(tmp_path):
+    src = Weights.load(shipped_models()["kitti-fst"])
+    out = tmp_path / "x.npz"
+    ship.main([shipped_models()["kitti-fst"], "-o", str(out), "--name", "x", "--settings", "mccnn-acrt/kitti2015",
+               "--description", "a test", "--settings-note", "chosen on training frames"])
+    w = Weights.load(out)
+    assert w.meta["name"] == "x" and w.meta["description"] == "a test"
+    assert w.stereo == authors_settings("mccnn-acrt", "kitti2015")
+    assert "kitti2015" in w.meta["stereo_source"] and "training frames" in w.meta["stereo_source"]
+    assert w.meta["training"] == src.meta["training"]
+    for (a, b), (c, d) in zip(w.conv, src.conv):
+        assert (a == c).all() and (b == d).all()
+    Hyperparameters(**w.stereo)  # valid names and values
+
+
+def test_ship_paper_settings_are_the_defaults(tmp_path):
+    out = tmp_path / "p.npz"
+    ship.ship(shipped_models()["kitti-fst"], out, "p", "paper", "d")
+    assert Weights.load(out).stereo == {}
+
+
+def test_ship_rejects_unknown_settings_and_untrained_files(tmp_path, capsys):
+    assert ship.main([shipped_models()["kitti-fst"], "-o", str(tmp_path / "y.npz"), "--name", "y",
+                      "--settings", "mccnn-acrt/nowhere", "--description", "d"]) == 2
+    assert "unknown settings" in capsys.readouterr().err
+    w = Weights.load(shipped_models()["kitti-fst"])
+    del w.meta["training"]
+    bare = tmp_path / "bare.npz"
+    w.save(bare)
+    with pytest.raises(InputError, match="training"):
+        ship.ship(bare, tmp_path / "z.npz", "z", "paper", "d")

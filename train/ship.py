@@ -1,0 +1,75 @@
+"""Turn a training run's exported weights into a shippable network file.
+
+Run as ``python -m mccnn_cl.train.ship RUN/weights.npz -o mccnn_cl/models/NAME.npz
+--name NAME --settings ARCH/DATASET --description TEXT``.
+
+A run exports its weights with their provenance (``meta["training"]``); a
+shipped file adds what a user of ``--weights NAME`` needs: a name, a one-line
+description, the licence, and the stereo settings the network is run with
+(``meta["stereo"]``, applied by :class:`~mccnn_cl.pipeline.StereoMatcher`
+before the caller's own) with where they come from (``meta["stereo_source"]``).
+The settings are one of the released code's tables
+(:func:`mccnn_cl.settings.authors_settings`), named ``architecture/dataset``
+(``mccnn-acrt/kitti2015``), or ``paper`` for the CVPR paper's KITTI values
+(the :class:`~mccnn_cl.pipeline.Hyperparameters` defaults: no overrides).
+The weights themselves are copied unchanged.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from mccnn_cl.errors import InputError
+from mccnn_cl.settings import AUTHORS, authors_settings
+from mccnn_cl.weights import Weights
+
+LICENCE = "BSD-3-Clause (mccnn_cl); trained on KITTI (CC BY-NC-SA 3.0) images"
+
+
+def settings_table(spec: str) -> tuple[dict, str]:
+    """``(overrides, source sentence)`` for ``paper`` or ``architecture/dataset``."""
+    if spec == "paper":
+        return {}, "the CVPR paper's KITTI stereo settings (the Hyperparameters defaults)"
+    arch, _, dataset = spec.partition("/")
+    if (arch, dataset) not in AUTHORS:
+        known = ", ".join(["paper"] + [f"{a}/{d}" for a, d in AUTHORS])
+        raise InputError(f"unknown settings {spec!r} (known: {known})")
+    return authors_settings(arch, dataset), (f"the released code's {dataset} settings for {arch} "
+                                             "(jzbontar/mc-cnn main.lua), used here unchanged")
+
+
+def ship(src, out, name: str, settings: str, description: str, licence: str = LICENCE,
+         settings_note: str | None = None) -> Weights:
+    """Read ``src``, add the shipping metadata, write ``out``; returns the Weights."""
+    w = Weights.load(src)
+    if "training" not in w.meta:
+        raise InputError(f"{src}: no meta['training'] (not a file exported by a training run of this project)")
+    stereo, source = settings_table(settings)
+    w.meta.update(name=name, description=description, licence=licence, stereo=stereo,
+                  stereo_source=source + (f"; {settings_note}" if settings_note else ""))
+    w.save(out)
+    return w
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m mccnn_cl.train.ship", description=__doc__.split("\n\n")[0])
+    p.add_argument("weights", help="a run's exported weights (.npz)")
+    p.add_argument("-o", "--out", required=True, help="the file to write (e.g. mccnn_cl/models/NAME.npz)")
+    p.add_argument("--name", required=True)
+    p.add_argument("--settings", required=True, help="paper, or ARCH/DATASET of mccnn_cl.settings (mccnn-acrt/kitti2015)")
+    p.add_argument("--description", required=True)
+    p.add_argument("--settings-note", default=None, help="why these settings (appended to stereo_source)")
+    p.add_argument("--licence", default=LICENCE)
+    args = p.parse_args(argv)
+    try:
+        ship(args.weights, args.out, args.name, args.settings, args.description, args.licence, args.settings_note)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
