@@ -17,8 +17,9 @@ stage is a row of :data:`RULES`, whose columns are the device classes:
 
 Stages ask the profile (:meth:`DeviceProfile.sgm_options`,
 :meth:`~DeviceProfile.cbca_path`, :meth:`~DeviceProfile.network_tiles`,
-:meth:`~DeviceProfile.line_group`) and test no device type themselves; a new
-kernel variant is a new row, a new kind of device a new column.
+:meth:`~DeviceProfile.local_tile`, :meth:`~DeviceProfile.line_group`) and
+test no device type themselves; a new kernel variant is a new row, a new
+kind of device a new column.
 """
 
 from __future__ import annotations
@@ -47,7 +48,15 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: disparity; before the fused rules), ``cbca_fused`` (both passes in one
 #: launch, one work-item per plane walking it whole), ``cbca_multi`` (several
 #: iterations per launch, the same), ``cbca_multi_group_of_one``.  Network:
-#: ``network_tiles`` (register tiles; RN grows with the float vector width on CPUs).
+#: ``network_tiles`` (register tiles; RN grows with the float vector width on CPUs);
+#: ``network_local_tiles`` (the conv stack and the L4 split as a local-memory tiled
+#: GEMM, kernels/network_conv_wg.cl) with its starting tile ``network_gemm_tile``
+#: (TM pixels x TN channels per work-group, TK terms per slice, RM x RN per
+#: work-item); ``fst_workgroup`` (fst's cosine volume with a work-group per
+#: (column tile, disparity chunk, row), kernels/fst_wg.cl) with ``fst_volume_tile``
+#: (TX columns x TD disparities, TK maps per slice, RX x RD per work-item).  The
+#: tiles are the same in every column (they are what a forced run starts from) and
+#: shrink to the kernel's CL_KERNEL_WORK_GROUP_SIZE and the local memory.
 RULES = {
     "sgm_stage":               {CPU: "lines", LLVMPIPE: "lines", GPU: "workgroup"},
     "sgm_prefetch":            {CPU: True,  LLVMPIPE: True,  GPU: False},
@@ -64,6 +73,10 @@ RULES = {
     "network_tiles":           {CPU: dict(TM=64, RM=8, ROWS_FASTEST=1, CONV_RM=8),
                                 LLVMPIPE: dict(TM=64, RM=8, ROWS_FASTEST=1, CONV_RM=8),
                                 GPU: dict(TM=32, RM=4, RN=4, ROWS_FASTEST=0, CONV_RM=4)},
+    "network_local_tiles":     {CPU: False, LLVMPIPE: False, GPU: True},
+    "network_gemm_tile":       {c: dict(TM=64, TN=64, TK=16, RM=4, RN=4) for c in (CPU, LLVMPIPE, GPU)},
+    "fst_workgroup":           {CPU: False, LLVMPIPE: False, GPU: True},
+    "fst_volume_tile":         {c: dict(TX=64, TD=64, TK=16, RX=4, RD=4) for c in (CPU, LLVMPIPE, GPU)},
 }
 
 #: Declared facts per class: (loop_limit or None, slow_compiler).
@@ -154,6 +167,28 @@ class DeviceProfile:
         if "RN" not in tiles:
             tiles["RN"] = 16 if self.vector_width >= 16 else 8 if self.vector_width >= 8 else 4
         return tiles
+
+    def local_tile(self, path_rule: str, tile_rule: str, choice=None):
+        """A GPU-shaped path's tile, or None when the path is not taken:
+        ``choice`` None follows ``path_rule`` (True: the ``tile_rule`` row's
+        sizes), False excludes the path, True takes it with those sizes, a
+        dict takes it with those sizes updated by the dict.  Returns
+        ``(sizes, forced)``: forced (a dict was given) sizes are checked
+        against the kernel's limits, the others shrink to fit them."""
+        if choice is None:
+            choice = bool(self.rule(path_rule))
+        if choice is False:
+            return None
+        sizes = dict(self.rule(tile_rule))
+        if choice is True:
+            return sizes, False
+        unknown = set(choice) - set(sizes)
+        if unknown:
+            from .errors import InputError
+
+            raise InputError(f"unknown {tile_rule} keys {sorted(unknown)} (known: {sorted(sizes)})")
+        sizes.update({k: int(v) for k, v in choice.items()})
+        return sizes, True
 
     def line_group(self, ctx, kernel, group_of_one: bool = False) -> int:
         """Work-group size of a line-walking kernel (CBCA, SGM): 1 when

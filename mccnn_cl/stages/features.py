@@ -2,11 +2,29 @@
 
 All three architectures (paper, fst, acrt) start with the same tower: valid
 KS x KS convolutions of the standardised gray image, run once per image,
-fully convolutionally (``kernels/network_conv.cl``, one register-blocked GEMM
-per layer over output pixels).  The towers differ only in whether a ReLU
-follows the last layer (paper and acrt: yes; fst: no, its features are
-L2-normalised next).  Layer count, maps and kernel sizes are read from the
-weights.
+fully convolutionally, as one GEMM per layer over output pixels.  The
+towers differ only in whether a ReLU follows the last layer (paper and
+acrt: yes; fst: no, its features are L2-normalised next).  Layer count,
+maps and kernel sizes are read from the weights.
+
+Two kernels compute that GEMM, with the same float operations per output
+(bias, one fma per term in the same order, ReLU), so bit for bit the same:
+
+* ``kernels/network_conv.cl`` (``network_conv``): register blocks, no
+  local memory; a work-item computes CONV_RM pixels x RN channels reading
+  its operands from global memory (CPUs: the caches do the reuse);
+* ``kernels/network_conv_wg.cl`` (``network_conv_wg``, the "local tiles"
+  path; the default on the profile's ``gpu`` column, rule
+  ``network_local_tiles``): a work-group per TM x TN tile of outputs stages
+  TK-term slices of both operands in local memory (the input gathered
+  im2col-style on the fly), each work-item accumulating an RM x RN register
+  block; two barriers per slice.  The tile starts from the profile's
+  ``network_gemm_tile`` (64 x 64, TK 16, 4 x 4: 256 work-items, 8704 bytes of
+  local memory), TN and TK capped by the layer's channels and terms, and
+  shrinks (TM, then TN, then TK) until the group fits the kernel's
+  CL_KERNEL_WORK_GROUP_SIZE, the device's item sizes and its local memory.
+  ``ConvStack(local_tiles=...)`` forces it (True, or a dict of sizes,
+  checked: InputError when they do not fit) or excludes it (False).
 
 Layouts: the image is float32 ``[H][W][C]``; each layer's output is
 channel-last, pixel-major ``[(H - ks + 1) * (W - ks + 1)][NP]`` with NP the
@@ -24,6 +42,7 @@ inputs checked by :func:`mccnn_cl.validate.check_cost_inputs`).
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 
@@ -33,6 +52,62 @@ from ..validate import check_cost_inputs
 from ..imageops import standardise as normalise  # noqa: F401 (one standardisation: training's too)
 
 CONV_CL = "network_conv.cl"
+CONV_WG_CL = "network_conv_wg.cl"
+
+#: One layer's GEMM kernel: ``tile`` None for network_conv (register blocks),
+#: else the sizes network_conv_wg was built with (TM, TN, TK, RM, RN).
+ConvKernel = namedtuple("ConvKernel", "kern tile")
+
+
+def fit_tile(ctx, what, sizes, forced, local_bytes, local_size, build, shrink):
+    """Build a local-memory tiled kernel whose work-group fits the device.
+
+    ``sizes``: the tile (a dict); ``local_bytes(sizes)``: its local memory;
+    ``local_size(sizes)``: its 2-D work-group; ``build(sizes)``: the kernel;
+    ``shrink(sizes)``: a smaller tile or None.  A tile fits when its local
+    memory is within the device's, and its work-group within the kernel's
+    CL_KERNEL_WORK_GROUP_SIZE and the device's item sizes; forced tiles are
+    not shrunk.  Returns ``(kernel, sizes)``; InputError when nothing fits."""
+    dims = [int(n) for n in ctx.device.max_work_item_sizes]
+    while True:
+        need = local_bytes(sizes)
+        if need > ctx.local_mem:
+            problem = f"{need} bytes of local memory, more than the device's {ctx.local_mem}"
+        else:
+            kern = build(sizes)
+            l0, l1 = local_size(sizes)
+            kmax = ctx.work_group_size(kern)
+            kl = int(kern.get_work_group_info(ctx.cl.kernel_work_group_info.LOCAL_MEM_SIZE, ctx.device))
+            if l0 * l1 > kmax or l0 > dims[0] or l1 > dims[1]:
+                problem = f"work-groups of {l0} x {l1} work-items, more than the kernel's maximum {kmax}"
+            elif kl > ctx.local_mem:
+                problem = f"{kl} bytes of local memory, more than the device's {ctx.local_mem}"
+            else:
+                return kern, sizes
+        smaller = None if forced else shrink(dict(sizes))
+        if smaller is None:
+            raise InputError(f"{what} tile {sizes} needs {problem} on {ctx.describe()}")
+        sizes = smaller
+
+
+def halve_tile(sizes, key, unit):
+    """A tile's shrinking step: ``sizes`` with ``key`` halved, rounded down to a
+    multiple of ``sizes[unit]`` (its register block); None when already at it."""
+    if sizes[key] <= sizes[unit]:
+        return None
+    sizes[key] = max(sizes[unit], sizes[key] // 2 // sizes[unit] * sizes[unit])
+    return sizes
+
+
+def check_tile(sizes, pairs, what):
+    """InputError unless every size is >= 1 and each ``(big, small)`` of ``pairs``
+    (a tile and its register block) divides."""
+    for key in sizes:
+        if int(sizes[key]) < 1:
+            raise InputError(f"{what} tile sizes must be >= 1, got {sizes}")
+    for big, small in pairs:
+        if sizes[big] % sizes[small]:
+            raise InputError(f"{what} tile: {big}={sizes[big]} must be a multiple of {small}={sizes[small]}")
 
 
 def default_tiles(ctx) -> dict:
@@ -50,14 +125,25 @@ class ConvStack:
     first write costs page mapping on CPU devices: one KITTI band's stack
     ~1.3 -> 0.9 s with reuse); callers hand the output back with :meth:`give`,
     :meth:`release_buffers` frees the pool.
+
+    ``local_tiles``: the GEMM kernel (module docstring): None the profile's
+    rule, False ``network_conv``, True ``network_conv_wg`` with the
+    profile's tile (shrunk to fit), a dict ``network_conv_wg`` with those
+    sizes (keys TM, TN, TK, RM, RN; not shrunk).  ``path`` says which
+    ("local" or "register"); each layer's kernel and tile: ``layers[i][0]``.
     """
 
-    def __init__(self, ctx, weights, rn: int, conv_rm: int, relu_after_last: bool | None = None):
+    def __init__(self, ctx, weights, rn: int, conv_rm: int, relu_after_last: bool | None = None,
+                 local_tiles=None):
         if rn not in (1, 2, 4, 8, 16):
             raise InputError(f"tile RN must be 1, 2, 4, 8 or 16, got {rn}")
         if int(conv_rm) < 1:
             raise InputError(f"tile CONV_RM must be >= 1, got {conv_rm}")
         self.ctx, self.rn, self.conv_rm = ctx, int(rn), int(conv_rm)
+        self.local_tile = ctx.profile.local_tile("network_local_tiles", "network_gemm_tile", local_tiles)
+        if self.local_tile is not None:
+            check_tile(self.local_tile[0], (("TM", "RM"), ("TN", "RN")), "conv GEMM")
+        self.path = "register" if self.local_tile is None else "local"
         relu_last = weights.relu_after_last_conv if relu_after_last is None else bool(relu_after_last)
         self.relu_after_last = relu_last
         self.layers = []  # (kernel, d_w, d_b, kernel size, padded outputs)
@@ -87,13 +173,42 @@ class ConvStack:
     def release_buffers(self) -> None:
         self._pool.clear()
 
-    def kernel(self, ks, cin, cs, npad, relu):
-        return self.ctx.kernel(CONV_CL, "network_conv", KS=ks, CIN=cin, CS=cs, NP=npad,
-                               RM=self.conv_rm, RN=self.rn, RELU=int(relu))
+    def kernel(self, ks, cin, cs, npad, relu) -> ConvKernel:
+        """The GEMM kernel of one layer (KS x KS, CIN channels read at stride
+        CS, NP padded outputs) on this stack's path."""
+        defs = dict(KS=ks, CIN=cin, CS=cs, NP=npad, RELU=int(relu))
+        if self.local_tile is None:
+            return ConvKernel(self.ctx.kernel(CONV_CL, "network_conv", RM=self.conv_rm, RN=self.rn, **defs), None)
+        sizes, forced = self.local_tile
+        sizes = dict(sizes)
+        if not forced:  # no wider than the layer: TN up to NP, TK up to the K terms
+            sizes["TN"] = min(sizes["TN"], round_up(npad, sizes["RN"]))
+            sizes["TK"] = min(sizes["TK"], ks * ks * cin)
 
-    def launch(self, kern, d_in, w_in, d_w, d_b, d_out, w_out, m_total, npad):
-        gsize = (npad // self.rn, math.ceil(m_total / self.conv_rm))
-        kern(self.ctx.queue, gsize, None, d_in, np.int32(w_in), d_w, d_b, d_out,
+        def shrink(t):  # fewer pixels, then fewer channels, then a thinner slice
+            if halve_tile(t, "TM", "RM") or halve_tile(t, "TN", "RN"):
+                return t
+            if t["TK"] > 1:
+                t["TK"] //= 2
+                return t
+            return None
+
+        kern, tile = fit_tile(
+            self.ctx, f"conv GEMM (KS={ks}, CIN={cin}, NP={npad})", sizes, forced,
+            lambda t: 4 * t["TK"] * (t["TM"] + t["TN"]) + 8 * t["TM"],
+            lambda t: (t["TN"] // t["RN"], t["TM"] // t["RM"]),
+            lambda t: self.ctx.kernel(CONV_WG_CL, "network_conv_wg", **defs, **t), shrink)
+        return ConvKernel(kern, tile)
+
+    def launch(self, conv: ConvKernel, d_in, w_in, d_w, d_b, d_out, w_out, m_total, npad):
+        kern, tile = conv
+        if tile is None:
+            gsize, lsize = (npad // self.rn, math.ceil(m_total / self.conv_rm)), None
+        else:
+            wn, wm = tile["TN"] // tile["RN"], tile["TM"] // tile["RM"]
+            lsize = (wn, wm)
+            gsize = (math.ceil(npad / tile["TN"]) * wn, math.ceil(m_total / tile["TM"]) * wm)
+        kern(self.ctx.queue, gsize, lsize, d_in, np.int32(w_in), d_w, d_b, d_out,
              np.int32(w_out), np.int32(m_total))
 
     def __call__(self, d_img, H: int, W: int):
@@ -135,11 +250,11 @@ class ConvStack:
         return total, hh, ww
 
 
-def setup_network_cost(cost, ctx, weights, tiles, half: bool) -> None:
+def setup_network_cost(cost, ctx, weights, tiles, half: bool, local_tiles=None) -> None:
     """A network cost's common state: the weights checked against
     ``cost.architecture``, volume storage (float16 with ``half``), patch,
     margin, channels, the tiles (the profile's, updated by ``tiles``) and the
-    conv stack (:class:`ConvStack`)."""
+    conv stack (:class:`ConvStack`, its GEMM path by ``local_tiles``)."""
     weights.validate()
     if weights.architecture != cost.architecture:
         raise WeightsError(f"{type(cost).__name__} runs {cost.architecture} networks, "
@@ -153,7 +268,8 @@ def setup_network_cost(cost, ctx, weights, tiles, half: bool) -> None:
     cost.channels = weights.input_channels
     cost.tiles = default_tiles(ctx)
     cost.tiles.update(tiles or {})
-    cost.stack = ConvStack(ctx, weights, int(cost.tiles["RN"]), int(cost.tiles["CONV_RM"]))
+    cost.stack = ConvStack(ctx, weights, int(cost.tiles["RN"]), int(cost.tiles["CONV_RM"]),
+                           local_tiles=local_tiles)
 
 
 def volume_on_device(cost, left, right, max_disparity, out, progress, label: str):

@@ -13,6 +13,28 @@ convolutions are valid and the volume lives on the cropped domain (margin
 m = (P - 1) / 2), like every other cost, so the pipeline treats all costs
 alike.
 
+Two volume kernels, bit for bit the same costs (each is 0, one fma per map
+in increasing order, negated):
+
+* ``fst_volume_pairs`` (``kernels/fst.cl``, the CPU form, :data:`VARIANT`):
+  a work-item per 32 pixels of a row walking every disparity, its right
+  vectors made by shuffles of aligned loads;
+* ``fst_volume_wg`` (``kernels/fst_wg.cl``, the "workgroup" path; the
+  default on the profile's ``gpu`` column, rule ``fst_workgroup``): a
+  work-group per (tile of TX columns, chunk of TD disparities, row) stages
+  TK-map slices of the TX left and TX + TD - 1 right feature columns it
+  needs in local memory, each work-item accumulating an RX x RD block of
+  cells; two barriers per slice.  Each right feature is read from global
+  memory once per group instead of once per disparity.  The tile starts
+  from the profile's ``fst_volume_tile`` (64 x 64, TK 16, 4 x 4: 256
+  work-items, 12224 bytes of local memory), TK capped by the maps, and shrinks
+  (TD, then TX, then TK) to the kernel's CL_KERNEL_WORK_GROUP_SIZE, the
+  item sizes and the local memory.  ``FstCost(workgroup=...)`` forces it
+  (True, or a dict of sizes TX, TD, TK, RX, RD, checked) or excludes it.
+
+The conv stack's GEMM has the same two shapes (``local_tiles=``, rule
+``network_local_tiles``; :mod:`.features`).
+
 Memory: the image is processed in bands of volume rows whose feature
 buffers (both images, pixel-major and planar) take at most ``BAND_BYTES``;
 the cost interface (``margin``, ``scratch_bytes``, ``__call__``,
@@ -26,9 +48,11 @@ import numpy as np
 from ..cl import round_up
 from ..weights import FST, Weights
 from ..validate import check_cost_inputs
-from .features import normalise, setup_network_cost, volume_on_device, volume_to_host
+from .features import (check_tile, fit_tile, halve_tile, normalise, setup_network_cost, volume_on_device,
+                       volume_to_host)
 
 FST_CL = "fst.cl"
+FST_WG_CL = "fst_wg.cl"
 #: bytes of one band's feature buffers (both images)
 BAND_BYTES = 256 << 20
 #: the volume kernel's form (kernels/fst.cl), KITTI volume on PoCL, same process:
@@ -42,19 +66,67 @@ _FORMS = {0: ("fst_volume", 8, 16), 1: ("fst_volume", 16, 16), 2: ("fst_volume_p
 
 
 class FstCost:
-    """Cosine cost volume of the fst network: ``FstCost(ctx, weights)(left, right, D)``."""
+    """Cosine cost volume of the fst network: ``FstCost(ctx, weights)(left, right, D)``.
+
+    ``tiles``: the conv kernel's register tiles (:func:`.features.default_tiles`);
+    ``half``: float16 volume storage; ``local_tiles``: the conv stack's GEMM
+    path (:class:`.features.ConvStack`); ``workgroup``: the volume kernel
+    (module docstring): None the profile's rule, False ``fst_volume_pairs``,
+    True ``fst_volume_wg`` with the profile's tile, a dict ``fst_volume_wg``
+    with those sizes.  ``volume_path`` says which ("workgroup" or "pairs"),
+    ``volume_tile`` the work-group path's sizes.
+    """
 
     architecture = FST
     local = False  # see mccnn_cl.stages.costs
     floor = -1.0  # lower bound of the cost: -cosine of unit vectors
 
-    def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False):
-        setup_network_cost(self, ctx, weights, tiles, half)
+    def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False,
+                 local_tiles=None, workgroup=None):
+        setup_network_cost(self, ctx, weights, tiles, half, local_tiles)
         self.nk = weights.feature_maps
         name, rd, self._vol_px = _FORMS[VARIANT]  # kernel, disparities per block, pixels per work-item
         defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL, RD=rd, VARIANT=VARIANT)
         self._norm = ctx.kernel(FST_CL, "fst_normalise", **defs)
-        self._vol = ctx.kernel(FST_CL, name, VOL_HALF=int(half), **defs)
+        wg = ctx.profile.local_tile("fst_workgroup", "fst_volume_tile", workgroup)
+        self.volume_tile = None
+        if wg is None:
+            self.volume_path = "pairs" if VARIANT == 2 else "single"
+            self._vol = ctx.kernel(FST_CL, name, VOL_HALF=int(half), **defs)
+        else:
+            self.volume_path = "workgroup"
+            self._vol, self.volume_tile = self._volume_wg(*wg)
+
+    def _volume_wg(self, sizes, forced):
+        """fst_volume_wg built with a tile that fits (:func:`.features.fit_tile`)."""
+        check_tile(sizes, (("TX", "RX"), ("TD", "RD")), "fst volume")
+        if not forced:
+            sizes["TK"] = min(sizes["TK"], self.nk)
+
+        def shrink(t):  # fewer disparities, then fewer columns, then fewer maps per slice
+            if halve_tile(t, "TD", "RD") or halve_tile(t, "TX", "RX"):
+                return t
+            if t["TK"] > 1:
+                t["TK"] //= 2
+                return t
+            return None
+
+        defs = dict(NK=self.nk, PADL=PADL, VOL_HALF=int(self.half))
+        return fit_tile(self.ctx, f"fst volume (NK={self.nk})", sizes, forced,
+                        lambda t: 4 * t["TK"] * (2 * t["TX"] + t["TD"] - 1),
+                        lambda t: (t["TX"] // t["RX"], t["TD"] // t["RD"]),
+                        lambda t: self.ctx.kernel(FST_WG_CL, "fst_volume_wg", **defs, **t), shrink)
+
+    def launch_volume(self, d_l, d_r, d_cost, h, w, y0, D, hb):
+        """Enqueue the volume kernel: rows ``y0 .. y0 + hb - 1`` of the ``[D][h][w]``
+        volume ``d_cost`` from the band's planar features ``d_l``, ``d_r``."""
+        i32, t = np.int32, self.volume_tile
+        args = (d_l, d_r, d_cost, i32(h), i32(w), i32(y0), i32(D), i32(self._wp(w)))
+        if t is None:
+            self._vol(self.ctx.queue, (-(-w // self._vol_px), hb), None, *args)
+            return
+        wx, wd = t["TX"] // t["RX"], t["TD"] // t["RD"]
+        self._vol(self.ctx.queue, (-(-w // t["TX"]) * wx, -(-D // t["TD"]) * wd, hb), (wx, wd, 1), *args)
 
     def _wp(self, w: int) -> int:
         return PADL + round_up(w, 32)  # whole 32-pixel blocks of the pairs form inside a row
@@ -120,17 +192,15 @@ class FstCost:
         return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "fst cost")
 
     def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
-        q, P, i32 = self.ctx.queue, self.patch, np.int32
+        q, P = self.ctx.queue, self.patch
         Ln, Rn = normalise(L), normalise(R)
-        wp = self._wp(w)
         bands = range(0, h, rows)
         for i, y0 in enumerate(bands):
             hb = min(rows, h - y0)
             d_l = self._features(Ln[y0:y0 + hb + P - 1], hb, w)
             d_r = self._features(Rn[y0:y0 + hb + P - 1], hb, w)
             vh, vy0 = (h, y0) if host is None else (hb, 0)
-            self._vol(q, (-(-w // self._vol_px), hb), None, d_l, d_r, d_cost, i32(vh), i32(w), i32(vy0),
-                      i32(D), i32(wp))
+            self.launch_volume(d_l, d_r, d_cost, vh, w, vy0, D, hb)
             if progress is not None or host is not None:
                 q.finish()
             d_l.release()

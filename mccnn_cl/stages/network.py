@@ -2,7 +2,8 @@
 and :class:`AcrtCost` (JMLR 2016 MC-CNN-acrt).
 
 Both run the tied conv stack once per image (:class:`.features.ConvStack`,
-``kernels/network_conv.cl``; ReLU after every conv layer, the last too), then
+``kernels/network_conv.cl``, or ``network_conv_wg.cl`` on the profile's
+``gpu`` column; ReLU after every conv layer, the last too), then
 the fc head per pixel and disparity.  Following the paper's "Matching cost"
 section, the first fc layer (L4) acts on the concatenation
 [f_L(p); f_R(p - d)], so with W4 = [W4a | W4b] it splits into two per-pixel
@@ -69,6 +70,9 @@ class PaperCost:
         local memory and work-group size fit the device.
     half : bool
         float16 volume storage.
+    local_tiles : None, bool or dict
+        The GEMM kernel of the conv layers and the L4 split (None: the
+        profile's ``network_local_tiles`` rule; see :class:`.features.ConvStack`).
     """
 
     architecture = PAPER
@@ -78,8 +82,9 @@ class PaperCost:
     #: lower bound of the cost (a softmax or sigmoid probability)
     floor = 0.0
 
-    def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False):
-        setup_network_cost(self, ctx, weights, tiles, half)
+    def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False,
+                 local_tiles=None):
+        setup_network_cost(self, ctx, weights, tiles, half, local_tiles)
         t = self.tiles
         rn = self.rn = self.stack.rn
         cs = self.feat_stride = self.stack.stride
