@@ -107,12 +107,14 @@ def case_network(ctx, rng, chk):
     w = Weights.random(conv_layers=[[4, 3], [4, 3], [4, 3], [4, 3]], fc_layers=[8, 8, 8, 2], seed=3)
     # the device's default tiles, then small explicit ones: several tiles per
     # disparity with a partly empty last one, both work-item orders
-    nets = [NetworkCost(ctx, w),
-            NetworkCost(ctx, w, tiles={"TM": 8, "RM": 2, "RN": 4, "ROWS_FASTEST": 1, "CONV_RM": 2}),
-            NetworkCost(ctx, w, tiles={"TM": 4, "RM": 1, "RN": 2, "ROWS_FASTEST": 0, "CONV_RM": 3}),
+    # the CPU-shaped conv kernel (network_conv) whatever the device's default: case network_wg has the other
+    nets = [NetworkCost(ctx, w, local_tiles=False),
+            NetworkCost(ctx, w, tiles={"TM": 8, "RM": 2, "RN": 4, "ROWS_FASTEST": 1, "CONV_RM": 2}, local_tiles=False),
+            NetworkCost(ctx, w, tiles={"TM": 4, "RM": 1, "RN": 2, "ROWS_FASTEST": 0, "CONV_RM": 3}, local_tiles=False),
             # 256 row groups x 8 column groups > Oclgrind's 1024 work-items:
             # fewer work-items than (row, column) groups, each walking several
-            NetworkCost(ctx, w, tiles={"TM": 256, "RM": 1, "RN": 1, "ROWS_FASTEST": 0, "CONV_RM": 1})]
+            NetworkCost(ctx, w, tiles={"TM": 256, "RM": 1, "RN": 1, "ROWS_FASTEST": 0, "CONV_RM": 1},
+                        local_tiles=False)]
     sizes = ((12, 20, 5), (11, 13, 7), (12, 17, 5), (12, 15, 4))  # 2nd: D >= W (cropped W = 5)
     import mccnn_cl.stages.network as network_module
 
@@ -142,11 +144,12 @@ def case_fst(ctx, rng, chk):
     import mccnn_cl.stages.fst as fst_module
 
     w = Weights.random(conv_layers=[[6, 3], [5, 3]], architecture="mccnn-fst", seed=4)  # patch 5
-    cost = FstCost(ctx, w)  # the default form (pairs of 16-pixel vectors)
+    # the CPU-shaped kernels whatever the device's default (case fst_wg has the GPU-shaped ones):
+    cost = FstCost(ctx, w, local_tiles=False, workgroup=False)  # pairs of 16-pixel vectors
     saved = fst_module.VARIANT
     fst_module.VARIANT = 1   # and the one-vector form (fst_volume)
     try:
-        single = FstCost(ctx, w)
+        single = FstCost(ctx, w, local_tiles=False, workgroup=False)
     finally:
         fst_module.VARIANT = saved
     # 2nd: D >= W (cropped W = 9), 3rd: cropped width 35 (a partial 16-pixel block)
@@ -172,9 +175,75 @@ def case_acrt(ctx, rng, chk):
         left, right = _images(rng, h, wd)
         H, W = h - 2 * w.margin, wd - 2 * w.margin
         out = _poisoned(ctx, D * H * W * 4)
-        AcrtCost(ctx, w, tiles=tiles)(left, right, D, out=out)
+        AcrtCost(ctx, w, tiles=tiles, local_tiles=False)(left, right, D, out=out)
         chk.close(f"acrt {h}x{wd} D={D}", ctx.from_device(out, (D, H, W)), ref.cost_volume(w, left, right, D),
                   atol=2e-5, rtol=1e-4)
+
+
+def case_network_wg(ctx, rng, chk):
+    """network_conv_wg.cl (the conv stack and the L4 split as a local-memory
+    tiled GEMM): the paper and acrt structures with the device's tile and
+    forced ones of 4 to 30 work-items (partial tiles in pixels, channels and
+    terms; sizes that are no powers of two; at most 32 work-items, Rusticl's
+    limit), so that Oclgrind's race and barrier checks see the local blocks
+    shared; against the reference and, bit for bit, the CPU-shaped kernels."""
+    from mccnn_cl.reference import network as ref
+    from mccnn_cl.stages.network import AcrtCost, PaperCost
+    from mccnn_cl.weights import Weights
+
+    paper = Weights.random(conv_layers=[[5, 3], [6, 3]], fc_layers=[8, 8, 2], seed=3)
+    acrt = Weights.random(conv_layers=[[4, 3], [7, 3]], fc_layers=[8, 1], architecture="mccnn-acrt", seed=5)
+    for cls, w, tile, (h, wd, D) in (
+            (PaperCost, paper, True, (9, 17, 5)),
+            (PaperCost, paper, dict(TM=6, TN=5, TK=4, RM=2, RN=1), (8, 13, 7)),
+            (AcrtCost, acrt, dict(TM=8, TN=8, TK=7, RM=2, RN=2), (9, 14, 5)),
+            (AcrtCost, acrt, dict(TM=10, TN=3, TK=3, RM=1, RN=1), (7, 11, 4))):
+        left, right = _images(rng, h, wd)
+        H, W = h - 2 * w.margin, wd - 2 * w.margin
+        vols = []
+        for lt in (tile, False):
+            out = _poisoned(ctx, D * H * W * 4)
+            cls(ctx, w, local_tiles=lt)(left, right, D, out=out)
+            vols.append(ctx.from_device(out, (D, H, W)))
+        label = f"{cls.__name__} {h}x{wd} D={D} conv tile {tile}"
+        chk.close(f"{label} vs reference", vols[0], ref.cost_volume(w, left, right, D), atol=2e-5, rtol=1e-4)
+        chk.close(f"{label} = CPU-shaped conv", vols[0], vols[1])
+
+
+def case_fst_wg(ctx, rng, chk):
+    """fst_wg.cl (the cosine volume with a work-group per column tile,
+    disparity chunk and row, local-memory slices of the features) after the
+    GEMM conv stack: the device's tile and forced ones of 4 to 32 work-items
+    (partial tiles in columns, disparities and maps; whole tiles left of d;
+    D >= W), half storage; against the reference and, bit for bit, the
+    CPU-shaped kernels."""
+    from mccnn_cl.reference import network as ref
+    from mccnn_cl.stages.fst import FstCost
+    from mccnn_cl.weights import Weights
+
+    w = Weights.random(conv_layers=[[6, 3], [5, 3]], architecture="mccnn-fst", seed=4)  # patch 5, 5 maps
+    for wg, lt, (h, wd, D), half in ((True, True, (7, 25, 9), False),
+                                     (dict(TX=4, TD=4, TK=2, RX=2, RD=2), dict(TM=4, TN=4, TK=5, RM=1, RN=1),
+                                      (6, 23, 13), False),
+                                     (dict(TX=6, TD=5, TK=3, RX=1, RD=1), False, (8, 13, 11), False),
+                                     (dict(TX=8, TD=4, TK=5, RX=2, RD=1), True, (6, 21, 7), True)):
+        left, right = _images(rng, h, wd)
+        H, W = h - 2 * w.margin, wd - 2 * w.margin
+        vols = []
+        for cost in (FstCost(ctx, w, half=half, local_tiles=lt, workgroup=wg),
+                     FstCost(ctx, w, half=half, local_tiles=False, workgroup=False)):
+            if half:
+                out = ctx.empty(2 * D * H * W, "test output")
+                ctx.fill(out, -65504.0, 2 * D * H * W, np.float16)
+            else:
+                out = _poisoned(ctx, D * H * W * 4)
+            cost(left, right, D, out=out)
+            vols.append(ctx.from_device(out, (D, H, W), np.float16 if half else np.float32))
+        label = f"fst work-group {h}x{wd} D={D} volume tile {wg} conv tile {lt} half={half}"
+        # float32: case fst's 2e-6; half: + half an ulp at 1 (2^-11)
+        chk.close(f"{label} vs reference", vols[0].astype(np.float32), ref.fst_cost_volume(w, left, right, D),
+                  atol=2e-6 + (2 ** -11 if half else 0.0))
+        chk.close(f"{label} = CPU-shaped kernels", vols[0], vols[1])
 
 
 def case_census(ctx, rng, chk):
@@ -510,7 +579,9 @@ def selftest_bad_kernel(ctx, rng, chk):
 # Stages covered: add a case here once its stage is committed.
 CASES = {
     "network": case_network,
+    "network_wg": case_network_wg,
     "fst": case_fst,
+    "fst_wg": case_fst_wg,
     "acrt": case_acrt,
     "census": case_census,
     "cross": case_cross,
