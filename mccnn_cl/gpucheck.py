@@ -43,6 +43,7 @@ TEST_GROUPS = (
                                  "d_at_least_w or paired_sweeps_on_real or clear_minimum"], ()),
     ("census", ["tests/test_census.py"], ()),
     ("network fst", ["tests/test_fst.py"], ()),
+    ("networks, local-memory tiles (GPU layout: conv GEMM, fst volume)", ["tests/test_network_gpu.py"], ()),
     ("network acrt", ["tests/test_acrt.py"], ()),
     ("network paper", ["tests/test_network.py", "-k",
                        "paper_net_random_image or small_nets or constant_images or real_crops"], ("torch",)),
