@@ -17,7 +17,14 @@ a warm-up, best of ``--reps`` runs, each timed after ``ctx.finish()``:
 * acrt head: its FLOP rate against numpy GEMM on one hidden layer's shape;
 * the whole stereo method (``StereoMatcher(weights=...)`` with the
   network's own settings, default the authors' KITTI ones), steady state
-  (volumes kept between calls), with the per-stage split of one timed call.
+  (volumes kept between calls), with the per-stage split of one timed call;
+* fst, unless ``--no-gpu-shaped``: the GPU-shaped kernels (the gpu column's
+  default: the conv stack as a local-memory tiled GEMM, network_conv_wg.cl;
+  the work-group volume, fst_wg.cl) forced on this device, timed in turn
+  with the features and the volume kernel of this device's default, with
+  which their outputs are checked bit for bit.  On a CPU they are expected
+  to be slower (PoCL runs a group's work-items as loops between barriers):
+  the line is there to be read on a GPU.
 
 Weights are random of the authors' KITTI sizes unless ``--weights`` names a
 file (run time does not depend on the values).  The figures in
@@ -78,6 +85,54 @@ def gemm_job(w, H, W, reps, extra=None):
     return run, flop
 
 
+def gpu_shaped(ctx, cost, w, Ln, Rn, h, wd, D, reps):
+    """fst's GPU-shaped kernels forced (``FstCost(local_tiles=True,
+    workgroup=True)``) against ``cost`` (this device's default): features
+    and volume, each pair timed in turn; outputs compared bit for bit."""
+    from mccnn_cl.stages.fst import FstCost
+
+    gpu = FstCost(ctx, w, local_tiles=True, workgroup=True)
+    if gpu.volume_path == cost.volume_path and gpu.stack.path == cost.stack.path:
+        print("GPU-shaped kernels: this device's default already (timed above)")
+        return
+    nbytes = D * h * wd * 4
+    vols = [ctx.empty(nbytes, "bench volume") for _ in range(2)]
+    feats = {}
+
+    def features(c):
+        def run():
+            for b in feats.pop(c, ()):
+                b.release()
+            feats[c] = (c._features(Ln, h, wd), c._features(Rn, h, wd))
+            ctx.finish()
+        return run
+
+    def volume(c, d_vol):
+        def run():
+            c.launch_volume(*feats[c], d_vol, h, wd, 0, D, h)
+            ctx.finish()
+        return run
+
+    for c in (cost, gpu):
+        features(c)()
+    t = interleaved({"default": features(cost), "gpu": features(gpu)}, reps)
+    tiles = sorted({str(l[0].tile) for l in gpu.stack.layers})
+    print(f"features, GPU-shaped (network_conv_wg, tiles {', '.join(tiles)}): {t['gpu'] * 1e3:.0f} ms against "
+          f"{t['default'] * 1e3:.0f} ms ({cost.stack.path} conv): {t['gpu'] / t['default']:.2f}x")
+    t = interleaved({"default": volume(cost, vols[0]), "gpu": volume(gpu, vols[1])}, reps)
+
+    def host(buf):
+        return ctx.from_device(buf, (buf.size // 4,), np.uint32)
+
+    same = np.array_equal(host(vols[0]), host(vols[1])) and all(
+        np.array_equal(host(a), host(b)) for a, b in zip(feats[cost], feats[gpu]))
+    print(f"cosine volume, GPU-shaped (fst_volume_wg, tile {gpu.volume_tile}): {t['gpu'] * 1e3:.0f} ms against "
+          f"{t['default'] * 1e3:.0f} ms (fst_volume_{cost.volume_path}): {t['gpu'] / t['default']:.2f}x; "
+          f"features and volume bit-identical: {same}")
+    for b in vols + [b for pair in feats.values() for b in pair]:
+        b.release()
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--arch", choices=("fst", "acrt"), default="fst")
@@ -86,6 +141,8 @@ def main(argv=None):
     ap.add_argument("--weights", default=None, help="a weights file (default: random, authors' sizes)")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--no-pipeline", action="store_true")
+    ap.add_argument("--no-gpu-shaped", action="store_true",
+                    help="fst: skip timing the GPU-shaped kernels forced beside this device's default")
     args = ap.parse_args(argv)
 
     from mccnn_cl import datasets
@@ -149,8 +206,7 @@ def main(argv=None):
         i32 = np.int32
 
         def vol():
-            cost._vol(ctx.queue, (-(-wd // cost._vol_px), h), None, d_l, d_r, d_vol, i32(h), i32(wd), i32(0), i32(D),
-                      i32(cost._wp(wd)))
+            cost.launch_volume(d_l, d_r, d_vol, h, wd, 0, D, h)
             ctx.finish()
 
         def copy():
@@ -172,6 +228,8 @@ def main(argv=None):
             b.release()
         t_cost = best(lambda: (cost(left, right, D).release(), ctx.finish()), args.reps)
         print(f"whole cost (features + volume, fresh volume buffer): {t_cost * 1e3:.0f} ms")
+        if not args.no_gpu_shaped:
+            gpu_shaped(ctx, cost, w, Ln, Rn, h, wd, D, args.reps)
     else:
         t_cost = best(lambda: (cost(left, right, D).release(), ctx.finish()), 1)
         head = t_cost - t_feat
