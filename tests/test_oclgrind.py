@@ -183,7 +183,7 @@ def case_acrt(ctx, rng, chk):
 def case_network_wg(ctx, rng, chk):
     """network_conv_wg.cl (the conv stack and the L4 split as a local-memory
     tiled GEMM): the paper and acrt structures with the device's tile and
-    forced ones of 4 to 30 work-items (partial tiles in pixels, channels and
+    forced ones of 15 to 30 work-items (partial tiles in pixels, channels and
     terms; sizes that are no powers of two; at most 32 work-items, Rusticl's
     limit), so that Oclgrind's race and barrier checks see the local blocks
     shared; against the reference and, bit for bit, the CPU-shaped kernels."""
@@ -213,7 +213,7 @@ def case_network_wg(ctx, rng, chk):
 def case_fst_wg(ctx, rng, chk):
     """fst_wg.cl (the cosine volume with a work-group per column tile,
     disparity chunk and row, local-memory slices of the features) after the
-    GEMM conv stack: the device's tile and forced ones of 4 to 32 work-items
+    GEMM conv stack: the device's tile and forced ones of 4 to 30 work-items
     (partial tiles in columns, disparities and maps; whole tiles left of d;
     D >= W), half storage; against the reference and, bit for bit, the
     CPU-shaped kernels."""
