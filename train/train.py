@@ -42,7 +42,7 @@ import shlex
 import subprocess
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import timedelta
 from pathlib import Path
 
@@ -309,6 +309,20 @@ def _export(model, path: Path, meta: dict) -> None:
     os.replace(tmp, path)
 
 
+def crop_sampler(cfg: TrainConfig, train_pairs, patch_size: int) -> CropSampler:
+    """The run's :class:`CropSampler` (augmentation ranges: ``cfg.augment_preset``, else the pairs' majority)."""
+    aug = None
+    if cfg.augment:
+        kitti = sum(p.key.startswith("kitti") for p in train_pairs) * 2 >= len(train_pairs)
+        if cfg.augment_preset is not None:
+            kitti = {"kitti": True, "middlebury": False}[cfg.augment_preset]
+        aug = KITTI_AUGMENT if kitti else MIDDLEBURY_AUGMENT
+    return CropSampler(train_pairs, patch_size, p_hi=cfg.p_hi, n_lo=cfg.n_lo, n_hi=cfg.n_hi,
+                       crop=tuple(cfg.crop), spread=cfg.spread, per_crop=cfg.per_crop,
+                       negatives=cfg.negatives, subpixel=cfg.subpixel, augment=aug, use=cfg.gt,
+                       max_per_pair=cfg.max_per_pair)
+
+
 def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None, log=print,
           stop_after: int | None = None, stop_after_steps: int | None = None, init=None) -> dict:
     """Train on ``train_pairs`` (StereoPairs with GT), validate on ``val_pairs`` each epoch.
@@ -373,16 +387,7 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         iters_per_epoch = max(1, locs // step_locs)
         unit = f"{cfg.batch_size} examples"
     else:
-        aug = None
-        if cfg.augment:
-            kitti = sum(p.key.startswith("kitti") for p in train_pairs) * 2 >= len(train_pairs)
-            if cfg.augment_preset is not None:
-                kitti = {"kitti": True, "middlebury": False}[cfg.augment_preset]
-            aug = KITTI_AUGMENT if kitti else MIDDLEBURY_AUGMENT
-        sampler = CropSampler(train_pairs, model.patch_size, p_hi=cfg.p_hi, n_lo=cfg.n_lo, n_hi=cfg.n_hi,
-                              crop=tuple(cfg.crop), spread=cfg.spread, per_crop=cfg.per_crop,
-                              negatives=cfg.negatives, subpixel=cfg.subpixel, augment=aug, use=cfg.gt,
-                              max_per_pair=cfg.max_per_pair)
+        sampler = crop_sampler(cfg, train_pairs, model.patch_size)
         per_epoch_locs = sum(sampler.counts().values())
         iters_per_epoch = cfg.steps_per_epoch
         unit = f"{cfg.crops_per_step} crops"
@@ -667,6 +672,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run at most this many epochs now (continue later with --resume)")
     g.add_argument("--stop-after-steps", type=int, default=None,
                    help="run at most this many steps now, then checkpoint (continue later with --resume)")
+    g.add_argument("--fit-minutes", type=float, default=None, metavar="M",
+                   help="crop sampler: time --calibrate-steps steps, then choose --epochs (and, if fewer than 2 "
+                        "fit, --steps-per-epoch) so the whole schedule ends within M minutes of this command "
+                        "(train/budget.py); the choice is printed and recorded")
+    g.add_argument("--calibrate-steps", type=int, default=20, help="steps timed by --fit-minutes")
     g.add_argument("--checkpoint-minutes", type=float, default=d.checkpoint_minutes,
                    help="also checkpoint within an epoch this often")
     g.add_argument("--seed", type=int, default=d.seed)
@@ -691,6 +701,7 @@ def _git_commit() -> str | None:
 
 
 def main(argv=None) -> int:
+    t0 = time.time()  # --fit-minutes counts from here
     args = build_parser().parse_args(argv)
     if args.threads:  # per process under torchrun
         torch.set_num_threads(args.threads)
@@ -700,13 +711,32 @@ def main(argv=None) -> int:
             pass
     device, created = init_distributed(args.device)  # torchrun: join the group, cuda:LOCAL_RANK
     try:
-        return _main(args, argv, device)
+        return _main(args, argv, device, t0)
     finally:
         if created:
             dist.destroy_process_group()
 
 
-def _main(args, argv, device) -> int:
+def _fit_schedule(cfg, args, train_pairs, val_pairs, device, t0, world):
+    """``--fit-minutes``: calibrate, then ``cfg`` with the epochs (and steps per epoch) that fit."""
+    from .budget import calibrate, plan
+    if args.resume is not None:
+        raise InputError("--fit-minutes plans a new run: resume with the --epochs and --steps-per-epoch it chose")
+    if world > 1:
+        raise InputError("--fit-minutes times one process: give --epochs under torchrun")
+    cal = calibrate(cfg, train_pairs, val_pairs, device, steps=args.calibrate_steps)
+    left = 60.0 * args.fit_minutes - (time.time() - (t0 or time.time()))
+    epochs, spe = plan(left, cal, cfg.steps_per_epoch, cfg.checkpoint_minutes)
+    planned = cal.setup_s + epochs * (spe * cal.step_s + cal.epoch_end_s) + cal.export_s
+    fit = {"minutes": args.fit_minutes, "seconds_left_at_plan": round(left, 1), "calibration": cal.as_dict(),
+           "epochs": epochs, "steps_per_epoch": spe, "planned_s": round(planned, 1)}
+    print(f"fit-minutes {args.fit_minutes:g}: {cal.step_s:.3f} s/step over {cal.steps} steps, epoch end "
+          f"{cal.epoch_end_s:.1f} s, set-up {cal.setup_s:.1f} s; {left:.0f} s left -> --epochs {epochs} "
+          f"--steps-per-epoch {spe} ({epochs * spe} steps, about {planned:.0f} s planned)", flush=True)
+    return replace(cfg, epochs=epochs, steps_per_epoch=spe), fit
+
+
+def _main(args, argv, device, t0=None) -> int:
     rank, world = _rank_world()
     commit = _git_commit()  # the code that trains, not whatever HEAD is when it ends
     ad = ARCH_DEFAULTS[args.arch]
@@ -744,6 +774,9 @@ def _main(args, argv, device) -> int:
                 init = resolve(args.init)
             except WeightsError as exc:
                 raise InputError(f"--init {args.init}: {exc}") from exc
+        fit = None
+        if args.fit_minutes is not None:
+            cfg, fit = _fit_schedule(cfg, args, train_pairs, val_pairs, device, t0, world)
         result = train(cfg, train_pairs, val_pairs, device, args.out, resume=args.resume,
                        stop_after=args.stop_after, stop_after_steps=args.stop_after_steps, init=init)
     except InputError as exc:
@@ -755,6 +788,8 @@ def _main(args, argv, device) -> int:
         prov["command"] = f"{launcher} mccnn_cl.train.train " + " ".join(
             shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
         prov["git_commit"] = commit
+        if fit is not None:
+            prov["fit_minutes"] = fit
         prov["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
         export = args.export or str(Path(args.out) / "weights.npz")
         result["model"].cpu().to_weights({"training": prov}).save(export)
