@@ -56,11 +56,9 @@
 #ifndef NOUT
 #define NOUT 2
 #endif
-#if NOUT != 1 && NOUT != 2
-#error "NOUT (outputs of the last layer) must be 1 (sigmoid) or 2 (softmax)"
-#endif
 
 #include "vector.h"
+#include "network_out.h"
 
 #define NCG (HP / RN)          /* column groups */
 #define NRG (TM / RM)          /* row groups */
@@ -69,22 +67,7 @@
 #error "HP must be a multiple of RN and TM a multiple of RM"
 #endif
 
-/* Horizontal sum of a VT. */
-inline float vsum(VT v)
-{
-#if RN == 1
-    return v;
-#elif RN == 2
-    return v.s0 + v.s1;
-#elif RN == 4
-    return (v.s0 + v.s1) + (v.s2 + v.s3);
-#elif RN == 8
-    return ((v.s0 + v.s1) + (v.s2 + v.s3)) + ((v.s4 + v.s5) + (v.s6 + v.s7));
-#else
-    const float8 t = v.lo + v.hi;
-    return ((t.s0 + t.s1) + (t.s2 + t.s3)) + ((t.s4 + t.s5) + (t.s6 + t.s7));
-#endif
-}
+CELL_COST(__local, cell_cost)
 
 /* One dense layer with ReLU on a tile: out[r][n] = ReLU(b[n] + sum_k in[r][k] w[k][n]),
  * for rows [rg RM, rg RM + RM) and output groups cg, cg + ncgw, ... < NCG. */
@@ -171,30 +154,13 @@ __kernel void network_head(
         barrier(CLK_LOCAL_MEM_FENCE);
     }
 
-    /* L8 and softmax (C = P(bad match) = 1 / (1 + exp(z1 - z0))) or sigmoid */
+    /* L8 and softmax (C = P(bad match) = 1 / (1 + exp(z1 - z0))) or sigmoid: network_out.h */
     __local const float *fin = act + (NHID & 1) * (TM * HP);
     for (int r = lid; r < TM; r += nwi) {
         const int m = first + r;
         if (m >= n_valid)
             continue;
-        VT s0 = (VT)(0.0f);
-#if NOUT == 2
-        VT s1 = (VT)(0.0f);
-#endif
-        for (int kv = 0; kv < NCG; ++kv) {
-            const VT a = VLOAD(fin + r * HP + kv * RN);
-            s0 = fma(a, VLOAD(w8 + kv * RN), s0);
-#if NOUT == 2
-            s1 = fma(a, VLOAD(w8 + HP + kv * RN), s1);
-#endif
-        }
-        const float z0 = vsum(s0) + b8[0];
-#if NOUT == 2
-        const float z1 = vsum(s1) + b8[1];
-        const float c = 1.0f / (1.0f + exp(z1 - z0));
-#else
-        const float c = 1.0f / (1.0f + exp(-z0));
-#endif
+        const float c = cell_cost(fin + r * HP, w8, b8);
         const int y = m / nx;
         const int x = d + (m - y * nx);
         VOL_SET(cost, VIDX(d, y0 + y, x, h, w), c);

@@ -52,7 +52,9 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: ``network_local_tiles`` (the conv stack and the L4 split as a local-memory tiled
 #: GEMM, kernels/network_conv_wg.cl) with its starting tile ``network_gemm_tile``
 #: (TM pixels x TN channels per work-group, TK terms per slice, RM x RN per
-#: work-item); ``fst_workgroup`` (fst's cosine volume with a work-group per
+#: work-item); ``network_head_gemm`` (the paper/acrt head layer by layer, each
+#: hidden layer that GEMM as a 1 x 1 convolution, kernels/network_head_wg.cl,
+#: instead of fused per tile of cells); ``fst_workgroup`` (fst's cosine volume with a work-group per
 #: (column tile, disparity chunk, row), kernels/fst_wg.cl) with ``fst_volume_tile``
 #: (TX columns x TD disparities, TK maps per slice, RX x RD per work-item).  The
 #: tiles are the same in every column (they are what a forced run starts from) and
@@ -74,6 +76,7 @@ RULES = {
                                 LLVMPIPE: dict(TM=64, RM=8, ROWS_FASTEST=1, CONV_RM=8),
                                 GPU: dict(TM=32, RM=4, RN=4, ROWS_FASTEST=0, CONV_RM=4)},
     "network_local_tiles":     {CPU: False, LLVMPIPE: False, GPU: True},
+    "network_head_gemm":       {CPU: False, LLVMPIPE: False, GPU: True},
     "network_gemm_tile":       {c: dict(TM=64, TN=64, TK=16, RM=4, RN=4) for c in (CPU, LLVMPIPE, GPU)},
     "fst_workgroup":           {CPU: False, LLVMPIPE: False, GPU: True},
     "fst_volume_tile":         {c: dict(TX=64, TD=64, TK=16, RX=4, RD=4) for c in (CPU, LLVMPIPE, GPU)},

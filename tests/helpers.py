@@ -79,7 +79,7 @@ def run_poisoned(ctx, cost, left, right, D, half=False):
 # they must cover every kernel the package uses (test_every_kernel_is_covered).
 CASE_KERNELS = {
     "network": {"network_conv", "network_head", "network_mark_invalid"},
-    "network_wg": {"network_conv_wg", "network_head", "network_mark_invalid"},
+    "network_wg": {"network_conv_wg", "network_head_l4", "network_head_out", "network_mark_invalid"},
     "fst": {"network_conv", "fst_normalise", "fst_volume", "fst_volume_pairs"},
     "fst_wg": {"network_conv_wg", "fst_normalise", "fst_volume_wg"},
     "acrt": {"network_conv", "network_head", "network_mark_invalid"},

@@ -5,13 +5,18 @@ numpy reference (mccnn_cl.reference.network):
   (kernels/network_conv_wg.cl, ``local_tiles=``) against network_conv.cl;
 * fst's cosine volume with a work-group per (column tile, disparity chunk,
   row) (kernels/fst_wg.cl, ``FstCost(workgroup=)``) against
-  fst_volume_pairs.
+  fst_volume_pairs;
+* the paper/acrt head layer by layer (kernels/network_head_wg.cl, each
+  hidden layer the conv GEMM as a 1 x 1 convolution; ``head_gemm=True``)
+  against the fused head (network_head.cl).
 
 Against the CPU kernels bit for bit: both form each output from the same
-float operations in the same order (conv: bias, one fma per term in k
-order, ReLU; fst: 0, one fma per map in k order, negated); only where the
-operands come from differs (local-memory tiles), so any difference is a
-defect.  Against the float64 reference: the tolerances of test_fst.py
+float operations in the same order (conv and hidden units: bias, one fma
+per term in k order, ReLU; fst: 0, one fma per map in k order, negated;
+the last layer: one shared function, network_out.h); only where the
+operands come from differs (local-memory tiles, activations in global
+memory), so any difference is a defect.  (The head's last layer sums RN
+lanes: the comparisons use the same RN on both sides.)  Against the float64 reference: the tolerances of test_fst.py
 (2e-5 on cosines in [-1, 1]) and test_network.py / test_acrt.py (1e-4 on
 probabilities).  NaN exactly where x - d < 0; every output poisoned
 first, so a cell left unwritten fails.
@@ -38,6 +43,7 @@ from mccnn_cl.errors import InputError
 from mccnn_cl.reference import network as ref
 from mccnn_cl.stages.features import ConvStack, normalise
 from mccnn_cl.stages.fst import FstCost
+from mccnn_cl.stages import network as network_stage
 from mccnn_cl.stages.network import AcrtCost, PaperCost
 from mccnn_cl.weights import Weights, resolve
 
@@ -229,6 +235,65 @@ def test_fc_networks_local_tiles(ctx, cls, conv, fc, arch):
         np.testing.assert_array_equal(bits(run_poisoned(ctx, net, left, right, D)), bits(base))
 
 
+# -- the fc networks' head layer by layer -------------------------------------------
+HEAD_TILES = (None, dict(TM=4, RM=2, RN=4, CONV_RM=3), dict(TM=3, RM=1, RN=1, CONV_RM=1),
+              dict(TM=8, RM=2, RN=8, ROWS_FASTEST=0))
+
+
+@pytest.mark.parametrize("cls,conv,fc,arch", [
+    (PaperCost, [[8, 3], [12, 3], [12, 1]], [16, 16, 16, 2], "mccnn-paper"),   # 2 hidden layers
+    (AcrtCost, [[6, 3], [9, 3]], [10, 10, 1], "mccnn-acrt"),                  # 1 hidden layer
+    (AcrtCost, [[5, 3]], [7, 1], "mccnn-acrt"),                               # no hidden layer
+], ids=["paper-2-hidden", "acrt-1-hidden", "acrt-0-hidden"])
+def test_gemm_head_bit_identical(ctx, monkeypatch, cls, conv, fc, arch):
+    """The head layer by layer equals the fused head bit for bit (same
+    register tiles, so the same RN), with either conv kernel, in runs of 7
+    cells (runs across rows and disparities), in float32 and half; and the
+    reference within 1e-4."""
+    w = Weights.random(conv, fc, architecture=arch, seed=len(fc) * 7)
+    left, right = random_pair(np.random.default_rng(len(conv)), 16, 27)
+    D = 10
+    want = ref.cost_volume(w, left, right, D)
+    assert np.nanstd(want) > 1e-3
+    for tiles in HEAD_TILES:
+        fused = cls(ctx, w, tiles=tiles, local_tiles=False, head_gemm=False)
+        assert fused.head_path == "fused"
+        base = run_poisoned(ctx, fused, left, right, D)
+        v = ~np.isnan(want)
+        assert np.abs(base[v] - want[v]).max() <= NET_TOL
+        for lt, cells in ((False, 1 << 16), (True, 7), (dict(TM=6, TN=5, TK=4, RM=2, RN=1), 40)):
+            monkeypatch.setattr(network_stage, "GEMM_CELLS", cells)
+            net = cls(ctx, w, tiles=tiles, local_tiles=lt, head_gemm=True)
+            assert net.head_path == "gemm"
+            np.testing.assert_array_equal(bits(run_poisoned(ctx, net, left, right, D)), bits(base),
+                                          err_msg=f"tiles {tiles}, conv tile {lt}, runs of {cells}")
+    half = run_poisoned(ctx, cls(ctx, w, half=True, head_gemm=True, local_tiles=True), left, right, D, half=True)
+    np.testing.assert_array_equal(bits(half), bits(run_poisoned(ctx, cls(ctx, w, half=True, head_gemm=False),
+                                                                left, right, D, half=True)))
+
+
+def test_gemm_head_real_crop_bands_to_host(ctx, shared_data, monkeypatch):
+    """The shipped kitti-paper network on a KITTI crop: the head layer by
+    layer (with the GEMM conv stack) equals the fused head bit for bit, in
+    one band and in bands of 2 rows through to_host; the reference within 1e-4."""
+    w = resolve("kitti-paper")
+    left, right = kitti_crop(shared_data, 180, 500, 14, 40)
+    left, right = left * 255, right * 255
+    D = 12
+    t = dict(RN=4)  # one RN on both sides
+    base = run_poisoned(ctx, PaperCost(ctx, w, tiles=t, local_tiles=False, head_gemm=False), left, right, D)
+    want = ref.cost_volume(w, left, right, D)
+    v = ~np.isnan(want)
+    assert np.abs(base[v] - want[v]).max() <= NET_TOL and np.nanstd(want) > 0.05
+    monkeypatch.setattr(network_stage, "GEMM_CELLS", 50)
+    gpu = PaperCost(ctx, w, tiles=t, local_tiles=True, head_gemm=True)
+    np.testing.assert_array_equal(bits(run_poisoned(ctx, gpu, left, right, D)), bits(base))
+    monkeypatch.setattr(network_stage, "BAND_BYTES", 2 * 32 * gpu.hp * 4)
+    assert gpu.band_rows(6, 32) == 2
+    np.testing.assert_array_equal(bits(gpu.to_host(left, right, D)), bits(base))
+    assert gpu.scratch_bytes(6, 32) > PaperCost(ctx, w, tiles=t, head_gemm=False).scratch_bytes(6, 32)
+
+
 # -- sizes, limits and bad input ----------------------------------------------------
 def test_small_local_memory_shrinks_the_tiles(ctx, monkeypatch):
     """A device with little local memory (simulated: 1200 bytes): the default
@@ -298,7 +363,10 @@ def test_profile_selects_the_paths(ctx, monkeypatch, kind, name, type_, gpu_shap
     assert FstCost(ctx, w, local_tiles=not gpu_shaped, workgroup=not gpu_shaped).volume_path == \
         ("pairs" if gpu_shaped else "workgroup")
     net = PaperCost(ctx, Weights.random([[4, 3]], [8, 2], seed=3))
-    assert (net.stack.path == "local") == gpu_shaped
+    assert (net.stack.path == "local") == gpu_shaped and (net.head_path == "gemm") == gpu_shaped
+    assert PaperCost(ctx, Weights.random([[4, 3]], [8, 2], seed=3), head_gemm=not gpu_shaped).head_path == \
+        ("fused" if gpu_shaped else "gemm")
+    assert prof.rule("network_head_gemm") == gpu_shaped
 
 
 def test_stereo_matcher_with_the_gpu_profile(ctx, shared_data, monkeypatch):
@@ -332,3 +400,23 @@ def test_stereo_matcher_with_the_gpu_profile(ctx, shared_data, monkeypatch):
         assert a.shape == b.shape and a.dtype == b.dtype, name
         np.testing.assert_array_equal(bits(a), bits(b), err_msg=name)
     np.testing.assert_array_equal(bits(got.disparity), bits(want.disparity))
+
+
+def test_paper_network_with_the_gpu_profile(ctx, shared_data, monkeypatch):
+    """The shipped kitti-paper network with a GPU profile takes the GEMM conv
+    stack and the head layer by layer; its C_CNN equals, bit for bit, the
+    CPU-shaped kernels' with the same register tiles (the gpu column's)."""
+    import pyopencl as cl
+
+    from mccnn_cl.stages.costs import make_cost
+
+    w = resolve("kitti-paper")
+    left, right = kitti_crop(shared_data, 150, 300, 15, 37)
+    D = 9
+    monkeypatch.setattr(ctx, "profile", DeviceProfile.of(fake_device("Some GPU", cl.device_type.GPU, 64), cl))
+    gpu = make_cost(ctx, w)
+    assert gpu.head_path == "gemm" and gpu.stack.path == "local"
+    cpu = PaperCost(ctx, w, local_tiles=False, head_gemm=False)  # the gpu column's register tiles
+    assert cpu.rn == gpu.rn
+    np.testing.assert_array_equal(bits(run_poisoned(ctx, gpu, left, right, D)),
+                                  bits(run_poisoned(ctx, cpu, left, right, D)))

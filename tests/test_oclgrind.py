@@ -107,14 +107,14 @@ def case_network(ctx, rng, chk):
     w = Weights.random(conv_layers=[[4, 3], [4, 3], [4, 3], [4, 3]], fc_layers=[8, 8, 8, 2], seed=3)
     # the device's default tiles, then small explicit ones: several tiles per
     # disparity with a partly empty last one, both work-item orders
-    # the CPU-shaped conv kernel (network_conv) whatever the device's default: case network_wg has the other
-    nets = [NetworkCost(ctx, w, local_tiles=False),
-            NetworkCost(ctx, w, tiles={"TM": 8, "RM": 2, "RN": 4, "ROWS_FASTEST": 1, "CONV_RM": 2}, local_tiles=False),
-            NetworkCost(ctx, w, tiles={"TM": 4, "RM": 1, "RN": 2, "ROWS_FASTEST": 0, "CONV_RM": 3}, local_tiles=False),
+    # the CPU-shaped conv kernel and fused head whatever the device's default (case network_wg has the others)
+    cpu = dict(local_tiles=False, head_gemm=False)
+    nets = [NetworkCost(ctx, w, **cpu),
+            NetworkCost(ctx, w, tiles={"TM": 8, "RM": 2, "RN": 4, "ROWS_FASTEST": 1, "CONV_RM": 2}, **cpu),
+            NetworkCost(ctx, w, tiles={"TM": 4, "RM": 1, "RN": 2, "ROWS_FASTEST": 0, "CONV_RM": 3}, **cpu),
             # 256 row groups x 8 column groups > Oclgrind's 1024 work-items:
             # fewer work-items than (row, column) groups, each walking several
-            NetworkCost(ctx, w, tiles={"TM": 256, "RM": 1, "RN": 1, "ROWS_FASTEST": 0, "CONV_RM": 1},
-                        local_tiles=False)]
+            NetworkCost(ctx, w, tiles={"TM": 256, "RM": 1, "RN": 1, "ROWS_FASTEST": 0, "CONV_RM": 1}, **cpu)]
     sizes = ((12, 20, 5), (11, 13, 7), (12, 17, 5), (12, 15, 4))  # 2nd: D >= W (cropped W = 5)
     import mccnn_cl.stages.network as network_module
 
@@ -175,39 +175,55 @@ def case_acrt(ctx, rng, chk):
         left, right = _images(rng, h, wd)
         H, W = h - 2 * w.margin, wd - 2 * w.margin
         out = _poisoned(ctx, D * H * W * 4)
-        AcrtCost(ctx, w, tiles=tiles, local_tiles=False)(left, right, D, out=out)
+        AcrtCost(ctx, w, tiles=tiles, local_tiles=False, head_gemm=False)(left, right, D, out=out)
         chk.close(f"acrt {h}x{wd} D={D}", ctx.from_device(out, (D, H, W)), ref.cost_volume(w, left, right, D),
                   atol=2e-5, rtol=1e-4)
 
 
 def case_network_wg(ctx, rng, chk):
     """network_conv_wg.cl (the conv stack and the L4 split as a local-memory
-    tiled GEMM): the paper and acrt structures with the device's tile and
-    forced ones of 15 to 30 work-items (partial tiles in pixels, channels and
-    terms; sizes that are no powers of two; at most 32 work-items, Rusticl's
-    limit), so that Oclgrind's race and barrier checks see the local blocks
-    shared; against the reference and, bit for bit, the CPU-shaped kernels."""
+    tiled GEMM) and network_head_wg.cl (the head layer by layer, its hidden
+    layers that GEMM as 1 x 1 convolutions): the paper and acrt structures
+    with the device's tile and forced ones of 15 to 30 work-items (partial
+    tiles in pixels, channels and terms; sizes that are no powers of two; at
+    most 32 work-items, Rusticl's limit), so that Oclgrind's race and barrier
+    checks see the local blocks shared; runs of 13 cells (across rows), half
+    storage; against the reference and, bit for bit, the CPU-shaped kernels
+    (network_conv, the fused head) with the same register tiles."""
+    import mccnn_cl.stages.network as network_module
     from mccnn_cl.reference import network as ref
     from mccnn_cl.stages.network import AcrtCost, PaperCost
     from mccnn_cl.weights import Weights
 
-    paper = Weights.random(conv_layers=[[5, 3], [6, 3]], fc_layers=[8, 8, 2], seed=3)
-    acrt = Weights.random(conv_layers=[[4, 3], [7, 3]], fc_layers=[8, 1], architecture="mccnn-acrt", seed=5)
-    for cls, w, tile, (h, wd, D) in (
-            (PaperCost, paper, True, (9, 17, 5)),
-            (PaperCost, paper, dict(TM=6, TN=5, TK=4, RM=2, RN=1), (8, 13, 7)),
-            (AcrtCost, acrt, dict(TM=8, TN=8, TK=7, RM=2, RN=2), (9, 14, 5)),
-            (AcrtCost, acrt, dict(TM=10, TN=3, TK=3, RM=1, RN=1), (7, 11, 4))):
-        left, right = _images(rng, h, wd)
-        H, W = h - 2 * w.margin, wd - 2 * w.margin
-        vols = []
-        for lt in (tile, False):
-            out = _poisoned(ctx, D * H * W * 4)
-            cls(ctx, w, local_tiles=lt)(left, right, D, out=out)
-            vols.append(ctx.from_device(out, (D, H, W)))
-        label = f"{cls.__name__} {h}x{wd} D={D} conv tile {tile}"
-        chk.close(f"{label} vs reference", vols[0], ref.cost_volume(w, left, right, D), atol=2e-5, rtol=1e-4)
-        chk.close(f"{label} = CPU-shaped conv", vols[0], vols[1])
+    paper = Weights.random(conv_layers=[[5, 3], [6, 3]], fc_layers=[8, 8, 8, 2], seed=3)
+    acrt = Weights.random(conv_layers=[[4, 3], [7, 3]], fc_layers=[8, 8, 1], architecture="mccnn-acrt", seed=5)
+    saved = network_module.GEMM_CELLS
+    network_module.GEMM_CELLS = 13
+    try:
+        for cls, w, tile, (h, wd, D), half in (
+                (PaperCost, paper, True, (9, 17, 5), False),
+                (PaperCost, paper, dict(TM=6, TN=5, TK=4, RM=2, RN=1), (8, 13, 7), False),
+                (AcrtCost, acrt, dict(TM=8, TN=8, TK=7, RM=2, RN=2), (9, 14, 5), False),
+                (AcrtCost, acrt, dict(TM=10, TN=3, TK=3, RM=1, RN=1), (7, 11, 4), False),
+                (PaperCost, paper, True, (8, 12, 4), True)):
+            left, right = _images(rng, h, wd)
+            H, W = h - 2 * w.margin, wd - 2 * w.margin
+            vols = []
+            tiles = {"RN": 4, "TM": 8, "RM": 2}  # the same register tiles (the last layer's RN) on both sides
+            for lt, gemm in ((tile, True), (False, False)):
+                if half:
+                    out = ctx.empty(2 * D * H * W, "test output")
+                    ctx.fill(out, -65504.0, 2 * D * H * W, np.float16)
+                else:
+                    out = _poisoned(ctx, D * H * W * 4)
+                cls(ctx, w, tiles=tiles, half=half, local_tiles=lt, head_gemm=gemm)(left, right, D, out=out)
+                vols.append(ctx.from_device(out, (D, H, W), np.float16 if half else np.float32))
+            label = f"{cls.__name__} {h}x{wd} D={D} conv tile {tile} half={half}"
+            chk.close(f"{label} vs reference", vols[0].astype(np.float32), ref.cost_volume(w, left, right, D),
+                      atol=2e-5 + (2 ** -11 if half else 0.0), rtol=1e-4)
+            chk.close(f"{label} = CPU-shaped conv and fused head", vols[0], vols[1])
+    finally:
+        network_module.GEMM_CELLS = saved
 
 
 def case_fst_wg(ctx, rng, chk):
@@ -533,10 +549,10 @@ def case_half(ctx, rng, chk):
     w = Weights.random(conv_layers=[[4, 3], [4, 3], [4, 3], [4, 3]], fc_layers=[8, 8, 8, 2], seed=3)
     left, right = _images(rng, 12, 20)
     H, W, D = 12 - 2 * w.margin, 20 - 2 * w.margin, 5
-    full = NetworkCost(ctx, w).compute(left, right, D)
+    full = NetworkCost(ctx, w, head_gemm=False).compute(left, right, D)  # the fused head (network_wg: the other)
     out = ctx.empty(D * H * W * 2, "half volume")
     ctx.fill(out, -65504.0, D * H * W * 2, np.float16)
-    NetworkCost(ctx, w, half=True)(left, right, D, out=out)
+    NetworkCost(ctx, w, half=True, head_gemm=False)(left, right, D, out=out)
     chk.close("C_CNN half = float32 C_CNN rounded", ctx.from_device(out, (D, H, W), np.float16),
               full.astype(np.float16))
     left, right = _images(rng, 14, 24)

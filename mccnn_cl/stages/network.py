@@ -13,7 +13,18 @@ terms computed once,
 
 and the only per-disparity work is ReLU(A(p) + B(p - d)) followed by the
 hidden layers (ReLU) and the output layer, fused in one kernel
-(``network_head.cl``).  The output layer is the one difference: the paper's
+(``network_head.cl``: a work-group per tile of TM cells of one disparity,
+their activations in local memory), or on the profile's ``gpu`` column
+(rule ``network_head_gemm``) layer by layer (``network_head_wg.cl``: runs
+of up to :data:`GEMM_CELLS` cells of a disparity with their activations in
+global memory, each hidden layer one GEMM of the conv stack's kernel as a
+1 x 1 convolution, local-memory tiles on GPUs), which lets a GPU reuse
+each weight over a 64-cell tile instead of the few cells whose
+activations fit its local memory.  Both form every unit from the same
+float operations in the same order (and the last layer is one shared
+function, ``network_out.h``), so their volumes are equal bit for bit (with
+the same register tiles: the last layer sums RN lanes).
+The output layer is the one difference between the networks: the paper's
 has 2 logits and a softmax, cost = P(bad match) = softmax[0] (``NOUT=2``);
 acrt's has 1 output through a sigmoid, cost = that output (``NOUT=1``; the
 released code trains it towards 0 on matches).  Both costs lie in [0, 1].
@@ -42,6 +53,11 @@ from .features import normalise, setup_network_cost, volume_on_device, volume_to
 log = logging.getLogger(__name__)
 
 HEAD_CL = "network_head.cl"
+HEAD_WG_CL = "network_head_wg.cl"
+
+#: Cells per run of the "gemm" head (its two activation buffers hold
+#: this many cells x HP floats each: 100 MB at HP = 384).
+GEMM_CELLS = 1 << 16
 
 # Cells (pixel-disparity pairs) per head launch, roughly: disparities are
 # processed in chunks of about this many cells so one launch stays short
@@ -73,6 +89,10 @@ class PaperCost:
     local_tiles : None, bool or dict
         The GEMM kernel of the conv layers and the L4 split (None: the
         profile's ``network_local_tiles`` rule; see :class:`.features.ConvStack`).
+    head_gemm : None or bool
+        The head's layout (module docstring): True layer by layer through
+        the conv stack's GEMM ("gemm"), False fused (``network_head``),
+        None the profile's ``network_head_gemm`` rule.  ``head_path`` says which.
     """
 
     architecture = PAPER
@@ -83,8 +103,11 @@ class PaperCost:
     floor = 0.0
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False,
-                 local_tiles=None):
+                 local_tiles=None, head_gemm: bool | None = None):
         setup_network_cost(self, ctx, weights, tiles, half, local_tiles)
+        gemm = bool(ctx.profile.rule("network_head_gemm") if head_gemm is None else head_gemm)
+        self.head_path = "gemm" if gemm else "fused"
+        self._runs = None  # the "gemm" head's (cells, [two activation buffers]), kept between calls
         t = self.tiles
         rn = self.rn = self.stack.rn
         cs = self.feat_stride = self.stack.stride
@@ -117,6 +140,18 @@ class PaperCost:
         w8[:, :W8.shape[1]] = W8
         self._d_wh, self._d_bh = ctx.to_device(wh), ctx.to_device(bh)
         self._d_w8, self._d_b8 = ctx.to_device(w8), ctx.to_device(np.asarray(b8, np.float32))
+        if gemm:  # the hidden layers as 1 x 1 convolutions of [cells][HP] maps, one weight buffer each
+            self._hidden = self.stack.kernel(1, hp, hp, hp, relu=1)
+            self._d_layers = [(ctx.to_device(wh[l]), ctx.to_device(bh[l])) for l in range(nhid)]
+            defs = dict(HP=hp, RN=rn, NOUT=nout, VOL_HALF=int(half))
+            self._l4 = ctx.kernel(HEAD_WG_CL, "network_head_l4", **defs)
+            self._out = ctx.kernel(HEAD_WG_CL, "network_head_out", **defs)
+            self.tm, self.rm, self.nwi = 1, 1, 1  # the fused head's tile: only its NaN marking is used
+            self._mark = ctx.kernel(HEAD_CL, "network_mark_invalid", HP=hp, NHID=nhid, TM=1, RM=1, RN=rn,
+                                    ROWS_FASTEST=0, VOL_HALF=int(half), NOUT=nout)
+            log.info("network: HP=%d NHID=%d RN=%d, head layer by layer (runs of %d cells, conv path %s)",
+                     hp, nhid, rn, GEMM_CELLS, self.stack.path)
+            return
 
         # -- head kernel: shrink the tile until local memory and group size fit
         tm, rm = int(t["TM"]), int(t["RM"])
@@ -158,8 +193,14 @@ class PaperCost:
         return self.stack(d_img, H, W)
 
     def release_buffers(self) -> None:
-        """Free the conv stack's kept maps (see ConvStack)."""
+        """Free the conv stack's kept maps (see ConvStack) and the "gemm" head's activations."""
         self.stack.release_buffers()
+        self._free_runs()
+
+    def _free_runs(self) -> None:
+        for buf in self._runs[1] if self._runs else ():
+            buf.release()
+        self._runs = None
 
     def split_l4(self, d_feat, n_pixels: int, left: bool):
         """The L4 split of L3 features: ``A = W4a f + b4`` (left) or ``B = W4b f`` (right).
@@ -205,7 +246,8 @@ class PaperCost:
         convolution)."""
         rows = self.band_rows(h, w)
         widest = max(self.stack.widest, self.hp)
-        return 2 * rows * w * self.hp * 4 + 2 * (rows + self.patch) * (w + self.patch - 1) * widest * 4
+        gemm = 2 * min(GEMM_CELLS, rows * w) * self.hp * 4 if self.head_path == "gemm" else 0
+        return 2 * rows * w * self.hp * 4 + 2 * (rows + self.patch) * (w + self.patch - 1) * widest * 4 + gemm
 
     def band_rows(self, h: int, w: int) -> int:
         """Volume rows per band: A and B of one band take at most BAND_BYTES each."""
@@ -264,7 +306,9 @@ class PaperCost:
             for d0 in range(0, D, per_chunk):
                 nd = min(per_chunk, D - d0)
                 n_valid = hb * max(w - d0, 0)
-                if n_valid > 0:
+                if self.head_path == "gemm":
+                    self._gemm_head(d_a, d_b, d_cost, vh, w, vy0, hb, range(d0, d0 + nd))
+                elif n_valid > 0:
                     tiles = math.ceil(n_valid / self.tm)
                     self._head(q, (tiles * self.nwi, nd), (self.nwi, 1),
                                d_a, d_b, self._d_wh, self._d_bh, self._d_w8, self._d_b8, d_cost,
@@ -280,6 +324,27 @@ class PaperCost:
                 band = np.empty((D, hb, w), self.vdtype)
                 self.ctx.cl.enqueue_copy(q, band, d_cost)
                 host[:, y0:y0 + hb, :] = band
+
+    def _gemm_head(self, d_a, d_b, d_cost, h, w, y0, hb, disparities):
+        """The "gemm" head (kernels/network_head_wg.cl) for the valid cells of
+        ``disparities`` in a band (A, B of its rows): runs of up to
+        GEMM_CELLS cells through L4, the hidden layers (the conv stack's GEMM,
+        1 x 1) and the last layer."""
+        if self._runs is None or self._runs[0] < min(GEMM_CELLS, hb * w):
+            n = min(GEMM_CELLS, hb * w)
+            self._free_runs()
+            self._runs = (n, [self.ctx.empty(n * self.hp * 4, "network head activations") for _ in range(2)])
+        n_max, acts = self._runs
+        q, i32, hp, rn = self.ctx.queue, np.int32, self.hp, self.rn
+        for d in disparities:
+            n_valid = hb * max(w - d, 0)
+            for c0 in range(0, n_valid, n_max):
+                n = min(n_max, n_valid - c0)
+                self._l4(q, (hp // rn, n), None, d_a, d_b, acts[0], i32(w), i32(d), i32(c0), i32(n))
+                for l, (d_w, d_bias) in enumerate(self._d_layers):
+                    self.stack.launch(self._hidden, acts[l & 1], n, d_w, d_bias, acts[(l + 1) & 1], n, n, hp)
+                self._out(q, (n,), None, acts[self.nhid & 1], self._d_w8, self._d_b8, d_cost, i32(h), i32(w),
+                          i32(y0), i32(d), i32(c0), i32(n))
 
     def compute(self, left, right, max_disparity) -> np.ndarray:
         """Host copy of :meth:`__call__`: array ``[D][H_img-8][W_img-8]`` (float32,
