@@ -108,7 +108,9 @@ def main(argv=None):
     print(f"FLOP: features {feat_flop:.3e} + head {head_flop:.3e} = {total_flop:.3e}")
 
     net = NetworkCost(ctx, w)
-    print(f"tiles: TM={net.tm} RM={net.rm} RN={net.rn} HP={net.hp}, {net.nwi} work-items/group")
+    tiles = (f"tiles TM={net.tm} RM={net.rm} RN={net.rn} HP={net.hp}, {net.nwi} work-items/group"
+             if net.head_path == "fused" else f"layer by layer, RN={net.rn} HP={net.hp}")
+    print(f"head: {net.head_path} ({tiles}); conv: {net.stack.path}")
     t0 = time.perf_counter()
     net(left[:64, :128], right[:64, :128], 4).release()  # warm-up: builds, first launches
     print(f"warm-up {time.perf_counter() - t0:.2f} s")
