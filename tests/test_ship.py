@@ -42,3 +42,26 @@ def test_ship_rejects_unknown_settings_and_untrained_files(tmp_path, capsys):
     w.save(bare)
     with pytest.raises(InputError, match="training"):
         ship.ship(bare, tmp_path / "z.npz", "z", "paper", "d")
+
+
+def test_lineage_of_a_fine_tuned_network_counts_the_start_as_trained(tmp_path):
+    """A run started from other weights (--init) learnt from their pairs too: evaluate must not
+    call those pairs held out (record_init, used by the train CLI and by ship --init)."""
+    from mccnn_cl.evaluate import training_status
+
+    start = Weights.load(shipped_models()["kitti-fst"])
+    run = Weights.load(shipped_models()["kitti-fst"])
+    run.meta["training"] = {"trained_on": {"middlebury/Venus": 10}, "held_out": ["middlebury/Cones"]}
+    src = tmp_path / "run.npz"
+    run.save(src)
+    assert training_status(run.meta, "kitti2015/e00001", "e00001") == "held out"
+    out = tmp_path / "shipped.npz"
+    ship.ship(src, out, "n", "paper", "d", init=shipped_models()["kitti-fst"])
+    meta = Weights.load(out).meta
+    assert meta["training"]["init"]["trained_on"] == start.meta["training"]["trained_on"]
+    assert meta["training"]["trained_on_this_run"] == {"middlebury/Venus": 10}
+    assert training_status(meta, "kitti2015/e00001", "e00001") == "trained"   # the start's pair
+    assert training_status(meta, "middlebury/Venus", "Venus") == "trained"    # this run's
+    assert training_status(meta, "middlebury/Cones", "Cones") == "held out"
+    with pytest.raises(InputError, match="already"):
+        ship.ship(out, tmp_path / "again.npz", "n", "paper", "d", init=shipped_models()["kitti-fst"])

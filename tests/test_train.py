@@ -212,6 +212,21 @@ def test_cli_selects_pairs_and_exports(shared_data, tmp_path, capsys):
     res = json.loads(capsys.readouterr().out)
     assert res["pairs"] == ["middlebury/Venus"] and res["val_pixels"] == 100 and 0 <= res["val_err3"] <= 1
     assert eval_main(["--weights", str(tmp_path / "missing.npz"), "--data", str(shared_data)]) == 2
+    # --init: a second run fine-tunes the first; its provenance names the start and counts its pairs
+    rc = main(["--data", str(shared_data / "middlebury"), "--include", "middlebury/Aloe",
+               "--holdout", "middlebury/Venus", "--epochs", "1", "--examples-per-epoch", "1280",
+               "--conv", json.dumps(SMALL_CONV), "--fc", json.dumps(SMALL_FC), "--val-pixels", "100",
+               "--val-examples", "200", "--threads", "1", "--out", str(tmp_path / "run2"), "--no-progress",
+               "--init", str(tmp_path / "run" / "weights.npz")])
+    assert rc == 0
+    t2 = Weights.load(tmp_path / "run2" / "weights.npz").meta["training"]
+    assert t2["init"]["weights"] == str(tmp_path / "run" / "weights.npz")
+    assert t2["init"]["trained_on"] == t["trained_on"] and list(t2["trained_on_this_run"]) == ["middlebury/Aloe"]
+    assert sorted(t2["trained_on"]) == ["middlebury/Aloe", "middlebury/Tsukuba"]
+    capsys.readouterr()
+    assert main(["--data", str(shared_data / "middlebury"), "--include", "middlebury/Aloe", "--out",
+                 str(tmp_path / "x"), "--init", "kitti-fst"]) == 2  # fst weights, paper run
+    assert "init" in capsys.readouterr().err
 
 
 def test_shipped_weights(shared_data):

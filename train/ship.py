@@ -22,7 +22,7 @@ import sys
 
 from mccnn_cl.errors import InputError
 from mccnn_cl.settings import AUTHORS, authors_settings
-from mccnn_cl.weights import Weights
+from mccnn_cl.weights import Weights, resolve
 
 LICENCE = "BSD-3-Clause (mccnn_cl); trained on KITTI (CC BY-NC-SA 3.0) images"
 
@@ -40,11 +40,21 @@ def settings_table(spec: str) -> tuple[dict, str]:
 
 
 def ship(src, out, name: str, settings: str, description: str, licence: str = LICENCE,
-         settings_note: str | None = None) -> Weights:
-    """Read ``src``, add the shipping metadata, write ``out``; returns the Weights."""
+         settings_note: str | None = None, init=None) -> Weights:
+    """Read ``src``, add the shipping metadata, write ``out``; returns the Weights.
+
+    ``init``: the weights (name or path) the run started from (its ``--init``),
+    for a run whose provenance does not record them yet (:func:`.train.record_init`).
+    """
     w = Weights.load(src)
     if "training" not in w.meta:
         raise InputError(f"{src}: no meta['training'] (not a file exported by a training run of this project)")
+    if init is not None:
+        if "init" in w.meta["training"]:
+            raise InputError(f"{src}: its provenance already names the weights it started from")
+        from .train import record_init
+
+        record_init(w.meta["training"], resolve(init), init)
     stereo, source = settings_table(settings)
     w.meta.update(name=name, description=description, licence=licence, stereo=stereo,
                   stereo_source=source + (f"; {settings_note}" if settings_note else ""))
@@ -61,9 +71,12 @@ def main(argv=None) -> int:
     p.add_argument("--description", required=True)
     p.add_argument("--settings-note", default=None, help="why these settings (appended to stereo_source)")
     p.add_argument("--licence", default=LICENCE)
+    p.add_argument("--init", default=None, metavar="WEIGHTS",
+                   help="the weights the run started from (its --init), if its provenance lacks them")
     args = p.parse_args(argv)
     try:
-        ship(args.weights, args.out, args.name, args.settings, args.description, args.licence, args.settings_note)
+        ship(args.weights, args.out, args.name, args.settings, args.description, args.licence, args.settings_note,
+             args.init)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

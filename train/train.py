@@ -60,7 +60,8 @@ from .evaluate import make_validation, validate
 from .model import DEFAULT_LAYERS, MCCNN
 from .patches import PatchSampler
 
-__all__ = ["TrainConfig", "train", "select_pairs", "lr_at", "augment_batch", "init_distributed", "main"]
+__all__ = ["TrainConfig", "train", "select_pairs", "lr_at", "augment_batch", "init_distributed", "record_init",
+           "main"]
 
 
 @dataclass
@@ -603,6 +604,27 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
     return {"model": model, "history": history, "provenance": prov}
 
 
+def record_init(prov: dict, init, spec: str) -> dict:
+    """Add a fine-tuning run's lineage to its provenance ``prov`` (in place; returned).
+
+    ``prov["init"]`` names the starting weights ``init`` (``spec`` as given)
+    with a summary of their own training, and ``prov["trained_on"]`` becomes
+    every pair the weights have learnt from (the start's pairs, then this
+    run's), so that ``mccnn-cl evaluate`` never calls a pair the start was
+    trained on "held out"; this run's own pairs stay in ``trained_on_this_run``.
+    """
+    it = init.meta.get("training") if isinstance(init.meta.get("training"), dict) else {}
+    prov["init"] = {"weights": str(spec), "name": init.meta.get("name"),
+                    **{k: it[k] for k in ("command", "trained_on", "held_out", "examples", "wall_time_s",
+                                          "git_commit", "init") if k in it}}
+    own = dict(prov.get("trained_on") or {})
+    merged = dict(it.get("trained_on") or {})
+    merged.update(own)
+    prov["trained_on_this_run"] = own
+    prov["trained_on"] = merged
+    return prov
+
+
 # -- CLI -------------------------------------------------------------------------
 
 def _parse_layers(text: str):
@@ -788,6 +810,8 @@ def _main(args, argv, device, t0=None) -> int:
         prov["command"] = f"{launcher} mccnn_cl.train.train " + " ".join(
             shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
         prov["git_commit"] = commit
+        if init is not None:
+            record_init(prov, init, args.init)
         if fit is not None:
             prov["fit_minutes"] = fit
         prov["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
