@@ -582,6 +582,11 @@ class StereoMatcher:
         host, band_budget = 0, 0
         if not self.cost.local:  # the network's phase: one band volume + its scratch, before the tiles
             host = row * H
+            if scratch + maps + row > budget:  # not even a one-row band fits beside the feature maps
+                raise InputError(
+                    f"{Wi}x{Hi} does not fit: the network's feature maps and buffers need "
+                    f"{(scratch + maps + row) / 2**20:.1f} MiB of device memory (memory_limit "
+                    f"{budget / 2**20:.1f} MiB on {self.ctx.describe()}); reduce the image size or raise memory_limit")
             band_budget = max(row, budget - maps - scratch)
             peak = max(peak, min(band_budget, row * H) + scratch + maps)
         return MemoryPlan(row * H, nvol, peak, budget, tiles, overlap, host, band_budget, True)

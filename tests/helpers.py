@@ -133,3 +133,15 @@ def run_isolated(impl: str, case: str, timeout: float = 600) -> dict:
     ok = proc.returncode == 0 and result is not None and result["ok"] and not errors
     return {"ok": ok, "result": result, "oclgrind_errors": errors, "stdout": proc.stdout,
             "stderr": proc.stderr, "seconds": seconds, "returncode": proc.returncode}
+
+
+# -- device profiles (test_device.py, test_cbca_gpu.py, test_network_gpu.py, test_gpu_memory.py) --
+def fake_device(name, type_, units=2, width=16, platform="Some platform", global_mem=1 << 32,
+                max_alloc=1 << 30, max_work_group=256, local_mem=1 << 16):
+    """What DeviceProfile.of reads of a pyopencl device, for a device that is not here."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(name=name, type=type_, max_compute_units=units, preferred_vector_width_float=width,
+                           native_vector_width_float=width, global_mem_size=global_mem, local_mem_size=local_mem,
+                           max_mem_alloc_size=max_alloc, max_work_group_size=max_work_group,
+                           platform=SimpleNamespace(name=platform))

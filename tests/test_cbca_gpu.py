@@ -17,10 +17,11 @@ barrier checks in tests/test_oclgrind.py) these prove the local-memory and
 barrier logic that a GPU runs.
 """
 
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
+
+import helpers
 
 from conftest import POISON
 from helpers import ad_volume, blocky_image, invalid_mask, kitti_crop, random_volume
@@ -234,10 +235,7 @@ def test_bad_input(ctx):
 
 # -- the path a device gets (the profile's "cbca_workgroup" rule) --------------------
 def fake_device(name, type_, units, width):
-    return SimpleNamespace(name=name, type=type_, max_compute_units=units, preferred_vector_width_float=width,
-                           native_vector_width_float=width, global_mem_size=1 << 34, local_mem_size=1 << 16,
-                           max_mem_alloc_size=1 << 32, max_work_group_size=1024,
-                           platform=SimpleNamespace(name="Some platform"))
+    return helpers.fake_device(name, type_, units, width, global_mem=1 << 34, max_alloc=1 << 32, max_work_group=1024)
 
 
 @pytest.mark.parametrize("kind,name,type_,path", [

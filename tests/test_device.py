@@ -2,10 +2,11 @@
 
 import re
 from pathlib import Path
-from types import SimpleNamespace
 
 import pyopencl as cl
 import pytest
+
+from helpers import fake_device
 
 from mccnn_cl.device import CLASSES, CPU, GPU, LLVMPIPE, LLVMPIPE_LOOP_LIMIT, RULES, DeviceProfile, device_class
 from mccnn_cl.stages.cbca import CBCA, SHORT_MAX
@@ -13,13 +14,6 @@ from mccnn_cl.stages.sgm import SGM, make_sgm
 from mccnn_cl.stages.sgm_wg import SGMWorkGroup
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mccnn_cl"
-
-
-def fake_device(name, type_, units=2, width=16, platform="Some platform"):
-    return SimpleNamespace(name=name, type=type_, max_compute_units=units, preferred_vector_width_float=width,
-                           native_vector_width_float=width, global_mem_size=1 << 32, local_mem_size=1 << 16,
-                           max_mem_alloc_size=1 << 30, max_work_group_size=256,
-                           platform=SimpleNamespace(name=platform))
 
 
 T = cl.device_type

@@ -31,10 +31,11 @@ Oclgrind's race and bounds checks, tests/test_oclgrind.py cases
 logic that a GPU runs.
 """
 
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
+
+import helpers
 
 from conftest import POISON
 from helpers import kitti_crop, random_pair, run_poisoned
@@ -333,10 +334,7 @@ def test_bad_tiles(ctx):
 
 # -- the paths a device gets (the profile's rules) ----------------------------------
 def fake_device(name, type_, units=8, width=1):
-    return SimpleNamespace(name=name, type=type_, max_compute_units=units, preferred_vector_width_float=width,
-                           native_vector_width_float=width, global_mem_size=1 << 34, local_mem_size=1 << 16,
-                           max_mem_alloc_size=1 << 32, max_work_group_size=1024,
-                           platform=SimpleNamespace(name="Some platform"))
+    return helpers.fake_device(name, type_, units, width, global_mem=1 << 34, max_alloc=1 << 32, max_work_group=1024)
 
 
 @pytest.mark.parametrize("kind,name,type_,gpu_shaped", [
