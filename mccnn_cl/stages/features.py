@@ -53,6 +53,8 @@ from ..imageops import standardise as normalise  # noqa: F401 (one standardisati
 
 CONV_CL = "network_conv.cl"
 CONV_WG_CL = "network_conv_wg.cl"
+#: network_conv_wg's tile dimensions and their register blocks, in shrinking order
+CONV_BLOCKS = (("TM", "RM"), ("TN", "RN"))
 
 #: One layer's GEMM kernel: ``tile`` None for network_conv (register blocks),
 #: else the sizes network_conv_wg was built with (TM, TN, TK, RM, RN).
@@ -99,6 +101,21 @@ def halve_tile(sizes, key, unit):
     return sizes
 
 
+def shrinker(*blocks):
+    """A tile's shrink step for :func:`fit_tile`: halve the first of ``blocks``
+    (``(key, register-block key)`` pairs, in order) that can still shrink,
+    else halve TK (the terms per slice); None when nothing can."""
+    def shrink(t):
+        for key, unit in blocks:
+            if halve_tile(t, key, unit):
+                return t
+        if t["TK"] > 1:
+            t["TK"] //= 2
+            return t
+        return None
+    return shrink
+
+
 def check_tile(sizes, pairs, what):
     """InputError unless every size is >= 1 and each ``(big, small)`` of ``pairs``
     (a tile and its register block) divides."""
@@ -142,7 +159,7 @@ class ConvStack:
         self.ctx, self.rn, self.conv_rm = ctx, int(rn), int(conv_rm)
         self.local_tile = ctx.profile.local_tile("network_local_tiles", "network_gemm_tile", local_tiles)
         if self.local_tile is not None:
-            check_tile(self.local_tile[0], (("TM", "RM"), ("TN", "RN")), "conv GEMM")
+            check_tile(self.local_tile[0], CONV_BLOCKS, "conv GEMM")
         self.path = "register" if self.local_tile is None else "local"
         relu_last = weights.relu_after_last_conv if relu_after_last is None else bool(relu_after_last)
         self.relu_after_last = relu_last
@@ -185,19 +202,12 @@ class ConvStack:
             sizes["TN"] = min(sizes["TN"], round_up(npad, sizes["RN"]))
             sizes["TK"] = min(sizes["TK"], ks * ks * cin)
 
-        def shrink(t):  # fewer pixels, then fewer channels, then a thinner slice
-            if halve_tile(t, "TM", "RM") or halve_tile(t, "TN", "RN"):
-                return t
-            if t["TK"] > 1:
-                t["TK"] //= 2
-                return t
-            return None
-
         kern, tile = fit_tile(
             self.ctx, f"conv GEMM (KS={ks}, CIN={cin}, NP={npad})", sizes, forced,
             lambda t: 4 * t["TK"] * (t["TM"] + t["TN"]) + 8 * t["TM"],
             lambda t: (t["TN"] // t["RN"], t["TM"] // t["RM"]),
-            lambda t: self.ctx.kernel(CONV_WG_CL, "network_conv_wg", **defs, **t), shrink)
+            lambda t: self.ctx.kernel(CONV_WG_CL, "network_conv_wg", **defs, **t),
+            shrinker(*CONV_BLOCKS))  # fewer pixels, then fewer channels, then a thinner slice
         return ConvKernel(kern, tile)
 
     def launch(self, conv: ConvKernel, d_in, w_in, d_w, d_b, d_out, w_out, m_total, npad):

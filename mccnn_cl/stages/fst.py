@@ -48,7 +48,7 @@ import numpy as np
 from ..cl import round_up
 from ..weights import FST, Weights
 from ..validate import check_cost_inputs
-from .features import (check_tile, fit_tile, halve_tile, normalise, setup_network_cost, volume_on_device,
+from .features import (check_tile, fit_tile, normalise, setup_network_cost, shrinker, volume_on_device,
                        volume_to_host)
 
 FST_CL = "fst.cl"
@@ -102,15 +102,8 @@ class FstCost:
         check_tile(sizes, (("TX", "RX"), ("TD", "RD")), "fst volume")
         if not forced:
             sizes["TK"] = min(sizes["TK"], self.nk)
-
-        def shrink(t):  # fewer disparities, then fewer columns, then fewer maps per slice
-            if halve_tile(t, "TD", "RD") or halve_tile(t, "TX", "RX"):
-                return t
-            if t["TK"] > 1:
-                t["TK"] //= 2
-                return t
-            return None
-
+        # fewer disparities, then fewer columns, then fewer maps per slice
+        shrink = shrinker(("TD", "RD"), ("TX", "RX"))
         defs = dict(NK=self.nk, PADL=PADL, VOL_HALF=int(self.half))
         return fit_tile(self.ctx, f"fst volume (NK={self.nk})", sizes, forced,
                         lambda t: 4 * t["TK"] * (2 * t["TX"] + t["TD"] - 1),

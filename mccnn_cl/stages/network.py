@@ -138,7 +138,6 @@ class PaperCost:
         self.nout = nout = W8.shape[0]  # 2: softmax (paper), 1: sigmoid (acrt)
         w8 = np.zeros((nout, hp), np.float32)
         w8[:, :W8.shape[1]] = W8
-        self._d_wh, self._d_bh = ctx.to_device(wh), ctx.to_device(bh)
         self._d_w8, self._d_b8 = ctx.to_device(w8), ctx.to_device(np.asarray(b8, np.float32))
         if gemm:  # the hidden layers as 1 x 1 convolutions of [cells][HP] maps, one weight buffer each
             self._hidden = self.stack.kernel(1, hp, hp, hp, relu=1)
@@ -152,6 +151,9 @@ class PaperCost:
             log.info("network: HP=%d NHID=%d RN=%d, head layer by layer (runs of %d cells, conv path %s)",
                      hp, nhid, rn, GEMM_CELLS, self.stack.path)
             return
+
+        # the fused head reads the hidden layers from one buffer (the "gemm" head one per layer, above)
+        self._d_wh, self._d_bh = ctx.to_device(wh), ctx.to_device(bh)
 
         # -- head kernel: shrink the tile until local memory and group size fit
         tm, rm = int(t["TM"]), int(t["RM"])
