@@ -55,9 +55,8 @@ def calibrate(cfg, train_pairs, val_pairs, device, steps: int = 20, warmup: int 
     random state restored afterwards.
     """
     from .crops import crop_loss
-    from .evaluate import make_validation, validate
-    from .model import MCCNN
-    from .train import ARCHS, _atomic_torch_save, _export, crop_sampler, plot_history
+    from .evaluate import validate
+    from .train import _atomic_torch_save, _export, crop_sampler, new_model, new_optimizer, plot_history, validation_set
 
     if cfg.sampler != "crop":
         raise InputError("--fit-minutes times crop-sampler steps: use --sampler crop")
@@ -67,15 +66,11 @@ def calibrate(cfg, train_pairs, val_pairs, device, steps: int = 20, warmup: int 
     devices = [device] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices):
         torch.manual_seed(cfg.seed + 7919)
-        model = MCCNN(cfg.conv_layers, cfg.fc_layers, architecture=ARCHS[cfg.arch],
-                      margin=cfg.margin).he_init_().to(device)
-        opt = torch.optim.SGD(model.parameters(), lr=cfg.lr, momentum=cfg.momentum,
-                              weight_decay=cfg.weight_decay)
+        model = new_model(cfg, device)
+        opt = new_optimizer(cfg, model)
         t = time.time()
         sampler = crop_sampler(cfg, train_pairs, model.patch_size)
-        vset = make_validation(val_pairs, model.patch_size, n_examples=cfg.val_examples,
-                               n_pixels=cfg.val_pixels, seed=cfg.seed + 1, n_lo=int(round(cfg.n_lo)),
-                               n_hi=int(round(cfg.n_hi)), p_hi=int(round(cfg.p_hi)), ndisp=cfg.val_ndisp)
+        vset = validation_set(cfg, val_pairs, model.patch_size)
         setup_s = time.time() - t
         rng = np.random.default_rng([cfg.seed, 2**31 - 1])  # not a step's generator (those are (seed, epoch, i))
         model.train()

@@ -324,6 +324,24 @@ def crop_sampler(cfg: TrainConfig, train_pairs, patch_size: int) -> CropSampler:
                        max_per_pair=cfg.max_per_pair)
 
 
+def new_model(cfg: TrainConfig, device):
+    """``cfg``'s network, He-initialised (torch's global generator), on ``device``."""
+    return MCCNN(cfg.conv_layers, cfg.fc_layers, architecture=ARCHS[cfg.arch],
+                 margin=cfg.margin).he_init_().to(device)
+
+
+def new_optimizer(cfg: TrainConfig, model):
+    """The run's SGD (lr, momentum, weight decay of ``cfg``; the lr is set per step)."""
+    return torch.optim.SGD(model.parameters(), lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+
+
+def validation_set(cfg: TrainConfig, pairs, patch_size: int):
+    """The fixed held-out examples and pixels a run validates on each epoch."""
+    return make_validation(pairs, patch_size, n_examples=cfg.val_examples, n_pixels=cfg.val_pixels,
+                           seed=cfg.seed + 1, n_lo=int(round(cfg.n_lo)), n_hi=int(round(cfg.n_hi)),
+                           p_hi=int(round(cfg.p_hi)), ndisp=cfg.val_ndisp)
+
+
 def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None, log=print,
           stop_after: int | None = None, stop_after_steps: int | None = None, init=None) -> dict:
     """Train on ``train_pairs`` (StereoPairs with GT), validate on ``val_pairs`` each epoch.
@@ -369,15 +387,13 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
     if lead:
         out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
-    model = MCCNN(cfg.conv_layers, cfg.fc_layers, architecture=ARCHS[cfg.arch],
-                  margin=cfg.margin).he_init_().to(device)
+    model = new_model(cfg, device)
     if init is not None:
         if init.conv_layers() != cfg.conv_layers or init.fc_layers() != cfg.fc_layers \
                 or init.architecture != ARCHS[cfg.arch]:
             raise InputError(f"init weights ({init.architecture}) do not have the run's layers ({cfg.arch})")
         model.load_state_dict(MCCNN.from_weights(init).state_dict())
-    opt = torch.optim.SGD(model.parameters(), lr=cfg.lr, momentum=cfg.momentum,
-                          weight_decay=cfg.weight_decay)
+    opt = new_optimizer(cfg, model)
     half = cfg.batch_size // 2
     if cfg.sampler == "patch":
         sampler = PatchSampler(train_pairs, patch_size=model.patch_size, n_lo=cfg.n_lo, n_hi=cfg.n_hi,
@@ -394,9 +410,7 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         unit = f"{cfg.crops_per_step} crops"
     if world > 1:
         unit = f"{world} processes x {unit}"
-    vset = make_validation(val_pairs if lead else [], model.patch_size, n_examples=cfg.val_examples,
-                           n_pixels=cfg.val_pixels, seed=cfg.seed + 1, n_lo=int(round(cfg.n_lo)),
-                           n_hi=int(round(cfg.n_hi)), p_hi=int(round(cfg.p_hi)), ndisp=cfg.val_ndisp)
+    vset = validation_set(cfg, val_pairs if lead else [], model.patch_size)
     total_iters = cfg.epochs * iters_per_epoch
     history, start_epoch, start_i, elapsed0, examples0 = [], 0, 0, 0.0, 0
     mid = None
