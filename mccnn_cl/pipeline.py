@@ -30,12 +30,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cl import BufferPool, ClContext
+from .opencl.context import BufferPool, ClContext
 from .errors import InputError, WeightsError
 from .imageops import to_gray  # noqa: F401 (also importable from here)
 from .validate import PATCH, check_disparity_range, check_hyperparameters, check_pair  # noqa: F401 (PATCH re-exported)
-from .stages.costs import make_cost
-from .stages.features import normalise
+from .costs.registry import make_cost
+from .costs.features import normalise
 from .stages.cross import CrossArms, max_arm
 from .stages.confidence import Confidence
 from .stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpixel, WinnerTakeAll
@@ -243,7 +243,7 @@ class StereoMatcher:
     max_disparity : int
         D, the number of disparity levels (disparities 0 .. D-1); 228 = KITTI.
     device : None, str or ClContext
-        OpenCL device spec (see :func:`mccnn_cl.cl.select_device`) or a context.
+        OpenCL device spec (see :func:`mccnn_cl.opencl.context.select_device`) or a context.
     cost : "cnn" or "census"
         The matching cost: the network, or a 9 x 9 census transform (no weights).
     progress : bool
@@ -304,7 +304,7 @@ class StereoMatcher:
         self.memory_limit = int(memory_limit) if memory_limit is not None else int(0.75 * self.ctx.global_mem)
         self.tile_overlap = int(tile_overlap)
 
-        # the cost stage (mccnn_cl.stages.costs): chosen from the architecture here, once
+        # the cost stage (mccnn_cl.costs.registry): chosen from the architecture here, once
         self.cost = make_cost(self.ctx, self.weights if cost == "cnn" else "census", half=self.half)
         self.margin = self.cost.margin
 

@@ -63,7 +63,7 @@ def _load(name):
 
 def worker(args) -> int:
     """Inside one implementation's process: run the pairs, save arrays to --out."""
-    from mccnn_cl.cl import ClContext
+    from mccnn_cl.opencl.context import ClContext
     from mccnn_cl.pipeline import StereoMatcher
 
     ctx = ClContext()

@@ -70,4 +70,4 @@ if [ "$CPU" = 0 ] && [ -z "${OCL_ICD_VENDORS:-}" ] && command -v nvidia-smi >/de
         echo "gpu_check: no NVIDIA ICD registered; using $LIB through .gpucheck/vendors" >&2
     fi
 fi
-exec "$PY" -m mccnn_cl.gpucheck --env-note "$NOTE" ${ARGS[@]+"${ARGS[@]}"}
+exec "$PY" -m tools.gpucheck --env-note "$NOTE" ${ARGS[@]+"${ARGS[@]}"}

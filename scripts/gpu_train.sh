@@ -17,8 +17,8 @@
 #   GPU_TRAIN_ARGS    extra trainer flags, appended (they override the recipe's)
 #   PYTHON            interpreter (default .venv/bin/python if it has torch, else python3)
 # mccnn_cl is made importable without network: already importable, else
-# `pip install --no-deps --no-index --no-build-isolation -e .`, else a shim
-# that maps mccnn_cl.train to train/ (setup.cfg's package_dir) for this run.
+# `pip install --no-deps --no-index --no-build-isolation -e .`, else the
+# checkout itself on PYTHONPATH (mccnn_cl/train is inside the package).
 # Training never imports pyopencl (tests/test_gpu_train_script.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -60,10 +60,9 @@ if ! "$PY" -c "import mccnn_cl.train.train" 2>/dev/null; then
             && "$PY" -c "import mccnn_cl.train.train" 2>/dev/null; then
         HOW="pip install -e . (no network)"
     else
-        SHIM="import runpy, sys; sys.path.insert(0, '$REPO'); import mccnn_cl; mccnn_cl.__path__.append('$REPO'); runpy.run_module('mccnn_cl.train.train', run_name='__main__', alter_sys=True)"
-        "$PY" -c "${SHIM%%; runpy*}; import mccnn_cl.train.train" || die "cannot import mccnn_cl.train.train with $PY"
-        RUN_TRAIN=("$PY" -c "$SHIM")
-        HOW="shim: mccnn_cl.train -> $REPO/train (pip install -e failed)"
+        export PYTHONPATH="$REPO${PYTHONPATH:+:$PYTHONPATH}"
+        "$PY" -c "import mccnn_cl.train.train" || die "cannot import mccnn_cl.train.train with $PY"
+        HOW="PYTHONPATH=$REPO (pip install -e failed)"
     fi
 fi
 

@@ -6,7 +6,7 @@
 # DATA (default ../shared/data): KITTI 2012/2015 `training/` folders and
 # Middlebury scenes in their official layouts.  DEST (default .gpu_data in the
 # repository root, git-ignored) is emptied and refilled in the same layouts,
-# so mccnn_cl.datasets.discover reads it as it reads DATA:
+# so mccnn_cl.evaluation.datasets.discover reads it as it reads DATA:
 #   kitti2012/training/{colored_0,colored_1,disp_occ,disp_noc}  (frames with GT)
 #   kitti2015/training/{image_2,image_3,disp_occ_0,disp_noc_0}  (frames with GT)
 #   middlebury/Cones/*  (the held-out Middlebury validation pair)

@@ -1,7 +1,7 @@
 """Shared pytest fixtures.
 
 ``--cl-device SPEC`` (or ``$MCCNN_CL_DEVICE``) chooses the OpenCL device for
-the whole run (see :func:`mccnn_cl.cl.select_device`); default: the package's
+the whole run (see :func:`mccnn_cl.opencl.context.select_device`); default: the package's
 own preference.  A missing OpenCL platform is a test *failure*, never a skip.
 
 ``--cl-impl {pocl,intel,oclgrind,rusticl}`` (or ``$MCCNN_CL_IMPL``) runs the
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mccnn_cl.cl import ClContext
+from mccnn_cl.opencl.context import ClContext
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -137,7 +137,7 @@ def oclgrind_errors(text: str) -> str:
 
 def pytest_addoption(parser):
     parser.addoption("--cl-device", default=os.environ.get("MCCNN_CL_DEVICE"),
-                     help="OpenCL device spec for the tests (see mccnn_cl.cl.select_device)")
+                     help="OpenCL device spec for the tests (see mccnn_cl.opencl.context.select_device)")
     parser.addoption("--cl-impl", default=os.environ.get("MCCNN_CL_IMPL") or None,
                      choices=sorted(CL_IMPLS),
                      help="run this pytest process on one OpenCL implementation only "

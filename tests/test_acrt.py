@@ -14,8 +14,8 @@ import pytest
 
 from mccnn_cl.errors import WeightsError
 from mccnn_cl.reference import network as ref
-from mccnn_cl.stages.costs import make_cost
-from mccnn_cl.stages.network import AcrtCost, PaperCost
+from mccnn_cl.costs.registry import make_cost
+from mccnn_cl.costs.network import AcrtCost, PaperCost
 from mccnn_cl.weights import Weights
 
 from helpers import random_pair, run_poisoned

@@ -1,9 +1,9 @@
-"""mccnn_cl.bench: the one stage-grouping table and the synthetic pair."""
+"""mccnn_cl.benchmark: the one stage-grouping table and the synthetic pair."""
 
 import numpy as np
 import pytest
 
-from mccnn_cl.bench import GROUPS, STAGE_GROUP, group_timings, stage_group, synthetic_pair
+from mccnn_cl.benchmark import GROUPS, STAGE_GROUP, group_timings, stage_group, synthetic_pair
 from mccnn_cl.pipeline import StereoMatcher
 
 
@@ -13,7 +13,7 @@ def test_every_timed_stage_has_a_group(ctx, kw):
     res = StereoMatcher(cost="census", max_disparity=16, device=ctx, **kw).compute(left, right, timings=True)
     assert res.plan.tiled == ("memory_limit" in kw)
     missing = sorted(set(res.timings) - set(STAGE_GROUP))
-    assert not missing, f"add these stage names to mccnn_cl.bench.STAGE_GROUP: {missing}"
+    assert not missing, f"add these stage names to mccnn_cl.benchmark.STAGE_GROUP: {missing}"
     groups = group_timings(res.timings)
     assert list(groups) == list(GROUPS)
     assert sum(groups.values()) == pytest.approx(sum(res.timings.values()))

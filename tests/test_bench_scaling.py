@@ -1,4 +1,4 @@
-"""bench/bench_scaling.py at tiny sizes (--quick) in a subprocess: its JSON is
+"""tools/benchmarks/bench_scaling.py at tiny sizes (--quick) in a subprocess: its JSON is
 complete and self-consistent (sizes, cell counts, stage sums, the fits
 recomputed here).  Timings at these sizes are noise, so linearity itself is
 not asserted; the full-size run in BENCHMARKS.md shows it."""
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SCRIPT = REPO / "bench" / "bench_scaling.py"
+SCRIPT = REPO / "tools" / "benchmarks" / "bench_scaling.py"
 
 
 def _module():

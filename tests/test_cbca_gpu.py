@@ -25,7 +25,7 @@ import helpers
 
 from conftest import POISON
 from helpers import ad_volume, blocky_image, invalid_mask, kitti_crop, random_volume
-from mccnn_cl.device import RULES, DeviceProfile
+from mccnn_cl.opencl.device import RULES, DeviceProfile
 from mccnn_cl.errors import InputError
 from mccnn_cl.reference.aggregation import cbca, cross_arms
 from mccnn_cl.stages.cbca import CBCA, SHORT_MAX, path_scratch_bytes

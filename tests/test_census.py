@@ -7,7 +7,7 @@ import pytest
 
 from mccnn_cl.errors import InputError
 from mccnn_cl.reference import disparity as ref
-from mccnn_cl.stages.census import CensusCost
+from mccnn_cl.costs.census import CensusCost
 
 from conftest import POISON
 

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from mccnn_cl.cl import ClContext, list_devices, select_device
+from mccnn_cl.opencl.context import ClContext, list_devices, select_device
 from mccnn_cl.errors import InputError, NoOpenCLDeviceError, OpenCLError
 
 
@@ -73,7 +73,7 @@ def test_check_alloc(ctx):
 def test_no_platform_gives_install_hint(tmp_path):
     env = dict(os.environ, OCL_ICD_VENDORS=str(tmp_path))
     env.pop("PYOPENCL_CTX", None)
-    code = ("from mccnn_cl.cl import ClContext\n"
+    code = ("from mccnn_cl.opencl.context import ClContext\n"
             "from mccnn_cl.errors import NoOpenCLDeviceError\n"
             "try:\n    ClContext()\nexcept NoOpenCLDeviceError as e:\n    print('ERR', e)\n")
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)

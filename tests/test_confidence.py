@@ -21,11 +21,11 @@ import pytest
 
 from mccnn_cl.errors import InputError
 from mccnn_cl.io import read_pfm
-from mccnn_cl.metrics import sparsification
+from mccnn_cl.evaluation.metrics import sparsification
 from mccnn_cl.pipeline import StereoMatcher
 from mccnn_cl.reference import confidence as ref
 from mccnn_cl.reference import disparity as dref
-from mccnn_cl.stages.census import CensusCost
+from mccnn_cl.costs.census import CensusCost
 from mccnn_cl.stages.confidence import Confidence, cost_floor
 from mccnn_cl.stages.disparity import LeftRightCheck, WinnerTakeAll
 

@@ -5,7 +5,7 @@ import shutil
 import numpy as np
 import pytest
 
-from mccnn_cl.datasets import (discover, find_pairs, load_kitti2012, load_kitti2015,
+from mccnn_cl.evaluation.datasets import (discover, find_pairs, load_kitti2012, load_kitti2015,
                                load_middlebury)
 from mccnn_cl.errors import InputError
 from mccnn_cl.io import write_pfm

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 import torch
 
-from mccnn_cl.datasets import load_middlebury
+from mccnn_cl.evaluation.datasets import load_middlebury
 from mccnn_cl.errors import InputError
 from mccnn_cl.train.crops import MIDDLEBURY_AUGMENT, CropSampler
 from mccnn_cl.train.model import MCCNN

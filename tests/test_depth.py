@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mccnn_cl import depth
-from mccnn_cl.baseline import sgbm, sgbm_parameters
+from mccnn_cl.evaluation.baseline import sgbm, sgbm_parameters
 from mccnn_cl.errors import InputError
 from mccnn_cl.io import read_image
 from mccnn_cl.visualize import colorize, colorize_with_legend, error_image, legend_bar

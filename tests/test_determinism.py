@@ -15,8 +15,8 @@ compilers may contract/reorder float operations, so it is not bit-exact.
 import cv2
 import numpy as np
 
-from mccnn_cl.cl import ClContext
-from mccnn_cl.stages.network import NetworkCost
+from mccnn_cl.opencl.context import ClContext
+from mccnn_cl.costs.network import NetworkCost
 from mccnn_cl.weights import Weights
 
 
@@ -61,7 +61,7 @@ def test_network_cost_volume_is_bit_identical(ctx, shared_data):
 def test_aggregation_chain_is_bit_identical(ctx, shared_data):
     """census -> cross arms -> CBCA (4 iterations): the stages with long sums."""
     from mccnn_cl.stages.cbca import CBCA
-    from mccnn_cl.stages.census import CensusCost
+    from mccnn_cl.costs.census import CensusCost
     from mccnn_cl.stages.cross import CrossArms, max_arm
 
     left, right = _real_crop(shared_data, 48, 77)

@@ -1,4 +1,4 @@
-"""mccnn_cl.device: the one device profile and its rule table."""
+"""mccnn_cl.opencl.device: the one device profile and its rule table."""
 
 import re
 from pathlib import Path
@@ -8,7 +8,7 @@ import pytest
 
 from helpers import fake_device
 
-from mccnn_cl.device import CLASSES, CPU, GPU, LLVMPIPE, LLVMPIPE_LOOP_LIMIT, RULES, DeviceProfile, device_class
+from mccnn_cl.opencl.device import CLASSES, CPU, GPU, LLVMPIPE, LLVMPIPE_LOOP_LIMIT, RULES, DeviceProfile, device_class
 from mccnn_cl.stages.cbca import CBCA, SHORT_MAX
 from mccnn_cl.stages.sgm import SGM, make_sgm
 from mccnn_cl.stages.sgm_wg import SGMWorkGroup

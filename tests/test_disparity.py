@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mccnn_cl.reference import disparity as ref
-from mccnn_cl.stages.census import CensusCost
+from mccnn_cl.costs.census import CensusCost
 from mccnn_cl.stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpixel, WinnerTakeAll
 
 from conftest import POISON

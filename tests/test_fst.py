@@ -17,9 +17,9 @@ import pytest
 
 from mccnn_cl.errors import InputError, WeightsError
 from mccnn_cl.reference import network as ref
-from mccnn_cl.stages import fst as fst_stage
-from mccnn_cl.stages.costs import make_cost
-from mccnn_cl.stages.fst import FstCost
+from mccnn_cl.costs import fst as fst_stage
+from mccnn_cl.costs.registry import make_cost
+from mccnn_cl.costs.fst import FstCost
 from mccnn_cl.weights import Weights
 
 from conftest import POISON

@@ -14,7 +14,9 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO, ImplUnavailable, icd_file
-from mccnn_cl import gpucheck
+
+sys.path.insert(0, str(REPO))  # tools/ is outside the installed package
+from tools import gpucheck  # noqa: E402
 
 SCRIPT = REPO / "scripts" / "gpu_check.sh"
 
@@ -68,7 +70,7 @@ def test_no_gpu_names_a_missing_nvidia_icd(tmp_path):
 
 def test_oclgrind_is_never_the_gpu_under_test():
     """Oclgrind's simulator reports CPU | GPU (listed as a GPU): not picked."""
-    from mccnn_cl.cl import DeviceInfo
+    from mccnn_cl.opencl.context import DeviceInfo
 
     sim = DeviceInfo(0, 0, "Oclgrind", "OpenCL 1.2", "Oclgrind Simulator", "GPU", object())
     gpu = DeviceInfo(1, 0, "NVIDIA CUDA", "OpenCL 3.0", "NVIDIA H200", "GPU", object())
@@ -77,7 +79,7 @@ def test_oclgrind_is_never_the_gpu_under_test():
 
 
 def test_pack_data_copies_the_files_the_check_reads(tmp_path, shared_data):
-    p = subprocess.run([sys.executable, "-m", "mccnn_cl.gpucheck", "--data", str(shared_data), "--pack-data",
+    p = subprocess.run([sys.executable, "-m", "tools.gpucheck", "--data", str(shared_data), "--pack-data",
                         str(tmp_path / "data")], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert p.returncode == 0, p.stdout + p.stderr
     for rel in gpucheck.DATA_FILES:

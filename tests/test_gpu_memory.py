@@ -1,7 +1,7 @@
 """Memory on GPUs (issue 16, item 4): the memory planner's row tiles with the
 GPU-shaped stages, on a simulated small device.
 
-PoCL is given the profile of a GPU (the ``gpu`` column of mccnn_cl.device.RULES:
+PoCL is given the profile of a GPU (the ``gpu`` column of mccnn_cl.opencl.device.RULES:
 work-group CBCA, SGMWorkGroup, the networks' local-memory tiles and fst's
 work-group volume) and a memory limit that cannot hold the whole image's
 volumes.  The plan counts the GPU-shaped stages' own scratch
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from helpers import fake_device, kitti_crop
-from mccnn_cl.device import DeviceProfile
+from mccnn_cl.opencl.device import DeviceProfile
 from mccnn_cl.errors import InputError
 from mccnn_cl.pipeline import MAP_BUFFERS, StereoMatcher
 from mccnn_cl.stages.sgm import SGM

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mccnn_cl.datasets import discover
+from mccnn_cl.evaluation.datasets import discover
 from mccnn_cl.errors import InputError
 from mccnn_cl.train.budget import Calibration, plan
 from mccnn_cl.train.train import main
@@ -87,7 +87,7 @@ def test_training_entry_point_needs_no_pyopencl(tmp_path):
     code = ("import sys\n"
             "try:\n    import pyopencl\nexcept ImportError:\n    pass\n"
             "else:\n    sys.exit('pyopencl is still importable: the test would prove nothing')\n"
-            "import mccnn_cl.train.train, mccnn_cl.train.budget, mccnn_cl.weights, mccnn_cl.datasets\n"
+            "import mccnn_cl.train.train, mccnn_cl.train.budget, mccnn_cl.weights, mccnn_cl.evaluation.datasets\n"
             "mccnn_cl.train.train.build_parser().parse_args(['--data', 'x', '--out', 'y', '--fit-minutes', '1'])\n"
             "print('ok')\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)

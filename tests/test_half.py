@@ -15,9 +15,9 @@ import pytest
 
 from mccnn_cl.reference import disparity as ref
 from mccnn_cl.reference import network as netref
-from mccnn_cl.stages.census import CensusCost
+from mccnn_cl.costs.census import CensusCost
 from mccnn_cl.stages.disparity import RightReference, Subpixel, WinnerTakeAll
-from mccnn_cl.stages.network import NetworkCost
+from mccnn_cl.costs.network import NetworkCost
 from mccnn_cl.weights import Weights
 
 from conftest import POISON

@@ -51,8 +51,8 @@ def test_training_and_inference_standardise_alike(shared_data):
     standardises the matcher's [0, 1] gray input (stages.features, the networks' input):
     on a real colour image the two are equal bit for bit (before issue 17 training took
     float32 statistics and differed in about half the pixels by an ulp)."""
-    from mccnn_cl.datasets import load_kitti2015, load_middlebury
-    from mccnn_cl.stages.features import normalise as inference
+    from mccnn_cl.evaluation.datasets import load_kitti2015, load_middlebury
+    from mccnn_cl.costs.features import normalise as inference
     from mccnn_cl.train.patches import normalise as training
 
     for pair in (load_kitti2015(shared_data / "kitti2015", "000000"),

@@ -22,7 +22,8 @@ import pytest
 
 from mccnn_cl.cli import main
 from mccnn_cl.errors import WeightsError
-from mccnn_cl.importers import commands, convert, pytorch, torch7
+from mccnn_cl.cli import convert as commands
+from mccnn_cl.importers import convert, pytorch, torch7
 from mccnn_cl.settings import authors_settings
 from mccnn_cl.weights import ACRT, FST, Weights, resolve, shipped_models
 
@@ -120,7 +121,7 @@ def test_t7_converts_to_fst(t7_weights):
                                                     s["sgm_v"], s["sgm_tau_so"], s["blur_sigma"], s["blur_tau"])
     assert opts["color"] == "gray" and opts["fm"] == 64 and opts["l1"] == 4
     # -a train_all: every KITTI 2012 training pair, so evaluate can say which pairs it saw
-    from mccnn_cl.evaluate import training_status
+    from mccnn_cl.evaluation.scoring import training_status
 
     assert opts["a"] == "train_all" and len(w.meta["training"]["trained_on"]) == 194
     assert training_status(w.meta, "kitti2012/000193", "000193") == "trained"
@@ -443,7 +444,7 @@ def test_cli_models(capsys):
 def test_cli_weights_option_resolves(t7_bytes, tmp_path):
     """--weights takes a .t7, a shipped model's name, or fails in one line for an unknown name."""
     from mccnn_cl.cli import build_parser
-    from mccnn_cl.commands import _load_weights
+    from mccnn_cl.cli.commands import _load_weights
 
     p = build_parser()
     args = p.parse_args(["match", "l.png", "r.png", "-o", "o.pfm", "--weights", str(T7)])

@@ -15,11 +15,11 @@ def test_non_editable_install_carries_kernels(tmp_path):
         capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     kernels = sorted(p.name for p in (target / "mccnn_cl" / "kernels").iterdir())
-    sources = sorted(p.name for p in (REPO / "kernels").iterdir() if p.suffix in (".cl", ".h"))
+    sources = sorted(p.name for p in (REPO / "mccnn_cl" / "kernels").iterdir() if p.suffix in (".cl", ".h"))
     assert sources and set(sources) <= set(kernels), (sources, kernels)
     for sub in ("stages", "reference", "train", "importers"):
         assert (target / "mccnn_cl" / sub / "__init__.py").exists(), sub
-    code = ("import mccnn_cl, mccnn_cl.cl as c; ctx = c.ClContext(); "
+    code = ("import mccnn_cl, mccnn_cl.opencl.context as c; ctx = c.ClContext(); "
             "assert mccnn_cl.__file__.startswith(%r), mccnn_cl.__file__; "
             "print(ctx.kernel_dir)" % str(target))
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,

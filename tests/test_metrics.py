@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from mccnn_cl import metrics
+from mccnn_cl.evaluation import metrics
 from mccnn_cl.errors import InputError
-from mccnn_cl.evaluate import format_table, mean_metrics, training_status
+from mccnn_cl.evaluation.scoring import format_table, mean_metrics, training_status
 
 nan, inf = np.nan, np.inf
 
@@ -132,7 +132,7 @@ def test_mean_and_table():
 
 
 def test_table_cells_fit():
-    from mccnn_cl.evaluate import _fmt
+    from mccnn_cl.evaluation.scoring import _fmt
     assert _fmt(100.0, "bad3_all") == "100.0"  # 100 % fits the 5-wide column with one decimal
     assert _fmt(3.14159, "bad3_all") == "3.14"
     assert _fmt(1234.5, "seconds") == "1234"

@@ -16,7 +16,7 @@ import torch
 
 from mccnn_cl.errors import InputError
 from mccnn_cl.reference import network as ref
-from mccnn_cl.stages.network import NetworkCost, normalise
+from mccnn_cl.costs.network import NetworkCost, normalise
 from mccnn_cl.weights import Weights
 
 from conftest import POISON
@@ -122,7 +122,7 @@ def test_matches_torch_model(ctx, paper_weights, shared_data, monkeypatch):
     expected = ref.cost_volume_torch(paper_weights, left, right, D)
     check(got, expected, D, 28, 52)
     # in bands of 8 volume rows (4 bands): the same bits
-    import mccnn_cl.stages.network as stage
+    import mccnn_cl.costs.network as stage
     monkeypatch.setattr(stage, "BAND_BYTES", 8 * 52 * net.hp * 4)
     np.testing.assert_array_equal(run_poisoned(ctx, net, left, right, D), got)
     # and the torch module on explicit 9x9 patch pairs for a few cells
@@ -172,7 +172,7 @@ def test_constant_images(ctx):
 
 
 def test_compute_progress_and_chunks(ctx, monkeypatch):
-    import mccnn_cl.stages.network as stage
+    import mccnn_cl.costs.network as stage
     w = Weights.random(SMALL_CONV, [16, 16, 2], seed=4)
     net = net_for(ctx, w, key="small4")
     rng = np.random.default_rng(9)
@@ -277,7 +277,7 @@ def test_settings_travel_with_weights(ctx):
     (no CBCA) run without cross arms; the cost class follows the architecture."""
     from mccnn_cl.pipeline import StereoMatcher
     from mccnn_cl.settings import authors_settings
-    from mccnn_cl.stages.fst import FstCost
+    from mccnn_cl.costs.fst import FstCost
 
     w = Weights.random([[8, 3]] * 2, architecture="mccnn-fst", seed=2)
     w.meta["stereo"] = authors_settings("mccnn-fst", "kitti")
@@ -318,7 +318,7 @@ def test_published_fst_file_through_matcher(ctx, shared_data):
     """A .t7 path goes through weights.resolve and the importer: the fst cost
     with the authors' KITTI settings, which the caller can still override."""
     from mccnn_cl.pipeline import StereoMatcher
-    from mccnn_cl.stages.fst import FstCost
+    from mccnn_cl.costs.fst import FstCost
 
     path = shared_data.parent / "models" / "net_kitti_fast_-a_train_all.t7"
     assert path.exists(), path

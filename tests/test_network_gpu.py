@@ -39,13 +39,13 @@ import helpers
 
 from conftest import POISON
 from helpers import kitti_crop, random_pair, run_poisoned
-from mccnn_cl.device import RULES, DeviceProfile
+from mccnn_cl.opencl.device import RULES, DeviceProfile
 from mccnn_cl.errors import InputError
 from mccnn_cl.reference import network as ref
-from mccnn_cl.stages.features import ConvStack, normalise
-from mccnn_cl.stages.fst import FstCost
-from mccnn_cl.stages import network as network_stage
-from mccnn_cl.stages.network import AcrtCost, PaperCost
+from mccnn_cl.costs.features import ConvStack, normalise
+from mccnn_cl.costs.fst import FstCost
+from mccnn_cl.costs import network as network_stage
+from mccnn_cl.costs.network import AcrtCost, PaperCost
 from mccnn_cl.weights import Weights, resolve
 
 FST_TOL = 2e-5   # tests/test_fst.py
@@ -195,7 +195,7 @@ def test_fst_real_crop_shipped_network(ctx, shared_data):
 def test_fst_bands_half_and_to_host(ctx, monkeypatch, rows):
     """Bands of 1 and 3 rows (the volume's row offset y0), to_host, half
     storage: the GPU-shaped path gives the CPU path's bits in each."""
-    from mccnn_cl.stages import fst as fst_stage
+    from mccnn_cl.costs import fst as fst_stage
 
     w = Weights.random([[10, 3]] * 3, architecture="mccnn-fst", seed=4)
     left, right = random_pair(np.random.default_rng(9), 20, 45)
@@ -406,7 +406,7 @@ def test_paper_network_with_the_gpu_profile(ctx, shared_data, monkeypatch):
     CPU-shaped kernels' with the same register tiles (the gpu column's)."""
     import pyopencl as cl
 
-    from mccnn_cl.stages.costs import make_cost
+    from mccnn_cl.costs.registry import make_cost
 
     w = resolve("kitti-paper")
     left, right = kitti_crop(shared_data, 150, 300, 15, 37)

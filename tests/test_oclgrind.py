@@ -99,7 +99,7 @@ class Checks:
 def case_network(ctx, rng, chk):
     """network_conv.cl + network_head.cl: a tiny random net (9x9 patch)."""
     from mccnn_cl.reference import network as ref
-    from mccnn_cl.stages.network import NetworkCost
+    from mccnn_cl.costs.network import NetworkCost
     from mccnn_cl.stages.sgm import SGM
     from mccnn_cl.stages.sgm_wg import SGMWorkGroup
     from mccnn_cl.weights import Weights
@@ -116,7 +116,7 @@ def case_network(ctx, rng, chk):
             # fewer work-items than (row, column) groups, each walking several
             NetworkCost(ctx, w, tiles={"TM": 256, "RM": 1, "RN": 1, "ROWS_FASTEST": 0, "CONV_RM": 1}, **cpu)]
     sizes = ((12, 20, 5), (11, 13, 7), (12, 17, 5), (12, 15, 4))  # 2nd: D >= W (cropped W = 5)
-    import mccnn_cl.stages.network as network_module
+    import mccnn_cl.costs.network as network_module
 
     for i, (net, (h, wd, D)) in enumerate(zip(nets, sizes)):
         left, right = _images(rng, h, wd)
@@ -138,10 +138,10 @@ def case_network(ctx, rng, chk):
 def case_fst(ctx, rng, chk):
     """fst.cl (normalisation, cosine volume) after the conv stack without its last ReLU."""
     from mccnn_cl.reference import network as ref
-    from mccnn_cl.stages.fst import FstCost
+    from mccnn_cl.costs.fst import FstCost
     from mccnn_cl.weights import Weights
 
-    import mccnn_cl.stages.fst as fst_module
+    import mccnn_cl.costs.fst as fst_module
 
     w = Weights.random(conv_layers=[[6, 3], [5, 3]], architecture="mccnn-fst", seed=4)  # patch 5
     # the CPU-shaped kernels whatever the device's default (case fst_wg has the GPU-shaped ones):
@@ -166,7 +166,7 @@ def case_fst(ctx, rng, chk):
 def case_acrt(ctx, rng, chk):
     """network_head.cl with the 1-output sigmoid layer (NOUT=1)."""
     from mccnn_cl.reference import network as ref
-    from mccnn_cl.stages.network import AcrtCost
+    from mccnn_cl.costs.network import AcrtCost
     from mccnn_cl.weights import Weights
 
     w = Weights.random(conv_layers=[[4, 3], [4, 3]], fc_layers=[8, 8, 1], architecture="mccnn-acrt", seed=5)
@@ -190,9 +190,9 @@ def case_network_wg(ctx, rng, chk):
     checks see the local blocks shared; runs of 13 cells (across rows), half
     storage; against the reference and, bit for bit, the CPU-shaped kernels
     (network_conv, the fused head) with the same register tiles."""
-    import mccnn_cl.stages.network as network_module
+    import mccnn_cl.costs.network as network_module
     from mccnn_cl.reference import network as ref
-    from mccnn_cl.stages.network import AcrtCost, PaperCost
+    from mccnn_cl.costs.network import AcrtCost, PaperCost
     from mccnn_cl.weights import Weights
 
     paper = Weights.random(conv_layers=[[5, 3], [6, 3]], fc_layers=[8, 8, 8, 2], seed=3)
@@ -234,7 +234,7 @@ def case_fst_wg(ctx, rng, chk):
     D >= W), half storage; against the reference and, bit for bit, the
     CPU-shaped kernels."""
     from mccnn_cl.reference import network as ref
-    from mccnn_cl.stages.fst import FstCost
+    from mccnn_cl.costs.fst import FstCost
     from mccnn_cl.weights import Weights
 
     w = Weights.random(conv_layers=[[6, 3], [5, 3]], architecture="mccnn-fst", seed=4)  # patch 5, 5 maps
@@ -264,7 +264,7 @@ def case_fst_wg(ctx, rng, chk):
 
 def case_census(ctx, rng, chk):
     from mccnn_cl.reference import disparity as ref
-    from mccnn_cl.stages.census import CensusCost
+    from mccnn_cl.costs.census import CensusCost
 
     st = CensusCost(ctx)
     for (h, wd, D) in ((12, 20, 5), (11, 13, 7)):
@@ -541,7 +541,7 @@ def case_half(ctx, rng, chk):
     stages (SGM, SGMWorkGroup), against the same runs in float32 (the storage
     rounds to 11 significant bits)."""
     from mccnn_cl.pipeline import StereoMatcher
-    from mccnn_cl.stages.network import NetworkCost
+    from mccnn_cl.costs.network import NetworkCost
     from mccnn_cl.stages.sgm import SGM
     from mccnn_cl.stages.sgm_wg import SGMWorkGroup
     from mccnn_cl.weights import Weights
@@ -619,7 +619,7 @@ RUNNABLE = {**{n[5:]: f for n, f in globals().items() if n.startswith("case_")},
 # worker (subprocess) entry point
 # ---------------------------------------------------------------------------
 def run_case(name: str, expect_platform: str | None) -> dict:
-    from mccnn_cl.cl import ClContext
+    from mccnn_cl.opencl.context import ClContext
 
     ctx = ClContext()
     plat = ctx.device.platform.name.strip()
@@ -719,7 +719,7 @@ if pytest is not None:
 
         repo = HERE.parent
         defined = {}
-        for cl_file in sorted((repo / "kernels").glob("*.cl")):
+        for cl_file in sorted((repo / "mccnn_cl" / "kernels").glob("*.cl")):
             for k in re.findall(r"__kernel\s+void\s+(\w+)", cl_file.read_text(encoding="utf-8")):
                 defined[k] = cl_file.name
         used_text = "\n".join(p.read_text(encoding="utf-8") for p in sorted((repo / "mccnn_cl").rglob("*.py")))

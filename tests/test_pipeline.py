@@ -12,7 +12,7 @@ from mccnn_cl.errors import InputError, WeightsError
 from mccnn_cl.io import read_pfm
 from mccnn_cl.pipeline import Hyperparameters, StereoMatcher, StereoResult, to_gray
 from mccnn_cl.reference import disparity as ref
-from mccnn_cl.stages.census import CensusCost
+from mccnn_cl.costs.census import CensusCost
 from mccnn_cl.stages.disparity import WinnerTakeAll
 from mccnn_cl.stages.refine import bilateral_radius
 from mccnn_cl.weights import Weights, default_weights_path

@@ -1,4 +1,4 @@
-"""Volume reuse (mccnn_cl.cl.BufferPool, StereoMatcher's kept volumes).
+"""Volume reuse (mccnn_cl.opencl.context.BufferPool, StereoMatcher's kept volumes).
 
 A matcher keeps its cost volumes between calls, so a reused buffer still
 holds the previous pair's values: every stage must write every cell it
@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mccnn_cl.cl import BufferPool
+from mccnn_cl.opencl.context import BufferPool
 from mccnn_cl.pipeline import StereoMatcher
 
 D = 24

@@ -32,7 +32,7 @@ from conftest import CL_IMPLS, REPO, ImplUnavailable, impl_environ
 from helpers import CASE_KERNELS, run_isolated
 
 IMPLS = [s.strip() for s in os.environ.get("MCCNN_CL_IMPLS", "pocl,oclgrind,rusticl").split(",") if s.strip()]
-KERNEL_DIR = REPO / "kernels"
+KERNEL_DIR = REPO / "mccnn_cl" / "kernels"
 KERNEL_FILES = sorted(KERNEL_DIR.glob("*.cl")) + sorted(KERNEL_DIR.glob("*.h"))
 
 _PROBE = r"""

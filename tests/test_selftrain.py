@@ -40,7 +40,7 @@ def art(shared_data):
 @pytest.fixture(scope="module")
 def result(ctx, fst, art):
     m = StereoMatcher(weights=fst, max_disparity=D, device=ctx)
-    from mccnn_cl.datasets import to_gray
+    from mccnn_cl.evaluation.datasets import to_gray
     return m.compute(to_gray(art[0]), to_gray(art[1]), confidence=True)
 
 
@@ -173,7 +173,7 @@ def test_adapt_input_errors(tmp_path, art, capsys):
 def test_self_train_control_and_mixing(ctx, fst, art, tmp_path, shared_data):
     """No unlabeled pairs: fine-tunes on labeled pairs only (the A/B's control, same schedule);
     with share=0.5 the pseudo-labels are thinned to as many pixels as the labeled pairs hold."""
-    from mccnn_cl.datasets import load_middlebury
+    from mccnn_cl.evaluation.datasets import load_middlebury
     ts = load_middlebury(shared_data / "middlebury/Tsukuba")
     cfg = selftrain.default_config(fst, crops_per_step=1)
     w, prov = selftrain.self_train(fst, [], cfg, 1, 1, 0.1, labeled=[ts], out_dir=tmp_path / "a")

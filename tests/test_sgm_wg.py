@@ -199,7 +199,7 @@ def test_bad_input(ctx):
 @pytest.fixture
 def workgroup_sgm(ctx, monkeypatch):
     """This device's profile told to take the GPU-shaped SGM (its "sgm_stage" rule)."""
-    from mccnn_cl.device import RULES
+    from mccnn_cl.opencl.device import RULES
 
     monkeypatch.setitem(RULES["sgm_stage"], ctx.profile.kind, "workgroup")
 

@@ -47,7 +47,7 @@ def test_ship_rejects_unknown_settings_and_untrained_files(tmp_path, capsys):
 def test_lineage_of_a_fine_tuned_network_counts_the_start_as_trained(tmp_path):
     """A run started from other weights (--init) learnt from their pairs too: evaluate must not
     call those pairs held out (record_init, used by the train CLI and by ship --init)."""
-    from mccnn_cl.evaluate import training_status
+    from mccnn_cl.evaluation.scoring import training_status
 
     start = Weights.load(shipped_models()["kitti-fst"])
     run = Weights.load(shipped_models()["kitti-fst"])

@@ -7,8 +7,8 @@ import numpy as np
 
 from mccnn_cl.reference.network import cost_volume_torch, fst_cost_volume
 from mccnn_cl.settings import authors_settings
-from mccnn_cl.stages.costs import make_cost
-from mccnn_cl.stages.network import NetworkCost
+from mccnn_cl.costs.registry import make_cost
+from mccnn_cl.costs.network import NetworkCost
 from mccnn_cl.weights import FST, PAPER, Weights, resolve, shipped_models
 
 

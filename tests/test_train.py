@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from mccnn_cl.datasets import StereoPair, load_middlebury
+from mccnn_cl.evaluation.datasets import StereoPair, load_middlebury
 from mccnn_cl.errors import InputError
-from mccnn_cl.train.evaluate import main as eval_main
-from mccnn_cl.train.evaluate import census_wta_error, make_validation, row_features, wta_costs, wta_error
+from mccnn_cl.train.validation import main as eval_main
+from mccnn_cl.train.validation import census_wta_error, make_validation, row_features, wta_costs, wta_error
 from mccnn_cl.train.model import MCCNN
 from mccnn_cl.train.patches import PatchSampler, normalise
 from mccnn_cl.train.train import TrainConfig, augment_batch, lr_at, main, select_pairs, train

@@ -35,7 +35,7 @@ APACHE2 = ("Apache-2.0: Centre National d'Etudes Spatiales (CNES), PyPI mccnn 1.
            "see the Apache License, Version 2.0")
 
 
-#: what the released code's -d options train on; pair keys as mccnn_cl.datasets names them
+#: what the released code's -d options train on; pair keys as mccnn_cl.evaluation.datasets names them
 TRAINING_DATA = {"kitti": "KITTI 2012 training pairs", "kitti2015": "KITTI 2015 training pairs",
                  "mb": "Middlebury training pairs"}
 TRAINING_PAIRS = {"kitti": ("kitti2012", 194), "kitti2015": ("kitti2015", 200)}

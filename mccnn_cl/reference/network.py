@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..stages.network import normalise
+from ..costs.network import normalise
 from ..weights import Weights
 
 

@@ -12,7 +12,7 @@ Intervals are clamped by index to the valid cells [d, W-1], so NaN never
 enters a sum; p is always in U_d(p).
 
 Five kernel paths compute these two passes (:meth:`DeviceProfile.cbca_path
-<mccnn_cl.device.DeviceProfile.cbca_path>` picks one from ``max_arm``, the
+<mccnn_cl.opencl.device.DeviceProfile.cbca_path>` picks one from ``max_arm``, the
 bound of the arm lengths compiled in, and the device): "running" (``cbca_rows``
 / ``cbca_columns``, any arm length: compensated running prefix sums),
 "short" (``*_short``, max_arm <= SHORT_MAX: direct masked sums on float16
@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..cl import launch, round_up
+from ..opencl.context import launch, round_up
 from ..errors import InputError
 from .cross import ARM_LIMIT, check_size
 from .cross import max_arm as arm_bound
@@ -79,7 +79,7 @@ class CBCA:
     passes, ``multi=False`` the one-iteration fused kernel (for comparisons);
     ``workgroup=True`` the GPU-shaped passes (it takes precedence over the
     fused rule; ``workgroup=False`` excludes them); None: the device's rule
-    (:meth:`mccnn_cl.device.DeviceProfile.cbca_path`; the work-group rule
+    (:meth:`mccnn_cl.opencl.device.DeviceProfile.cbca_path`; the work-group rule
     applies only when neither ``fused`` nor ``multi`` is given).
     ``local_size``: the "workgroup" path's work-group sizes, an int L (rows
     groups of L, column groups :meth:`columns_shape` of L) or a pair

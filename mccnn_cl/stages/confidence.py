@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..cl import launch
+from ..opencl.context import launch
 from ..errors import InputError
 
 _F32 = np.dtype(np.float32).itemsize
@@ -28,10 +28,10 @@ _F32 = np.dtype(np.float32).itemsize
 def cost_floor(kind: str) -> float:
     """f for a cost ``kind``: "census" or a network architecture
     (``Weights.architecture``): the ``floor`` of its cost class
-    (:mod:`mccnn_cl.stages.costs`), the one place it is stated."""
-    from .census import CensusCost
-    from .fst import FstCost
-    from .network import AcrtCost, PaperCost
+    (:mod:`mccnn_cl.costs.registry`), the one place it is stated."""
+    from ..costs.census import CensusCost
+    from ..costs.fst import FstCost
+    from ..costs.network import AcrtCost, PaperCost
 
     classes = {"census": CensusCost}
     classes.update((c.architecture, c) for c in (PaperCost, AcrtCost, FstCost))

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..cl import launch
+from ..opencl.context import launch
 from ..errors import InputError
 
 #: Largest arm length the uchar4 storage can hold.

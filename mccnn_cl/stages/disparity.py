@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..cl import launch
+from ..opencl.context import launch
 from ..reference.disparity import CORRECT, DIRECTIONS, MISMATCH, OCCLUSION  # noqa: F401
 
 _I32 = np.dtype(np.int32).itemsize

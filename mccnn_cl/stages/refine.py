@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from ..cl import launch
+from ..opencl.context import launch
 
 _F32 = np.dtype(np.float32).itemsize
 

@@ -22,7 +22,7 @@ walked in several launches) accumulate into the output in the order
 C_lr, + C_rl, + C_tb, + C_bt, / 4; ``sgm_paired`` (two work-items, each adding
 one horizontal and one vertical path per row, for devices with few compute
 units) gives ((C_lr + C_tb) + (C_rl + C_bt)) / 4, equal to rounding.  The
-defaults per device come from ``ctx.profile`` (mccnn_cl.device); under its
+defaults per device come from ``ctx.profile`` (mccnn_cl.opencl.device); under its
 loop limit the paths are walked in bands.  :func:`make_sgm` picks the stage
 per device (SGM here, or :class:`.sgm_wg.SGMWorkGroup` for GPU-shaped
 devices).  Measurements: BENCHMARKS.md, "History".
@@ -34,8 +34,8 @@ import logging
 
 import numpy as np
 
-from ..cl import launch, round_up
-from ..device import LLVMPIPE_LOOP_LIMIT
+from ..opencl.context import launch, round_up
+from ..opencl.device import LLVMPIPE_LOOP_LIMIT
 from ..errors import InputError
 from .cross import check_size
 from .disparity import volume_bytes

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..cl import launch, round_up
+from ..opencl.context import launch, round_up
 from ..errors import InputError
 from .disparity import volume_bytes
 from .sgm import check_call, penalty_table

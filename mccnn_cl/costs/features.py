@@ -1,0 +1,327 @@
+"""The siamese conv stack shared by every network: :class:`ConvStack`.
+
+All three architectures (paper, fst, acrt) start with the same tower: valid
+KS x KS convolutions of the standardised gray image, run once per image,
+fully convolutionally, as one GEMM per layer over output pixels.  The
+towers differ only in whether a ReLU follows the last layer (paper and
+acrt: yes; fst: no, its features are L2-normalised next).  Layer count,
+maps and kernel sizes are read from the weights.
+
+Two kernels compute that GEMM, with the same float operations per output
+(bias, one fma per term in the same order, ReLU), so bit for bit the same:
+
+* ``kernels/network_conv.cl`` (``network_conv``): register blocks, no
+  local memory; a work-item computes CONV_RM pixels x RN channels reading
+  its operands from global memory (CPUs: the caches do the reuse);
+* ``kernels/network_conv_wg.cl`` (``network_conv_wg``, the "local tiles"
+  path; the default on the profile's ``gpu`` column, rule
+  ``network_local_tiles``): a work-group per TM x TN tile of outputs stages
+  TK-term slices of both operands in local memory (the input gathered
+  im2col-style on the fly), each work-item accumulating an RM x RN register
+  block; two barriers per slice.  The tile starts from the profile's
+  ``network_gemm_tile`` (64 x 64, TK 16, 4 x 4: 256 work-items, 8704 bytes of
+  local memory), TN and TK capped by the layer's channels and terms, and
+  shrinks (TM, then TN, then TK) until the group fits the kernel's
+  CL_KERNEL_WORK_GROUP_SIZE, the device's item sizes and its local memory.
+  ``ConvStack(local_tiles=...)`` forces it (True, or a dict of sizes,
+  checked: InputError when they do not fit) or excludes it (False).
+
+Layouts: the image is float32 ``[H][W][C]``; each layer's output is
+channel-last, pixel-major ``[(H - ks + 1) * (W - ks + 1)][NP]`` with NP the
+layer's maps padded to the vector width RN (padded channels hold exactly 0:
+zero weights, zero bias).  The stack's output is the last layer's map on
+``(H - P + 1) x (W - P + 1)`` pixels, P = the patch size.
+
+Also here: :func:`normalise`, the per-image standardisation the networks see
+(and that the stereo method's thresholds compare with
+``intensity_scale="standardised"``), and the banded volume's two entry points
+the network costs share (:func:`volume_on_device`, :func:`volume_to_host`;
+inputs checked by :func:`mccnn_cl.validate.check_cost_inputs`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import namedtuple
+
+import numpy as np
+
+from ..opencl.context import BufferPool, round_up
+from ..errors import InputError, OpenCLError, WeightsError
+from ..validate import check_cost_inputs
+from ..imageops import standardise as normalise  # noqa: F401 (one standardisation: training's too)
+
+CONV_CL = "network_conv.cl"
+CONV_WG_CL = "network_conv_wg.cl"
+#: network_conv_wg's tile dimensions and their register blocks, in shrinking order
+CONV_BLOCKS = (("TM", "RM"), ("TN", "RN"))
+
+#: One layer's GEMM kernel: ``tile`` None for network_conv (register blocks),
+#: else the sizes network_conv_wg was built with (TM, TN, TK, RM, RN).
+ConvKernel = namedtuple("ConvKernel", "kern tile")
+
+
+def fit_tile(ctx, what, sizes, forced, local_bytes, local_size, build, shrink):
+    """Build a local-memory tiled kernel whose work-group fits the device.
+
+    ``sizes``: the tile (a dict); ``local_bytes(sizes)``: its local memory;
+    ``local_size(sizes)``: its 2-D work-group; ``build(sizes)``: the kernel;
+    ``shrink(sizes)``: a smaller tile or None.  A tile fits when its local
+    memory is within the device's, and its work-group within the kernel's
+    CL_KERNEL_WORK_GROUP_SIZE and the device's item sizes; forced tiles are
+    not shrunk.  Returns ``(kernel, sizes)``; InputError when nothing fits."""
+    dims = [int(n) for n in ctx.device.max_work_item_sizes]
+    while True:
+        need = local_bytes(sizes)
+        if need > ctx.local_mem:
+            problem = f"{need} bytes of local memory, more than the device's {ctx.local_mem}"
+        else:
+            kern = build(sizes)
+            l0, l1 = local_size(sizes)
+            kmax = ctx.work_group_size(kern)
+            kl = int(kern.get_work_group_info(ctx.cl.kernel_work_group_info.LOCAL_MEM_SIZE, ctx.device))
+            if l0 * l1 > kmax or l0 > dims[0] or l1 > dims[1]:
+                problem = f"work-groups of {l0} x {l1} work-items, more than the kernel's maximum {kmax}"
+            elif kl > ctx.local_mem:
+                problem = f"{kl} bytes of local memory, more than the device's {ctx.local_mem}"
+            else:
+                return kern, sizes
+        smaller = None if forced else shrink(dict(sizes))
+        if smaller is None:
+            raise InputError(f"{what} tile {sizes} needs {problem} on {ctx.describe()}")
+        sizes = smaller
+
+
+def halve_tile(sizes, key, unit):
+    """A tile's shrinking step: ``sizes`` with ``key`` halved, rounded down to a
+    multiple of ``sizes[unit]`` (its register block); None when already at it."""
+    if sizes[key] <= sizes[unit]:
+        return None
+    sizes[key] = max(sizes[unit], sizes[key] // 2 // sizes[unit] * sizes[unit])
+    return sizes
+
+
+def shrinker(*blocks):
+    """A tile's shrink step for :func:`fit_tile`: halve the first of ``blocks``
+    (``(key, register-block key)`` pairs, in order) that can still shrink,
+    else halve TK (the terms per slice); None when nothing can."""
+    def shrink(t):
+        for key, unit in blocks:
+            if halve_tile(t, key, unit):
+                return t
+        if t["TK"] > 1:
+            t["TK"] //= 2
+            return t
+        return None
+    return shrink
+
+
+def check_tile(sizes, pairs, what):
+    """InputError unless every size is >= 1 and each ``(big, small)`` of ``pairs``
+    (a tile and its register block) divides."""
+    for key in sizes:
+        if int(sizes[key]) < 1:
+            raise InputError(f"{what} tile sizes must be >= 1, got {sizes}")
+    for big, small in pairs:
+        if sizes[big] % sizes[small]:
+            raise InputError(f"{what} tile: {big}={sizes[big]} must be a multiple of {small}={sizes[small]}")
+
+
+def default_tiles(ctx) -> dict:
+    """Starting tile sizes for a device (refined against its limits by the costs):
+    the profile's ``network_tiles`` rule (:mod:`mccnn_cl.opencl.device`)."""
+    return ctx.profile.network_tiles()
+
+
+class ConvStack:
+    """The tied conv layers on the device: ``ConvStack(ctx, weights, rn, conv_rm)``.
+
+    ``relu_after_last`` defaults to ``weights.relu_after_last_conv``.
+    :meth:`__call__` maps an uploaded image to its last layer's features.
+    The layers' maps come from a pool kept between calls (a fresh buffer's
+    first write costs page mapping on CPU devices: one KITTI band's stack
+    ~1.3 -> 0.9 s with reuse); callers hand the output back with :meth:`give`,
+    :meth:`release_buffers` frees the pool.
+
+    ``local_tiles``: the GEMM kernel (module docstring): None the profile's
+    rule, False ``network_conv``, True ``network_conv_wg`` with the
+    profile's tile (shrunk to fit), a dict ``network_conv_wg`` with those
+    sizes (keys TM, TN, TK, RM, RN; not shrunk).  ``path`` says which
+    ("local" or "register"); each layer's kernel and tile: ``layers[i][0]``.
+    """
+
+    def __init__(self, ctx, weights, rn: int, conv_rm: int, relu_after_last: bool | None = None,
+                 local_tiles=None):
+        if rn not in (1, 2, 4, 8, 16):
+            raise InputError(f"tile RN must be 1, 2, 4, 8 or 16, got {rn}")
+        if int(conv_rm) < 1:
+            raise InputError(f"tile CONV_RM must be >= 1, got {conv_rm}")
+        self.ctx, self.rn, self.conv_rm = ctx, int(rn), int(conv_rm)
+        self.local_tile = ctx.profile.local_tile("network_local_tiles", "network_gemm_tile", local_tiles)
+        if self.local_tile is not None:
+            check_tile(self.local_tile[0], CONV_BLOCKS, "conv GEMM")
+        self.path = "register" if self.local_tile is None else "local"
+        relu_last = weights.relu_after_last_conv if relu_after_last is None else bool(relu_after_last)
+        self.relu_after_last = relu_last
+        self.layers = []  # (kernel, d_w, d_b, kernel size, padded outputs)
+        cs = weights.input_channels  # the image is uploaded with C channels, stride C
+        n = len(weights.conv)
+        for i, (W, b) in enumerate(weights.conv):
+            cout, cin, ks, _ = W.shape
+            npad = round_up(cout, self.rn)
+            wt = np.zeros((ks * ks * cin, npad), np.float32)
+            wt[:, :cout] = W.transpose(2, 3, 1, 0).reshape(ks * ks * cin, cout)
+            bp = np.zeros(npad, np.float32)
+            bp[:cout] = b
+            relu = int(i < n - 1 or relu_last)
+            kern = self.kernel(ks, cin, cs, npad, relu)
+            self.layers.append((kern, ctx.to_device(wt), ctx.to_device(bp), ks, npad))
+            cs = npad
+        self.stride = cs            # channels per pixel of the output (maps padded)
+        self.maps = weights.feature_maps
+        self.patch = weights.patch_size
+        self.widest = max(l[4] for l in self.layers)
+        self._pool = BufferPool(ctx)
+
+    def give(self, buf) -> None:
+        """Return a map made by :meth:`__call__` for reuse."""
+        self._pool.give(buf)
+
+    def release_buffers(self) -> None:
+        self._pool.clear()
+
+    def kernel(self, ks, cin, cs, npad, relu) -> ConvKernel:
+        """The GEMM kernel of one layer (KS x KS, CIN channels read at stride
+        CS, NP padded outputs) on this stack's path."""
+        defs = dict(KS=ks, CIN=cin, CS=cs, NP=npad, RELU=int(relu))
+        if self.local_tile is None:
+            return ConvKernel(self.ctx.kernel(CONV_CL, "network_conv", RM=self.conv_rm, RN=self.rn, **defs), None)
+        sizes, forced = self.local_tile
+        sizes = dict(sizes)
+        if not forced:  # no wider than the layer: TN up to NP, TK up to the K terms
+            sizes["TN"] = min(sizes["TN"], round_up(npad, sizes["RN"]))
+            sizes["TK"] = min(sizes["TK"], ks * ks * cin)
+
+        kern, tile = fit_tile(
+            self.ctx, f"conv GEMM (KS={ks}, CIN={cin}, NP={npad})", sizes, forced,
+            lambda t: 4 * t["TK"] * (t["TM"] + t["TN"]) + 8 * t["TM"],
+            lambda t: (t["TN"] // t["RN"], t["TM"] // t["RM"]),
+            lambda t: self.ctx.kernel(CONV_WG_CL, "network_conv_wg", **defs, **t),
+            shrinker(*CONV_BLOCKS))  # fewer pixels, then fewer channels, then a thinner slice
+        return ConvKernel(kern, tile)
+
+    def launch(self, conv: ConvKernel, d_in, w_in, d_w, d_b, d_out, w_out, m_total, npad):
+        kern, tile = conv
+        if tile is None:
+            gsize, lsize = (npad // self.rn, math.ceil(m_total / self.conv_rm)), None
+        else:
+            wn, wm = tile["TN"] // tile["RN"], tile["TM"] // tile["RM"]
+            lsize = (wn, wm)
+            gsize = (math.ceil(npad / tile["TN"]) * wn, math.ceil(m_total / tile["TM"]) * wm)
+        kern(self.ctx.queue, gsize, lsize, d_in, np.int32(w_in), d_w, d_b, d_out,
+             np.int32(w_out), np.int32(m_total))
+
+    def __call__(self, d_img, H: int, W: int):
+        """All conv layers over an uploaded image ``[H][W][C]`` (float32).
+
+        Returns a device buffer ``[(H-P+1) * (W-P+1)][stride]`` (hand it
+        back with :meth:`give`); buffers may be larger than the map."""
+        ctx = self.ctx
+        d_in, h, w = d_img, int(H), int(W)
+        for kern, d_w, d_b, ks, npad in self.layers:
+            ho, wo = h - ks + 1, w - ks + 1
+            d_out = self._pool.take(ho * wo * npad * 4, "network feature map")
+            self.launch(kern, d_in, w, d_w, d_b, d_out, wo, ho * wo, npad)
+            if d_in is not d_img:
+                self._pool.give(d_in)  # the in-order queue runs its next writer after this layer
+            d_in, h, w = d_out, ho, wo
+        return d_in
+
+    def run_image(self, band: np.ndarray):
+        """Upload a standardised float32 image (rows x W x C) and run the stack."""
+        H, W = band.shape[:2]
+        d_img = self.ctx.to_device(np.ascontiguousarray(band, dtype=np.float32))
+        d_feat = self(d_img, H, W)
+        d_img.release()
+        return d_feat
+
+    def scratch_bytes(self, rows: int, w: int) -> int:
+        """Bytes of two maps of the widest layer over ``rows`` feature rows of width ``w``
+        (input and output of one convolution, image margins included)."""
+        return 2 * (rows + self.patch) * (w + self.patch - 1) * self.widest * 4
+
+    def flops(self, height: int, width: int, weights) -> tuple:
+        """(FLOP of the stack on both images, feature height, feature width)."""
+        hh, ww, total = int(height), int(width), 0
+        for W, _ in weights.conv:
+            cout, cin, ks, _ = W.shape
+            hh, ww = hh - ks + 1, ww - ks + 1
+            total += 2 * 2 * hh * ww * ks * ks * cin * cout
+        return total, hh, ww
+
+
+def setup_network_cost(cost, ctx, weights, tiles, half: bool, local_tiles=None) -> None:
+    """A network cost's common state: the weights checked against
+    ``cost.architecture``, volume storage (float16 with ``half``), patch,
+    margin, channels, the tiles (the profile's, updated by ``tiles``) and the
+    conv stack (:class:`ConvStack`, its GEMM path by ``local_tiles``)."""
+    weights.validate()
+    if weights.architecture != cost.architecture:
+        raise WeightsError(f"{type(cost).__name__} runs {cost.architecture} networks, "
+                           f"these weights are {weights.architecture}")
+    cost.ctx = ctx
+    cost.weights = weights
+    cost.half = bool(half)
+    cost.vdtype = np.dtype(np.float16 if half else np.float32)  # volume storage (kernels/common.h)
+    cost.patch = weights.patch_size
+    cost.margin = weights.margin
+    cost.channels = weights.input_channels
+    cost.tiles = default_tiles(ctx)
+    cost.tiles.update(tiles or {})
+    cost.stack = ConvStack(ctx, weights, int(cost.tiles["RN"]), int(cost.tiles["CONV_RM"]),
+                           local_tiles=local_tiles)
+
+
+def volume_on_device(cost, left, right, max_disparity, out, progress, label: str):
+    """A network cost's ``__call__``: inputs checked, the volume's buffer (``out``
+    or a new one), ``cost._enqueue`` over ``cost.band_rows`` bands; ``label``
+    names the cost in an OpenCL error."""
+    ctx = cost.ctx
+    L, R, D, h, w = check_cost_inputs(left, right, max_disparity, cost.channels, cost.patch)
+    nbytes = D * h * w * cost.vdtype.itemsize
+    ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
+    rows = cost.band_rows(h, w)
+    if out is None:
+        out = ctx.empty(nbytes, "cost volume")
+    elif out.size < nbytes:
+        raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
+    try:
+        cost._enqueue(L, R, D, h, w, rows, out, progress)
+    except ctx.cl.Error as exc:
+        raise OpenCLError(f"{label} ({D} x {h} x {w}) failed on {ctx.describe()}: {exc}") from exc
+    return out
+
+
+def volume_to_host(cost, left, right, max_disparity, max_bytes, progress, label: str):
+    """A network cost's ``to_host``: each band computed into one device buffer of
+    at most ``max_bytes`` (default: the max allocation) and copied into the host
+    volume (``cost._enqueue(..., host=)``); values identical to :func:`volume_on_device`'s."""
+    ctx = cost.ctx
+    L, R, D, h, w = check_cost_inputs(left, right, max_disparity, cost.channels, cost.patch)
+    row = D * w * cost.vdtype.itemsize
+    limit = ctx.max_alloc if max_bytes is None else min(int(max_bytes), ctx.max_alloc)
+    if row > limit:
+        raise InputError(f"one row of the cost volume ({D} x {w} {cost.vdtype.name}, {row / 2**20:.1f} MiB) "
+                         f"does not fit in {limit / 2**20:.1f} MiB of device memory; reduce the "
+                         "disparity range or the image width")
+    rows = min(cost.band_rows(h, w), limit // row)
+    host = np.empty((D, h, w), cost.vdtype)
+    d_band = ctx.empty(D * rows * w * cost.vdtype.itemsize, "cost volume band")
+    try:
+        cost._enqueue(L, R, D, h, w, rows, d_band, progress, host=host)
+    except ctx.cl.Error as exc:
+        raise OpenCLError(f"{label} ({D} x {h} x {w}, in bands of {rows} rows) failed on "
+                          f"{ctx.describe()}: {exc}") from exc
+    finally:
+        d_band.release()
+    return host

@@ -1,0 +1,192 @@
+"""Evaluation of MC-CNN beside OpenCV StereoSGBM on datasets with ground truth.
+
+Used by ``mccnn-cl evaluate``.  For each pair: run the matcher (and the
+baseline) on the gray images with the same disparity range, compute the
+metrics of :mod:`mccnn_cl.evaluation.metrics` and optionally write error maps.
+
+Both methods are scored the same way: their raw output's density is
+reported, and the error rates are computed on the map filled the way the
+KITTI devkit fills sparse submissions (:func:`~mccnn_cl.evaluation.metrics.fill_invalid`),
+so a method is not rewarded or punished for leaving pixels out
+(``fill=False`` counts every missing pixel as an error instead).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+
+import numpy as np
+
+from . import metrics
+from .baseline import sgbm
+from .datasets import to_gray
+
+__all__ = ["training_pairs", "training_status", "default_max_disparity", "evaluate_pair",
+           "mean_metrics", "format_table", "KITTI_DEFAULT_DISPARITY"]
+
+KITTI_DEFAULT_DISPARITY = 228
+
+# Keys of Weights.meta["training"] that may list the pairs used for training
+# and those held out (the training script records them; names or kind/name keys).
+_TRAIN_KEYS = ("pairs", "train_pairs", "training_pairs", "trained_on")
+_HELD_KEYS = ("held_out", "heldout", "validation_pairs", "val_pairs", "test_pairs")
+
+
+def _names(value):
+    if value is None:
+        return None
+    if isinstance(value, dict) and not all(isinstance(v, (list, tuple, str)) for v in value.values()):
+        return {str(k) for k in value}  # train.py: {"kitti2015/000001": examples, ...}
+    if isinstance(value, dict):  # {"kitti2015": ["000001"], "middlebury": [...]}
+        out = set()
+        for kind, names in value.items():
+            for n in (names if isinstance(names, (list, tuple)) else [names]):
+                out.add(f"{kind}/{n}")
+        return out
+    if isinstance(value, str):
+        return {value}
+    return {str(v) for v in value}
+
+
+def training_pairs(meta: dict | None):
+    """``(trained, held_out)``: sets of pair names/keys from ``Weights.meta["training"]``, or None."""
+    info = (meta or {}).get("training")
+    if not isinstance(info, dict):
+        return None, None
+    trained = held = None
+    for k in _TRAIN_KEYS:
+        if k in info:
+            trained = _names(info[k])
+            break
+    for k in _HELD_KEYS:
+        if k in info:
+            held = _names(info[k])
+            break
+    return trained, held
+
+
+def _match(names, pair_key, pair_name):
+    if not names:
+        return False
+    for n in names:
+        n = str(n).replace("\\", "/")
+        if n == pair_key or n == pair_name or n.endswith("/" + pair_key) \
+                or (n.rsplit("/", 1)[-1] == pair_name and pair_key.split("/")[0] in n):
+            return True
+    return False
+
+
+def training_status(meta, pair_key: str, pair_name: str) -> str:
+    """"trained", "held out" or "unknown" (the weights do not say) for one pair."""
+    trained, held = training_pairs(meta)
+    if _match(held, pair_key, pair_name):
+        return "held out"
+    if trained is None:
+        return "unknown"
+    return "trained" if _match(trained, pair_key, pair_name) else "held out"
+
+
+def default_max_disparity(pair) -> int:
+    """The pair's ``ndisp`` (Middlebury calib.txt) if known, else 228 (the paper's KITTI range)."""
+    return int(pair.ndisp) if pair.ndisp else KITTI_DEFAULT_DISPARITY
+
+
+def _score(pred, pair, fill):
+    scored = metrics.fill_invalid(pred) if fill else pred
+    out = metrics.evaluate_disparity(scored, pair.disp, pair.valid_noc, pair.valid_all)
+    out["density"] = metrics.density(pred)
+    return out
+
+
+def evaluate_pair(pair, matcher, max_disparity, baseline="sgbm", fill=True, error_maps=None,
+                  status="unknown") -> dict:
+    """Metrics of one :class:`~mccnn_cl.evaluation.datasets.StereoPair` for ``matcher`` and the baseline.
+
+    ``matcher`` is an object with ``compute(left, right)`` returning the
+    left disparity map (e.g. :class:`mccnn_cl.pipeline.StereoMatcher`);
+    ``error_maps`` is a folder for ``<kind>_<name>_{mccnn,sgbm}_err.png``.
+    Returns a JSON-ready dict: pair, size, max_disparity, training, and per
+    method the metrics plus ``seconds``.
+    """
+    left, right = to_gray(pair.left), to_gray(pair.right)
+    result = {"pair": pair.key, "size": [int(left.shape[1]), int(left.shape[0])],
+              "max_disparity": int(max_disparity), "training": status, "methods": {}}
+    t0 = time.perf_counter()
+    ours = np.asarray(matcher.compute(left, right), dtype=np.float32)
+    seconds = time.perf_counter() - t0
+    maps = {"mccnn": ours}
+    result["methods"]["mccnn"] = dict(_score(ours, pair, fill), seconds=seconds)
+    if baseline == "sgbm":
+        base, seconds = sgbm(left, right, max_disparity, return_time=True)
+        maps["sgbm"] = base
+        result["methods"]["sgbm"] = dict(_score(base, pair, fill), seconds=seconds)
+    if error_maps:
+        from ..io import write_image
+        from ..visualize import error_image
+        os.makedirs(error_maps, exist_ok=True)
+        for method, pred in maps.items():
+            scored = metrics.fill_invalid(pred) if fill else pred
+            stem = f"{pair.kind}_{pair.name}".replace("/", "_").replace(os.sep, "_")
+            path = os.path.join(error_maps, f"{stem}_{method}_err.png")
+            write_image(path, error_image(scored, pair.disp, 3.0 if pair.kind != "middlebury" else 2.0))
+    return result
+
+
+def mean_metrics(results) -> dict:
+    """Per method, the mean of every metric over the pairs (NaN entries skipped)."""
+    out = {}
+    methods = sorted({m for r in results for m in r["methods"]}, key=lambda m: m != "mccnn")
+    for m in methods:
+        rows = [r["methods"][m] for r in results if m in r["methods"]]
+        keys = list(rows[0])
+        mean = {}
+        for k in keys:
+            vals = [row[k] for row in rows if row.get(k) is not None and not math.isnan(row[k])]
+            mean[k] = float(np.mean(vals)) if vals else float("nan")
+        out[m] = mean
+    return out
+
+
+_COLUMNS = [("bad3_noc", "3px-noc"), ("bad3_all", "3px-all"), ("d1_all", "D1-all"),
+            ("bad2_noc", "bad2-noc"), ("bad2_all", "bad2-all"), ("epe_all", "EPE px"),
+            ("density", "dens. %"), ("seconds", "time s")]
+_SHORT = {"mccnn": "ours", "sgbm": "sgbm"}
+
+
+def _fmt(v, key, width=5):
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "-"
+    for digits in ((1, 0) if key == "density" else (2, 1, 0)):  # as many decimals as fit
+        text = f"{v:.{digits}f}"
+        if len(text) <= width:
+            return text
+    return text
+
+
+def format_table(results, mean=None) -> str:
+    """A plain-text table: one row per pair (and the mean), each metric with MC-CNN and SGBM side by side."""
+    methods = [m for m in ("mccnn", "sgbm") if any(m in r["methods"] for r in results)]
+    name_w = max([len("pair")] + [len(r["pair"]) for r in results] + [len("mean")])
+    cell = 5
+    group = len(methods) * (cell + 1) - 1
+    head1 = f"{'':<{name_w}}  {'D':>4}  {'training':<8}"
+    head2 = f"{'pair':<{name_w}}  {'':>4}  {'':<8}"
+    for _, title in _COLUMNS:
+        head1 += "  " + f"{title:^{group}}"
+        head2 += "  " + " ".join(f"{_SHORT[m]:>{cell}}" for m in methods)
+    lines = [head1, head2, "-" * len(head2)]
+
+    def row(label, d, status, per_method):
+        s = f"{label:<{name_w}}  {d:>4}  {status:<8}"
+        for key, _ in _COLUMNS:
+            s += "  " + " ".join(f"{_fmt(per_method.get(m, {}).get(key), key, cell):>{cell}}" for m in methods)
+        return s
+
+    for r in results:
+        lines.append(row(r["pair"], str(r["max_disparity"]), r["training"], r["methods"]))
+    if mean is not None and len(results) > 1:
+        lines.append("-" * len(head2))
+        lines.append(row("mean", "", "", mean))
+    return "\n".join(lines)

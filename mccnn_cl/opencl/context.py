@@ -1,0 +1,401 @@
+"""OpenCL runtime: device selection, one context object, cached programs.
+
+:class:`ClContext` owns the context, the queue and a cache of built programs
+keyed on ``(file, defines)``; kernels are fetched once per program.  Every
+stage of the pipeline takes a ``ClContext``; there is no module-level
+singleton.
+
+What the stages need to know about the chosen device (its class, limits
+and declared quirks, and the rules that pick kernel variants) is
+``ClContext.profile``, a :class:`mccnn_cl.opencl.device.DeviceProfile`.
+
+Device selection (:func:`select_device`):
+
+* an explicit ``device`` argument wins: a ``pyopencl.Device``, ``"cpu"``,
+  ``"gpu"``, ``"PLATFORM[:DEVICE]"`` substrings (case-insensitive), or
+  ``"P:D"`` indices as in ``PYOPENCL_CTX``;
+* else ``$PYOPENCL_CTX`` is honoured (same syntax);
+* else a GPU is preferred, then an accelerator, then a CPU.  Ties are broken
+  by platform name and *version* (newest first) and device name, never by the
+  platform's index alone, because two platforms can share a name and the ICD
+  loader does not keep their order stable.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import weakref
+from contextlib import ExitStack
+from dataclasses import dataclass
+from importlib import resources
+
+import numpy as np
+
+from .device import DeviceProfile, type_name
+from ..errors import NO_PLATFORM_HELP, InputError, NoOpenCLDeviceError, OpenCLError
+
+log = logging.getLogger(__name__)
+
+_TYPE_RANK = {"GPU": 0, "ACCELERATOR": 1, "CPU": 2}
+
+
+def _cl():
+    try:
+        import pyopencl as cl
+    except ImportError as exc:  # pragma: no cover - dependency missing
+        raise NoOpenCLDeviceError(f"pyopencl is not installed ({exc}); pip install pyopencl") from exc
+    return cl
+
+
+_TRACKED = {}
+
+
+def _tracked_buffer_class(cl):
+    """A ``pyopencl.Buffer`` subclass whose release (explicit, or by garbage
+    collection) is reported to :class:`MemoryTracker` exactly once."""
+    cls = _TRACKED.get(id(cl))
+    if cls is None:
+        class TrackedBuffer(cl.Buffer):
+            _on_free = None
+
+            def release(self):
+                if self._on_free is not None:
+                    self._on_free()
+                super().release()
+
+        cls = _TRACKED[id(cl)] = TrackedBuffer
+    return cls
+
+
+class MemoryTracker:
+    """Bytes of device buffers made through a :class:`ClContext` (``to_device``,
+    ``empty``): ``live`` now, ``peak`` since the last :meth:`reset_peak`.
+    Buffers made directly with pyopencl are not counted."""
+
+    def __init__(self):
+        self.live = 0
+        self.peak = 0
+
+    def add(self, buf, nbytes: int):
+        self.live += nbytes
+        self.peak = max(self.peak, self.live)
+        buf._on_free = weakref.finalize(buf, self._free, nbytes)
+
+    def _free(self, nbytes: int):
+        self.live -= nbytes
+
+    def reset_peak(self) -> None:
+        self.peak = self.live
+
+
+class BufferPool:
+    """Device buffers kept for reuse between the stages of a run and between
+    runs: :meth:`take` hands out a free buffer of at least ``nbytes`` (the
+    smallest such), else frees the (too small) free ones and makes a new one;
+    :meth:`give` returns buffers.
+
+    Why: a fresh buffer's pages are mapped on first touch, which on CPU
+    devices costs several times a full pass over it (PoCL, 394 MiB: first
+    write ~200 ms, later writes ~40 ms; release ~35 ms), and GPU allocations
+    are costly too.  Buffers stay counted in ``ctx.memory`` while free; the
+    owner frees them with :meth:`clear` or :meth:`trim`.
+    """
+
+    def __init__(self, ctx: "ClContext"):
+        self.ctx = ctx
+        self._free: list = []
+
+    def take(self, nbytes: int, what: str = "buffer"):
+        nbytes = max(int(nbytes), 4)
+        fits = [i for i, b in enumerate(self._free) if b.size >= nbytes]
+        if fits:
+            return self._free.pop(min(fits, key=lambda i: self._free[i].size))
+        self.clear()  # every free buffer is too small for this size: don't hold them beside the new one
+        return self.ctx.empty(nbytes, what)
+
+    def give(self, *bufs) -> None:
+        for b in bufs:
+            if b is not None and not any(b is f for f in self._free):
+                self._free.append(b)
+
+    @property
+    def free_bytes(self) -> int:
+        return sum(int(b.size) for b in self._free)
+
+    def trim(self, keep=None) -> None:
+        """Release the free buffers whose size is not ``keep`` (all if None)."""
+        kept = []
+        for b in self._free:
+            if keep is not None and int(b.size) == max(int(keep), 4):
+                kept.append(b)
+            else:
+                b.release()
+        self._free = kept
+
+    def clear(self) -> None:
+        self.trim(None)
+
+
+def _version_tuple(text: str) -> tuple:
+    """Numbers found in a version string, for ordering: 'OpenCL 3.0 PoCL 3.1' -> (3, 0, 3, 1)."""
+    return tuple(int(n) for n in re.findall(r"\d+", text)[:6])
+
+
+def _device_type_name(dev) -> str:
+    return type_name(dev, _cl())
+
+
+@dataclass
+class DeviceInfo:
+    """One OpenCL device as seen by :func:`list_devices`."""
+
+    platform_index: int
+    device_index: int
+    platform: str
+    platform_version: str
+    device: str
+    type: str
+    handle: object  # pyopencl.Device
+
+    def rank(self) -> tuple:
+        """Sort key: GPU first, then newer platform version, then names."""
+        vers = tuple(-v for v in _version_tuple(self.platform_version))
+        return (_TYPE_RANK.get(self.type, 9), vers, self.platform, self.device)
+
+    def __str__(self) -> str:
+        return f"{self.device} [{self.type}] on {self.platform} ({self.platform_version})"
+
+
+def list_devices() -> list[DeviceInfo]:
+    """All OpenCL devices of all platforms, in preference order.
+
+    Raises :class:`NoOpenCLDeviceError` (with install instructions) when no
+    platform is found.
+    """
+    cl = _cl()
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as exc:
+        raise NoOpenCLDeviceError(NO_PLATFORM_HELP + f" (pyopencl said: {exc})") from exc
+    out = []
+    for pi, plat in enumerate(platforms):
+        try:
+            devices = plat.get_devices()
+        except cl.Error:
+            continue
+        for di, dev in enumerate(devices):
+            out.append(
+                DeviceInfo(pi, di, plat.name.strip(), plat.version.strip(), dev.name.strip(),
+                           _device_type_name(dev), dev)
+            )
+    if not out:
+        raise NoOpenCLDeviceError(NO_PLATFORM_HELP)
+    out.sort(key=DeviceInfo.rank)
+    return out
+
+
+def select_device(spec=None):
+    """Choose a device; returns ``(pyopencl.Device, reason)``. See module docstring."""
+    cl = _cl()
+    if isinstance(spec, cl.Device):
+        return spec, "given as a pyopencl.Device"
+    reason = "argument"
+    if spec is None and os.environ.get("PYOPENCL_CTX"):
+        spec, reason = os.environ["PYOPENCL_CTX"], "PYOPENCL_CTX"
+    devices = list_devices()
+    if spec is None:
+        return devices[0].handle, "default preference: GPU > accelerator > CPU, newest platform version"
+    spec = str(spec).strip()
+    low = spec.lower()
+    if low in ("gpu", "cpu", "accelerator"):
+        hits = [d for d in devices if d.type.lower() == low]
+        if not hits:
+            raise NoOpenCLDeviceError(f"no OpenCL {low.upper()} device; found: " + "; ".join(map(str, devices)))
+        return hits[0].handle, f"{reason} {spec!r}"
+    m = re.fullmatch(r"(\d*)(?::(\d*))?", spec)
+    if m:  # PYOPENCL_CTX syntax: platform index[:device index]
+        pi = int(m.group(1)) if m.group(1) else 0
+        di = int(m.group(2)) if m.group(2) else 0
+        for d in devices:
+            if d.platform_index == pi and d.device_index == di:
+                return d.handle, f"{reason} {spec!r} (indices)"
+        raise NoOpenCLDeviceError(f"no OpenCL device at index {spec!r}; found: " + "; ".join(
+            f"{d.platform_index}:{d.device_index} {d}" for d in devices))
+    pname, _, dname = spec.partition(":")
+    hits = [d for d in devices
+            if pname.lower() in d.platform.lower() and dname.lower() in d.device.lower()]
+    if not hits:
+        raise NoOpenCLDeviceError(f"no OpenCL device matches {spec!r}; found: " + "; ".join(map(str, devices)))
+    return hits[0].handle, f"{reason} {spec!r} (name match)"
+
+
+def kernel_source_dir():
+    """Context manager yielding the real directory holding the ``.cl`` files."""
+    return resources.as_file(resources.files("mccnn_cl.kernels"))
+
+
+def _format_define(value) -> str:
+    if isinstance(value, bool):
+        return "1" if value else "0"
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value)) + "f"
+    return str(value)
+
+
+class ClContext:
+    """Context, queue and program cache for one OpenCL device.
+
+    Parameters
+    ----------
+    device : None, str or pyopencl.Device
+        See :func:`select_device`.
+    profiling : bool
+        Create the queue with profiling enabled (for ``bench/``).
+    """
+
+    def __init__(self, device=None, profiling: bool = False):
+        cl = _cl()
+        self.cl = cl
+        dev, self.reason = select_device(device)
+        self.device = dev
+        #: what the stages need to know about the device (mccnn_cl.opencl.device)
+        self.profile = DeviceProfile.of(dev, cl)
+        self.context = cl.Context([dev])
+        props = cl.command_queue_properties.PROFILING_ENABLE if profiling else 0
+        self.queue = cl.CommandQueue(self.context, properties=props)
+        self._programs: dict = {}
+        self._kernels: dict = {}
+        self.memory = MemoryTracker()
+        self._buffer = _tracked_buffer_class(cl)
+        self._exit = ExitStack()
+        self.kernel_dir = str(self._exit.enter_context(kernel_source_dir()))
+        log.info("mccnn_cl OpenCL device: %s (%s)", self.describe(), self.reason)
+
+    # -- device facts -------------------------------------------------
+    @property
+    def max_alloc(self) -> int:
+        """CL_DEVICE_MAX_MEM_ALLOC_SIZE in bytes."""
+        return int(self.device.max_mem_alloc_size)
+
+    @property
+    def global_mem(self) -> int:
+        return int(self.device.global_mem_size)
+
+    @property
+    def local_mem(self) -> int:
+        return int(self.device.local_mem_size)
+
+    @property
+    def max_work_group(self) -> int:
+        return int(self.device.max_work_group_size)
+
+    @property
+    def has_fp64(self) -> bool:
+        return "cl_khr_fp64" in self.device.extensions
+
+    def describe(self) -> str:
+        d = self.device
+        return f"{d.name.strip()} on {d.platform.name.strip()} ({d.platform.version.strip()})"
+
+    def check_alloc(self, nbytes: int, what: str) -> None:
+        """Raise :class:`InputError` if one buffer of ``nbytes`` cannot exist on the device."""
+        if nbytes > self.max_alloc:
+            raise InputError(
+                f"{what} needs {nbytes / 2**20:.0f} MiB in one buffer, more than the device's "
+                f"max allocation ({self.max_alloc / 2**20:.0f} MiB on {self.describe()}); "
+                "reduce the disparity range or the image size")
+
+    # -- programs and kernels ----------------------------------------
+    def program(self, filename: str, **defines):
+        """Build ``kernels/<filename>`` with ``-D`` defines; cached per (file, defines)."""
+        key = (filename, tuple(sorted((k, _format_define(v)) for k, v in defines.items())))
+        prg = self._programs.get(key)
+        if prg is not None:
+            return prg
+        path = os.path.join(self.kernel_dir, filename)
+        try:
+            with open(path, encoding="utf-8") as f:
+                src = f.read()
+        except OSError as exc:
+            raise OpenCLError(f"kernel source {filename} not found in {self.kernel_dir}") from exc
+        options = ["-I", self.kernel_dir] + [f"-D{k}={v}" for k, v in key[1]]
+        try:
+            prg = self.cl.Program(self.context, src).build(options=options)
+        except self.cl.RuntimeError as exc:
+            raise OpenCLError(
+                f"building {filename} with {' '.join(options[2:])} failed on {self.describe()}:\n{exc}"
+            ) from exc
+        self._programs[key] = prg
+        return prg
+
+    def kernel(self, filename: str, name: str, **defines):
+        """One kernel object from a cached program (fetched once, reused)."""
+        prg = self.program(filename, **defines)
+        k = (id(prg), name)
+        kern = self._kernels.get(k)
+        if kern is None:
+            kern = self.cl.Kernel(prg, name)
+            self._kernels[k] = kern
+        return kern
+
+    def work_group_size(self, kernel) -> int:
+        """Largest work-group size this kernel may be launched with on this device."""
+        return int(kernel.get_work_group_info(self.cl.kernel_work_group_info.WORK_GROUP_SIZE, self.device))
+
+    # -- buffers -------------------------------------------------------
+    def to_device(self, array: np.ndarray):
+        """Copy a host array to a new read-only buffer (C-contiguous)."""
+        a = np.ascontiguousarray(array)
+        self.check_alloc(a.nbytes, "input buffer")
+        mf = self.cl.mem_flags
+        buf = self._buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+        self.memory.add(buf, max(a.nbytes, 1))
+        return buf
+
+    def empty(self, nbytes: int, what: str = "buffer"):
+        """A new read-write buffer of ``nbytes`` (checked against the max allocation)."""
+        self.check_alloc(nbytes, what)
+        size = max(int(nbytes), 4)
+        buf = self._buffer(self.context, self.cl.mem_flags.READ_WRITE, size=size)
+        self.memory.add(buf, size)
+        return buf
+
+    def from_device(self, buf, shape, dtype=np.float32) -> np.ndarray:
+        """Blocking copy of a device buffer into a new host array."""
+        out = np.empty(shape, dtype=dtype)
+        self.cl.enqueue_copy(self.queue, out, buf)
+        return out
+
+    def fill(self, buf, value, nbytes: int, dtype=np.float32) -> None:
+        """Fill a buffer with a scalar (used to poison outputs in tests)."""
+        pattern = np.array([value], dtype=dtype)
+        self.cl.enqueue_fill_buffer(self.queue, buf, pattern, 0, int(nbytes))
+
+    def finish(self) -> None:
+        self.queue.finish()
+
+    def close(self) -> None:
+        self._exit.close()
+
+
+def launch(ctx, stage: str, kernel, global_size, *args, local_size=None) -> None:
+    """Set ``kernel``'s arguments and enqueue it on ``ctx``'s queue over
+    ``global_size`` (work-group ``local_size``, or the runtime's choice when
+    None); an OpenCL error is raised as :class:`OpenCLError` naming ``stage``."""
+    from ..errors import OpenCLError
+
+    try:
+        kernel.set_args(*args)
+        ctx.cl.enqueue_nd_range_kernel(ctx.queue, kernel, tuple(int(g) for g in global_size),
+                                       None if local_size is None else tuple(int(n) for n in local_size))
+    except ctx.cl.Error as exc:
+        raise OpenCLError(f"{stage}: OpenCL error {exc}") from exc
+
+
+def round_up(n: int, m: int) -> int:
+    """Smallest multiple of ``m`` that is >= ``n``."""
+    return ((int(n) + m - 1) // m) * m

@@ -1,0 +1,209 @@
+"""What the stages need to know about an OpenCL device: :class:`DeviceProfile`.
+
+A profile is made once per :class:`~mccnn_cl.opencl.context.ClContext` (``ctx.profile``)
+from the device's queries, plus facts no query reports, *declared* here for
+the devices known to need them: Mesa's llvmpipe (Rusticl's CPU device) ends
+every loop of a work-item once that work-item has taken 65535 loop
+iterations in all (``loop_limit``; docs/portability.md), and compiles some
+kernels for minutes (``slow_compiler``).  Every device-dependent choice of a
+stage is a row of :data:`RULES`, whose columns are the device classes:
+
+* ``cpu``: a device whose type is exactly CPU (PoCL, Intel's CPU runtime):
+  few, fast work-items that walk whole lines, host prefetch instructions;
+* ``llvmpipe``: a CPU behind Rusticl with the loop limit and the slow
+  compiler: the CPU's kernels where they fit the limit;
+* ``gpu``: everything else (GPUs, accelerators, and Oclgrind, which reports
+  every device type at once: it simulates a generic device).
+
+Stages ask the profile (:meth:`DeviceProfile.sgm_options`,
+:meth:`~DeviceProfile.cbca_path`, :meth:`~DeviceProfile.network_tiles`,
+:meth:`~DeviceProfile.local_tile`, :meth:`~DeviceProfile.line_group`) and
+test no device type themselves; a new kernel variant is a new row, a new
+kind of device a new column.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+CPU, LLVMPIPE, GPU = "cpu", "llvmpipe", "gpu"
+CLASSES = (CPU, LLVMPIPE, GPU)
+
+#: llvmpipe's loop iterations per work-item (gallivm's LP_MAX_TGSI_LOOP_ITERATIONS,
+#: Mesa 22.3), after which every loop of the work-item ends silently.
+LLVMPIPE_LOOP_LIMIT = 65535
+
+#: option -> {device class: value}.  ``sgm_stage``: SGM's implementation
+#: (:func:`~mccnn_cl.stages.sgm.make_sgm`): "lines" (:class:`~mccnn_cl.stages.sgm.SGM`,
+#: a work-item walks whole path lines) or "workgroup" (:class:`~mccnn_cl.stages.sgm_wg.SGMWorkGroup`,
+#: a work-group per line; Oclgrind takes it too).  SGM's one-direction kernels: ``sgm_prefetch``
+#: (host prefetch instructions where the kernel is compiled to x86/AArch64),
+#: ``sgm_cols`` (columns per sgm_columns work-item), ``sgm_fused_rows`` (both
+#: row directions in one pass; never under a loop limit), ``sgm_specialize``
+#: and ``sgm_whole_tiles`` (faster code, longer compiles), ``sgm_group_of_one``
+#: (work-groups of 1, else the kernel's preferred multiple); the paired sweeps
+#: (``sgm_paired_max_units``: taken on devices with at most this many compute
+#: units; two work-items per launch).  CBCA: ``cbca_workgroup`` (the GPU-shaped
+#: two passes of kernels/cbca_wg.cl, a work-group per row or column tile and
+#: disparity; before the fused rules), ``cbca_fused`` (both passes in one
+#: launch, one work-item per plane walking it whole), ``cbca_multi`` (several
+#: iterations per launch, the same), ``cbca_multi_group_of_one``.  Network:
+#: ``network_tiles`` (register tiles; RN grows with the float vector width on CPUs);
+#: ``network_local_tiles`` (the conv stack and the L4 split as a local-memory tiled
+#: GEMM, kernels/network_conv_wg.cl) with its starting tile ``network_gemm_tile``
+#: (TM pixels x TN channels per work-group, TK terms per slice, RM x RN per
+#: work-item); ``network_head_gemm`` (the paper/acrt head layer by layer, each
+#: hidden layer that GEMM as a 1 x 1 convolution, kernels/network_head_wg.cl,
+#: instead of fused per tile of cells); ``fst_workgroup`` (fst's cosine volume with a work-group per
+#: (column tile, disparity chunk, row), kernels/fst_wg.cl) with ``fst_volume_tile``
+#: (TX columns x TD disparities, TK maps per slice, RX x RD per work-item).  The
+#: tiles are the same in every column (they are what a forced run starts from) and
+#: shrink to the kernel's CL_KERNEL_WORK_GROUP_SIZE and the local memory.
+RULES = {
+    "sgm_stage":               {CPU: "lines", LLVMPIPE: "lines", GPU: "workgroup"},
+    "sgm_prefetch":            {CPU: True,  LLVMPIPE: True,  GPU: False},
+    "sgm_cols":                {CPU: 128,   LLVMPIPE: 32,    GPU: 32},
+    "sgm_fused_rows":          {CPU: True,  LLVMPIPE: True,  GPU: False},
+    "sgm_specialize":          {CPU: True,  LLVMPIPE: False, GPU: True},
+    "sgm_whole_tiles":         {CPU: True,  LLVMPIPE: False, GPU: True},
+    "sgm_group_of_one":        {CPU: True,  LLVMPIPE: True,  GPU: False},
+    "sgm_paired_max_units":    {CPU: 2,     LLVMPIPE: 0,     GPU: 0},
+    "cbca_workgroup":          {CPU: False, LLVMPIPE: False, GPU: True},
+    "cbca_fused":              {CPU: True,  LLVMPIPE: False, GPU: False},
+    "cbca_multi":              {CPU: True,  LLVMPIPE: True,  GPU: False},
+    "cbca_multi_group_of_one": {CPU: True,  LLVMPIPE: True,  GPU: False},
+    "network_tiles":           {CPU: dict(TM=64, RM=8, ROWS_FASTEST=1, CONV_RM=8),
+                                LLVMPIPE: dict(TM=64, RM=8, ROWS_FASTEST=1, CONV_RM=8),
+                                GPU: dict(TM=32, RM=4, RN=4, ROWS_FASTEST=0, CONV_RM=4)},
+    "network_local_tiles":     {CPU: False, LLVMPIPE: False, GPU: True},
+    "network_head_gemm":       {CPU: False, LLVMPIPE: False, GPU: True},
+    "network_gemm_tile":       {c: dict(TM=64, TN=64, TK=16, RM=4, RN=4) for c in (CPU, LLVMPIPE, GPU)},
+    "fst_workgroup":           {CPU: False, LLVMPIPE: False, GPU: True},
+    "fst_volume_tile":         {c: dict(TX=64, TD=64, TK=16, RX=4, RD=4) for c in (CPU, LLVMPIPE, GPU)},
+}
+
+#: Declared facts per class: (loop_limit or None, slow_compiler).
+DECLARED = {CPU: (None, False), LLVMPIPE: (LLVMPIPE_LOOP_LIMIT, True), GPU: (None, False)}
+
+
+def type_name(device, cl) -> str:
+    """"GPU", "ACCELERATOR", "CPU" or "OTHER" for a pyopencl device (GPU bit first)."""
+    t = int(device.type)
+    for name in ("GPU", "ACCELERATOR", "CPU"):
+        if t & int(getattr(cl.device_type, name)):
+            return name
+    return "OTHER"
+
+
+def device_class(device, cl) -> str:
+    """The :data:`RULES` column of a pyopencl device (module docstring)."""
+    if int(device.type) != int(cl.device_type.CPU):
+        return GPU
+    return LLVMPIPE if "llvmpipe" in device.name.lower() else CPU
+
+
+@dataclass(frozen=True)
+class DeviceProfile:
+    """One device's facts and the rules that turn them into kernel choices."""
+
+    name: str
+    platform: str
+    kind: str               # the RULES column: "cpu" | "llvmpipe" | "gpu"
+    compute_units: int
+    global_mem: int
+    local_mem: int
+    max_alloc: int
+    max_work_group: int
+    vector_width: int       # float vector width (max of preferred and native)
+    loop_limit: int | None  # declared: loop iterations per work-item, None = no limit
+    slow_compiler: bool     # declared: some kernels take minutes to build
+
+    @classmethod
+    def of(cls, device, cl) -> "DeviceProfile":
+        kind = device_class(device, cl)
+        loop_limit, slow = DECLARED[kind]
+        width = max(int(device.preferred_vector_width_float), int(device.native_vector_width_float), 1)
+        return cls(device.name.strip(), device.platform.name.strip(), kind, int(device.max_compute_units),
+                   int(device.global_mem_size), int(device.local_mem_size), int(device.max_mem_alloc_size),
+                   int(device.max_work_group_size), width, loop_limit, slow)
+
+    def rule(self, option: str):
+        """This device's value of one :data:`RULES` row."""
+        return RULES[option][self.kind]
+
+    @property
+    def is_cpu(self) -> bool:
+        """The device runs the CPU-shaped kernels (the ``cpu`` and ``llvmpipe`` columns)."""
+        return self.kind in (CPU, LLVMPIPE)
+
+    def sgm_options(self, loop_limit=None) -> dict:
+        """Defaults of :class:`~mccnn_cl.stages.sgm.SGM`'s options; ``loop_limit``
+        (0: none) overrides the declared one."""
+        limit = self.loop_limit if loop_limit is None else (int(loop_limit) or None)
+        return dict(loop_limit=limit, prefetch=self.rule("sgm_prefetch"), cols=self.rule("sgm_cols"),
+                    fused_rows=self.rule("sgm_fused_rows") and limit is None,
+                    specialize=self.rule("sgm_specialize"), whole_tiles=self.rule("sgm_whole_tiles"),
+                    paired=self.compute_units <= self.rule("sgm_paired_max_units"),
+                    group_of_one=self.rule("sgm_group_of_one"))
+
+    def cbca_path(self, max_arm: int, short_max: int, short=True, fused=None, multi=None, workgroup=None) -> str:
+        """CBCA's kernel path for arms of at most ``max_arm``: "workgroup"
+        (cbca_rows_wg / cbca_columns_wg), "multi" (cbca_fused_multi_short),
+        "fused" (cbca_fused_short), "short" (the two short-arm passes) or
+        "running" (the running-sum passes, any arm).  ``short``/``fused``/
+        ``multi``/``workgroup`` False exclude a path, ``workgroup=True`` takes
+        it (None: the rules; the work-group rule only when neither ``fused``
+        nor ``multi`` is given)."""
+        if not short or max_arm > short_max:
+            return "running"
+        if workgroup is None:
+            workgroup = self.rule("cbca_workgroup") and fused is None and multi is None
+        if workgroup:
+            return "workgroup"
+        if not (self.rule("cbca_fused") if fused is None else fused):
+            return "short"
+        return "multi" if (self.rule("cbca_multi") if multi is None else multi) else "fused"
+
+    def network_tiles(self) -> dict:
+        """Starting register tiles of the network kernels (refined against the kernel limits by the costs)."""
+        tiles = dict(self.rule("network_tiles"))
+        if "RN" not in tiles:
+            tiles["RN"] = 16 if self.vector_width >= 16 else 8 if self.vector_width >= 8 else 4
+        return tiles
+
+    def local_tile(self, path_rule: str, tile_rule: str, choice=None):
+        """A GPU-shaped path's tile, or None when the path is not taken:
+        ``choice`` None follows ``path_rule`` (True: the ``tile_rule`` row's
+        sizes), False excludes the path, True takes it with those sizes, a
+        dict takes it with those sizes updated by the dict.  Returns
+        ``(sizes, forced)``: forced (a dict was given) sizes are checked
+        against the kernel's limits, the others shrink to fit them."""
+        if choice is None:
+            choice = bool(self.rule(path_rule))
+        if choice is False:
+            return None
+        sizes = dict(self.rule(tile_rule))
+        if choice is True:
+            return sizes, False
+        unknown = set(choice) - set(sizes)
+        if unknown:
+            from ..errors import InputError
+
+            raise InputError(f"unknown {tile_rule} keys {sorted(unknown)} (known: {sorted(sizes)})")
+        sizes.update({k: int(v) for k, v in choice.items()})
+        return sizes, True
+
+    def line_group(self, ctx, kernel, group_of_one: bool = False) -> int:
+        """Work-group size of a line-walking kernel (CBCA, SGM): 1 when
+        ``group_of_one`` (CPUs: one work-item per thread spreads the lines
+        evenly over the cores), else the kernel's preferred work-group size
+        multiple capped by its maximum.  These kernels keep kilobytes of
+        private arrays per work-item, and CPU runtimes (PoCL) may lay a whole
+        work-group's private memory on one thread's stack, so the runtime's
+        own choice (up to thousands of work-items) could overflow it."""
+        if group_of_one:
+            return 1
+        cl = ctx.cl
+        pref = int(kernel.get_work_group_info(cl.kernel_work_group_info.PREFERRED_WORK_GROUP_SIZE_MULTIPLE,
+                                              ctx.device))
+        return max(1, min(pref, ctx.work_group_size(kernel)))

@@ -1,0 +1,57 @@
+"""Time the confidence stage on a KITTI-size volume beside the device's copy bandwidth.
+
+    python bench/bench_confidence.py [--repeat 5]
+
+The confidence reads the final volume once (D x H x W float32) and writes one
+float per pixel, so its floor is one read of the volume at the device's copy
+rate (a copy counts read + write; one read is half of a copy's traffic).
+The volume is census's of KITTI 2015 000000 (D = 228) from the shared data.
+"""
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+from mccnn_cl.benchmark import copy_bandwidth
+from mccnn_cl.opencl.context import ClContext
+from mccnn_cl.evaluation.datasets import discover
+from mccnn_cl.imageops import to_gray
+from mccnn_cl.costs.census import CensusCost
+from mccnn_cl.stages.confidence import Confidence
+
+DATA = os.environ.get("MCCNN_SHARED_DATA", os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data"))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    args = ap.parse_args()
+    ctx = ClContext()
+    pair = [r for r in discover(DATA, labeled=True) if r.key == "kitti2015/000000"][0].load()
+    L, R = to_gray(pair.left), to_gray(pair.right)
+    D = 228
+    cost = CensusCost(ctx)
+    d_vol = cost(L, R, D)
+    H, W = L.shape[0] - 2 * cost.margin, L.shape[1] - 2 * cost.margin
+    labels = ctx.to_device(np.zeros((H, W), np.int32))  # all "correct": every curve is measured
+    conf = Confidence(ctx)
+    out = conf(d_vol, labels, D, H, W, cost.floor)
+    ctx.finish()
+    best = float("inf")
+    for _ in range(args.repeat):
+        t0 = time.perf_counter()
+        conf(d_vol, labels, D, H, W, cost.floor, out=out)
+        ctx.finish()
+        best = min(best, time.perf_counter() - t0)
+    bw = copy_bandwidth(ctx)
+    floor_s = D * H * W * 4 / (bw / 2)
+    print(f"device: {ctx.describe()}")
+    print(f"volume {D} x {H} x {W} float32 ({D * H * W * 4 / 2**20:.0f} MiB); copy {bw / 1e9:.1f} GB/s")
+    print(f"confidence: {best * 1e3:.0f} ms (best of {args.repeat}); one read of the volume at copy rate "
+          f"{floor_s * 1e3:.0f} ms; ratio {best / floor_s:.2f}x")
+
+
+if __name__ == "__main__":
+    main()
