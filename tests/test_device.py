@@ -106,11 +106,12 @@ def test_sgm_stage_per_device(ctx, monkeypatch, key, stage):
 
 def test_no_device_type_test_outside_the_profile():
     """The stages, the pipeline and the context make no device-dependent choice
-    of their own: they live in mccnn_cl/device.py (device listing and
-    selection by type in cl.py and gpucheck.py choose a device, not a kernel)."""
+    of their own: they live in mccnn_cl/opencl/device.py (device listing and
+    selection by type in opencl/context.py and tools/gpucheck.py choose a device, not a kernel)."""
     pattern = re.compile(r"device_type\.|\.type\s*[&=]|is_rusticl|platform\.name\.lower|\"rusticl\"")
     found = []
-    files = sorted(PACKAGE.glob("stages/*.py")) + [PACKAGE / "pipeline.py", PACKAGE / "cl.py"]
+    files = (sorted(PACKAGE.glob("stages/*.py")) + sorted(PACKAGE.glob("costs/*.py"))
+             + [PACKAGE / "pipeline.py", PACKAGE / "opencl" / "context.py"])
     assert len(files) > 8
     for path in files:
         rel = path.relative_to(PACKAGE).as_posix()
