@@ -7,8 +7,7 @@ network's P(bad match)), on the network's cropped domain (margin 4, so the
 volumes are interchangeable), NaN where x - d < 0.
 
 ``CensusCost(ctx)(left, right, max_disparity) -> d_cost`` takes host gray
-float32 images (any scale; only the order of intensities matters) or device
-buffers with ``shape=(H_img, W_img)``.  Numpy twin:
+float32 images (any scale; only the order of intensities matters).  Numpy twin:
 :func:`mccnn_cl.reference.disparity.census_cost`.  The cost interface it
 shares with the networks: :mod:`mccnn_cl.costs.registry`.
 """
@@ -20,14 +19,16 @@ import numpy as np
 from ..errors import InputError
 from ..opencl.context import launch
 from ..stages.disparity import volume_bytes
+from .base import MatchingCost
 
 MARGIN = 4
 WINDOW = 2 * MARGIN + 1
 
 
-class CensusCost:
+class CensusCost(MatchingCost):
     """Census + Hamming cost volume (float32, D x (H_img - 8) x (W_img - 8))."""
 
+    kind = "census"
     margin = MARGIN
     local = True  # a row tile's volume needs only the tile's rows (mccnn_cl.costs.registry)
     floor = 0.0  # lower bound of the cost: a Hamming distance
@@ -38,6 +39,11 @@ class CensusCost:
         self.vdtype = np.dtype(np.float16 if half else np.float32)
         self.k_transform = ctx.kernel("census.cl", "census_transform")
         self.k_cost = ctx.kernel("census.cl", "census_cost", VOL_HALF=int(half))
+
+    @classmethod
+    def build(cls, ctx, weights, half: bool = False, tiles: dict | None = None):
+        """No weights, no tiles: ``CensusCost(ctx, half)``."""
+        return cls(ctx, half=half)
 
     @staticmethod
     def scratch_bytes(H: int, W: int) -> int:
@@ -67,22 +73,16 @@ class CensusCost:
         d.release()
         return out
 
-    def __call__(self, left, right, max_disparity, shape=None, out=None, progress=None):
-        """Cost volume of ``left`` vs ``right`` (host arrays or device buffers).
-
-        ``shape`` (H_img, W_img) is needed only for device buffers; ``progress``
-        is accepted for symmetry with the network stage and ignored (one launch).
-        """
-        if isinstance(left, np.ndarray):
-            if left.shape != right.shape or left.ndim != 2:
-                raise InputError(f"census needs two gray images of one size, got {left.shape} and {right.shape}")
-            shape = left.shape
-            d_left = self.ctx.to_device(left.astype(np.float32))
-            d_right = self.ctx.to_device(right.astype(np.float32))
-        else:
-            if shape is None:
-                raise InputError("census of device buffers needs shape=(H_img, W_img)")
-            d_left, d_right = left, right
+    def __call__(self, left, right, max_disparity, out=None, progress=None):
+        """Cost volume of the host images ``left`` vs ``right``; ``progress`` is
+        accepted as every cost's and not called (one launch)."""
+        if not (isinstance(left, np.ndarray) and isinstance(right, np.ndarray)):
+            raise InputError("census needs host images (numpy arrays)")
+        if left.shape != right.shape or left.ndim != 2:
+            raise InputError(f"census needs two gray images of one size, got {left.shape} and {right.shape}")
+        shape = left.shape
+        d_left = self.ctx.to_device(left.astype(np.float32))
+        d_right = self.ctx.to_device(right.astype(np.float32))
         Hi, Wi = (int(s) for s in shape)
         H, W, D = Hi - 2 * MARGIN, Wi - 2 * MARGIN, int(max_disparity)
         if H < 1 or W < 1:

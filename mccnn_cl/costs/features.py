@@ -34,9 +34,9 @@ zero weights, zero bias).  The stack's output is the last layer's map on
 
 Also here: :func:`normalise`, the per-image standardisation the networks see
 (and that the stereo method's thresholds compare with
-``intensity_scale="standardised"``), and the banded volume's two entry points
-the network costs share (:func:`volume_on_device`, :func:`volume_to_host`;
-inputs checked by :func:`mccnn_cl.validate.check_cost_inputs`).
+``intensity_scale="standardised"``), and :class:`ConvNetCost`, the base of
+the network costs: their common state and the banded volume's two entry
+points (inputs checked by :func:`mccnn_cl.validate.check_cost_inputs`).
 """
 
 from __future__ import annotations
@@ -50,6 +50,7 @@ from ..opencl.context import BufferPool, round_up
 from ..errors import InputError, OpenCLError, WeightsError
 from ..validate import check_cost_inputs
 from ..imageops import standardise as normalise  # noqa: F401 (one standardisation: training's too)
+from .base import MatchingCost
 
 CONV_CL = "network_conv.cl"
 CONV_WG_CL = "network_conv_wg.cl"
@@ -260,68 +261,79 @@ class ConvStack:
         return total, hh, ww
 
 
-def setup_network_cost(cost, ctx, weights, tiles, half: bool, local_tiles=None) -> None:
-    """A network cost's common state: the weights checked against
-    ``cost.architecture``, volume storage (float16 with ``half``), patch,
-    margin, channels, the tiles (the profile's, updated by ``tiles``) and the
-    conv stack (:class:`ConvStack`, its GEMM path by ``local_tiles``)."""
-    weights.validate()
-    if weights.architecture != cost.architecture:
-        raise WeightsError(f"{type(cost).__name__} runs {cost.architecture} networks, "
-                           f"these weights are {weights.architecture}")
-    cost.ctx = ctx
-    cost.weights = weights
-    cost.half = bool(half)
-    cost.vdtype = np.dtype(np.float16 if half else np.float32)  # volume storage (kernels/common.h)
-    cost.patch = weights.patch_size
-    cost.margin = weights.margin
-    cost.channels = weights.input_channels
-    cost.tiles = default_tiles(ctx)
-    cost.tiles.update(tiles or {})
-    cost.stack = ConvStack(ctx, weights, int(cost.tiles["RN"]), int(cost.tiles["CONV_RM"]),
-                           local_tiles=local_tiles)
+class ConvNetCost(MatchingCost):
+    """A network cost's common state and its banded volume: the weights
+    checked against ``architecture``, volume storage (float16 with ``half``),
+    patch, margin, channels, the tiles (the profile's, updated by ``tiles``)
+    and the conv stack (:class:`ConvStack`, its GEMM path by ``local_tiles``).
+    Subclasses implement ``band_rows(h, w)`` and ``_enqueue(L, R, D, h, w,
+    rows, d_cost, progress, host=None)``; ``label`` names the cost in an
+    OpenCL error."""
 
+    local = False  # the volume is computed once for the whole image (host memory when tiled)
+    label = "network cost"
 
-def volume_on_device(cost, left, right, max_disparity, out, progress, label: str):
-    """A network cost's ``__call__``: inputs checked, the volume's buffer (``out``
-    or a new one), ``cost._enqueue`` over ``cost.band_rows`` bands; ``label``
-    names the cost in an OpenCL error."""
-    ctx = cost.ctx
-    L, R, D, h, w = check_cost_inputs(left, right, max_disparity, cost.channels, cost.patch)
-    nbytes = D * h * w * cost.vdtype.itemsize
-    ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
-    rows = cost.band_rows(h, w)
-    if out is None:
-        out = ctx.empty(nbytes, "cost volume")
-    elif out.size < nbytes:
-        raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
-    try:
-        cost._enqueue(L, R, D, h, w, rows, out, progress)
-    except ctx.cl.Error as exc:
-        raise OpenCLError(f"{label} ({D} x {h} x {w}) failed on {ctx.describe()}: {exc}") from exc
-    return out
+    def __init__(self, ctx, weights, tiles=None, half: bool = False, local_tiles=None):
+        weights.validate()
+        if weights.architecture != self.architecture:
+            raise WeightsError(f"{type(self).__name__} runs {self.architecture} networks, "
+                               f"these weights are {weights.architecture}")
+        self.ctx = ctx
+        self.weights = weights
+        self.half = bool(half)
+        self.vdtype = np.dtype(np.float16 if half else np.float32)  # volume storage (kernels/common.h)
+        self.patch = weights.patch_size
+        self.margin = weights.margin
+        self.channels = weights.input_channels
+        self.tiles = default_tiles(ctx)
+        self.tiles.update(tiles or {})
+        self.stack = ConvStack(ctx, weights, int(self.tiles["RN"]), int(self.tiles["CONV_RM"]),
+                               local_tiles=local_tiles)
 
+    def band_rows(self, h: int, w: int) -> int:
+        raise NotImplementedError
 
-def volume_to_host(cost, left, right, max_disparity, max_bytes, progress, label: str):
-    """A network cost's ``to_host``: each band computed into one device buffer of
-    at most ``max_bytes`` (default: the max allocation) and copied into the host
-    volume (``cost._enqueue(..., host=)``); values identical to :func:`volume_on_device`'s."""
-    ctx = cost.ctx
-    L, R, D, h, w = check_cost_inputs(left, right, max_disparity, cost.channels, cost.patch)
-    row = D * w * cost.vdtype.itemsize
-    limit = ctx.max_alloc if max_bytes is None else min(int(max_bytes), ctx.max_alloc)
-    if row > limit:
-        raise InputError(f"one row of the cost volume ({D} x {w} {cost.vdtype.name}, {row / 2**20:.1f} MiB) "
-                         f"does not fit in {limit / 2**20:.1f} MiB of device memory; reduce the "
-                         "disparity range or the image width")
-    rows = min(cost.band_rows(h, w), limit // row)
-    host = np.empty((D, h, w), cost.vdtype)
-    d_band = ctx.empty(D * rows * w * cost.vdtype.itemsize, "cost volume band")
-    try:
-        cost._enqueue(L, R, D, h, w, rows, d_band, progress, host=host)
-    except ctx.cl.Error as exc:
-        raise OpenCLError(f"{label} ({D} x {h} x {w}, in bands of {rows} rows) failed on "
-                          f"{ctx.describe()}: {exc}") from exc
-    finally:
-        d_band.release()
-    return host
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
+        raise NotImplementedError
+
+    def __call__(self, left, right, max_disparity, out=None, progress=None):
+        """Inputs checked, the volume's buffer (``out`` or a new one), :meth:`_enqueue`
+        over :meth:`band_rows` bands."""
+        ctx = self.ctx
+        L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
+        nbytes = D * h * w * self.vdtype.itemsize
+        ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
+        rows = self.band_rows(h, w)
+        if out is None:
+            out = ctx.empty(nbytes, "cost volume")
+        elif out.size < nbytes:
+            raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
+        try:
+            self._enqueue(L, R, D, h, w, rows, out, progress)
+        except ctx.cl.Error as exc:
+            raise OpenCLError(f"{self.label} ({D} x {h} x {w}) failed on {ctx.describe()}: {exc}") from exc
+        return out
+
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
+        """Each band computed into one device buffer of at most ``max_bytes``
+        (default: the max allocation) and copied into the host volume
+        (``_enqueue(..., host=)``); values identical to :meth:`__call__`'s."""
+        ctx = self.ctx
+        L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
+        row = D * w * self.vdtype.itemsize
+        limit = ctx.max_alloc if max_bytes is None else min(int(max_bytes), ctx.max_alloc)
+        if row > limit:
+            raise InputError(f"one row of the cost volume ({D} x {w} {self.vdtype.name}, {row / 2**20:.1f} MiB) "
+                             f"does not fit in {limit / 2**20:.1f} MiB of device memory; reduce the "
+                             "disparity range or the image width")
+        rows = min(self.band_rows(h, w), limit // row)
+        host = np.empty((D, h, w), self.vdtype)
+        d_band = ctx.empty(D * rows * w * self.vdtype.itemsize, "cost volume band")
+        try:
+            self._enqueue(L, R, D, h, w, rows, d_band, progress, host=host)
+        except ctx.cl.Error as exc:
+            raise OpenCLError(f"{self.label} ({D} x {h} x {w}, in bands of {rows} rows) failed on "
+                              f"{ctx.describe()}: {exc}") from exc
+        finally:
+            d_band.release()
+        return host

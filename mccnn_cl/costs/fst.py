@@ -48,8 +48,7 @@ import numpy as np
 from ..opencl.context import round_up
 from ..weights import FST, Weights
 from ..validate import check_cost_inputs
-from .features import (check_tile, fit_tile, normalise, setup_network_cost, shrinker, volume_on_device,
-                       volume_to_host)
+from .features import ConvNetCost, check_tile, fit_tile, normalise, shrinker
 
 FST_CL = "fst.cl"
 FST_WG_CL = "fst_wg.cl"
@@ -65,7 +64,7 @@ PADL = 32
 _FORMS = {0: ("fst_volume", 8, 16), 1: ("fst_volume", 16, 16), 2: ("fst_volume_pairs", 8, 32)}
 
 
-class FstCost:
+class FstCost(ConvNetCost):
     """Cosine cost volume of the fst network: ``FstCost(ctx, weights)(left, right, D)``.
 
     ``tiles``: the conv kernel's register tiles (:func:`.features.default_tiles`);
@@ -80,10 +79,11 @@ class FstCost:
     architecture = FST
     local = False  # see mccnn_cl.costs.registry
     floor = -1.0  # lower bound of the cost: -cosine of unit vectors
+    label = "fst cost"
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False,
                  local_tiles=None, workgroup=None):
-        setup_network_cost(self, ctx, weights, tiles, half, local_tiles)
+        super().__init__(ctx, weights, tiles, half, local_tiles)
         self.nk = weights.feature_maps
         name, rd, self._vol_px = _FORMS[VARIANT]  # kernel, disparities per block, pixels per work-item
         defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL, RD=rd, VARIANT=VARIANT)
@@ -171,18 +171,6 @@ class FstCost:
         self._norm(self.ctx.queue, (wp, hb), None, d_feat, d_out, np.int32(w), np.int32(wp))
         self.stack.give(d_feat)
         return d_out
-
-    def __call__(self, left, right, max_disparity, out=None, progress=None):
-        """Cost volume on the device (``[D][H_img-2m][W_img-2m]``); ``out``: a
-        buffer of at least the volume's bytes to write into; ``progress``:
-        ``callable(done, D)`` after each band."""
-        return volume_on_device(self, left, right, max_disparity, out, progress, "fst cost")
-
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
-        """The volume as a host array, computed band by band into one device
-        buffer of at most ``max_bytes`` (default: the max allocation); values
-        identical to :meth:`__call__`'s."""
-        return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "fst cost")
 
     def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
         q, P = self.ctx.queue, self.patch

@@ -48,7 +48,7 @@ import numpy as np
 from ..opencl.context import round_up
 from ..errors import InputError
 from ..weights import ACRT, PAPER, Weights
-from .features import normalise, setup_network_cost, volume_on_device, volume_to_host  # noqa: F401 (normalise re-exported)
+from .features import ConvNetCost, normalise  # noqa: F401 (normalise re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +69,7 @@ CHUNK_CELLS = 1 << 20
 BAND_BYTES = 256 << 20
 
 
-class PaperCost:
+class PaperCost(ConvNetCost):
     """The paper's network on the device: ``PaperCost(ctx, weights)(left, right, D) -> d_cost``.
 
     Parameters
@@ -93,6 +93,12 @@ class PaperCost:
         The head's layout (module docstring): True layer by layer through
         the conv stack's GEMM ("gemm"), False fused (``network_head``),
         None the profile's ``network_head_gemm`` rule.  ``head_path`` says which.
+
+    Calls as every cost (:class:`.features.ConvNetCost`): scratch memory is
+    bounded, the image being processed in bands of volume rows whose A and B
+    buffers take at most ``BAND_BYTES`` each (the feature maps of a band are
+    smaller); each band's input rows overlap the next band's by P - 1 rows,
+    so the band seams are exact.
     """
 
     architecture = PAPER
@@ -101,10 +107,11 @@ class PaperCost:
     local = False
     #: lower bound of the cost (a softmax or sigmoid probability)
     floor = 0.0
+    label = "network (C_CNN)"
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False,
                  local_tiles=None, head_gemm: bool | None = None):
-        setup_network_cost(self, ctx, weights, tiles, half, local_tiles)
+        super().__init__(ctx, weights, tiles, half, local_tiles)
         gemm = bool(ctx.profile.rule("network_head_gemm") if head_gemm is None else head_gemm)
         self.head_path = "gemm" if gemm else "fused"
         self._runs = None  # the "gemm" head's (cells, [two activation buffers]), kept between calls
@@ -256,33 +263,6 @@ class PaperCost:
         row = w * self.hp * 4
         self.ctx.check_alloc(row, f"network L4 split of one row ({w} x {self.hp})")
         return max(1, min(h, min(BAND_BYTES, self.ctx.max_alloc) // row))
-
-    def __call__(self, left, right, max_disparity, progress=None, out=None):
-        """Cost volume C_CNN on the device (see module docstring).
-
-        ``left``, ``right``: 2-D gray images of the same shape (any scale; each
-        is normalised here, over the whole image).  ``max_disparity``: D,
-        disparities ``0 .. D-1``.  ``progress``: optional
-        ``callable(done, total)`` called after each chunk of disparities with
-        ``total = D`` and ``done`` rising to D (then the queue is waited on per
-        chunk).  ``out``: optional device buffer of at least ``D*H*W*4`` bytes
-        to write into (else a new one is allocated).  Returns the device buffer.
-
-        Scratch memory is bounded: the image is processed in bands of volume
-        rows whose A and B buffers take at most ``BAND_BYTES`` each (the
-        feature maps of a band are smaller); each band's input rows overlap
-        the next band's by P - 1 rows, so the band seams are exact.
-        """
-        return volume_on_device(self, left, right, max_disparity, out, progress, "network (C_CNN)")
-
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
-        """C_CNN as a host array (``[D][H_img-8][W_img-8]``, float32 or float16
-        with half storage), for
-        volumes larger than the device can hold: each band of rows is
-        computed into one band-sized device buffer of at most ``max_bytes``
-        (default: the device's max allocation) and copied out.  Values are
-        identical to :meth:`__call__`'s (same kernels, same bands' seams)."""
-        return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "network (C_CNN)")
 
     def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
         """The launches of :meth:`__call__` (inputs already checked).  With

@@ -14,7 +14,8 @@ class              architecture  cost
 ``FstCost``        mccnn-fst     -cos(f_L, f_R), [-1, 1]
 =================  ============  ===========================================
 
-Every one of them has
+Every one of them is a :class:`~.base.MatchingCost` (one registry:
+:func:`cost_classes`) and has
 
 ``margin``
     m, pixels cropped on each side (the networks' (patch - 1) / 2; census 4).
@@ -45,30 +46,38 @@ Every one of them has
 
 Images may be on any intensity scale: the networks standardise each image,
 census only compares intensities.  :func:`make_cost` picks the class from
-``Weights.architecture``; nothing after it branches on the architecture.
+``Weights.architecture`` through the registry; nothing after it branches on
+the architecture.
 """
 
 from __future__ import annotations
 
+import importlib
+import pkgutil
+from pathlib import Path
+
 from ..errors import WeightsError
-from ..weights import ACRT, FST, PAPER, Weights
+from ..weights import Weights
+from .base import registered
+
+
+def cost_classes() -> dict:
+    """key ("census" or a ``Weights.architecture``) -> cost class: every
+    :class:`~.base.MatchingCost` subclass of the modules of this package."""
+    for info in pkgutil.iter_modules([str(Path(__file__).parent)]):
+        importlib.import_module(f"{__package__}.{info.name}")
+    return registered()
 
 
 def make_cost(ctx, weights, half: bool = False, tiles: dict | None = None):
     """The cost stage for ``weights`` (a :class:`Weights`) or ``"census"``."""
     if isinstance(weights, str) and weights == "census":
-        from .census import CensusCost
-
-        return CensusCost(ctx, half=half)
-    if not isinstance(weights, Weights):
+        key = "census"
+    elif isinstance(weights, Weights):
+        key = weights.architecture
+    else:
         raise WeightsError(f"make_cost needs Weights or 'census', got {type(weights).__name__}")
-    if weights.architecture == FST:
-        from .fst import FstCost
-
-        return FstCost(ctx, weights, tiles=tiles, half=half)
-    from .network import AcrtCost, PaperCost
-
-    classes = {PAPER: PaperCost, ACRT: AcrtCost}
-    if weights.architecture not in classes:
-        raise WeightsError(f"no cost stage for architecture {weights.architecture!r}")
-    return classes[weights.architecture](ctx, weights, tiles=tiles, half=half)
+    classes = cost_classes()
+    if key not in classes:
+        raise WeightsError(f"no cost stage for architecture {key!r}")
+    return classes[key].build(ctx, weights, half=half, tiles=tiles)

@@ -28,13 +28,10 @@ _F32 = np.dtype(np.float32).itemsize
 def cost_floor(kind: str) -> float:
     """f for a cost ``kind``: "census" or a network architecture
     (``Weights.architecture``): the ``floor`` of its cost class
-    (:mod:`mccnn_cl.costs.registry`), the one place it is stated."""
-    from ..costs.census import CensusCost
-    from ..costs.fst import FstCost
-    from ..costs.network import AcrtCost, PaperCost
+    (:func:`mccnn_cl.costs.registry.cost_classes`), the one place it is stated."""
+    from ..costs.registry import cost_classes
 
-    classes = {"census": CensusCost}
-    classes.update((c.architecture, c) for c in (PaperCost, AcrtCost, FstCost))
+    classes = cost_classes()
     try:
         return classes[kind].floor
     except KeyError:
