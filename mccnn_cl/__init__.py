@@ -5,7 +5,7 @@ Neural Network" (CVPR 2015).  The network is trained with PyTorch
 (:mod:`mccnn_cl.train`); inference runs as OpenCL kernels through PyOpenCL.
 """
 
-__version__ = "0.1.0"
+from ._version import __version__  # noqa: F401
 
 from .errors import (  # noqa: F401
     MccnnError,

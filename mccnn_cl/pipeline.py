@@ -217,8 +217,8 @@ class StereoResult:
 
 
 def _resolve_weights(spec) -> Weights:
-    """Weights for ``cost="cnn"`` through :func:`mccnn_cl.weights.resolve` (None: the shipped network)."""
-    from .weights import resolve
+    """Weights for ``cost="cnn"`` through :func:`mccnn_cl.models.resolve` (None: the shipped network)."""
+    from .models import resolve
 
     try:
         return resolve(spec)
@@ -235,7 +235,7 @@ class StereoMatcher:
     Parameters
     ----------
     weights : None, name, path or Weights
-        The network for ``cost="cnn"`` (:func:`mccnn_cl.weights.resolve`:
+        The network for ``cost="cnn"`` (:func:`mccnn_cl.models.resolve`:
         None the shipped model, a shipped name, .npz, .t7, .pt); any
         architecture (paper, fst, acrt).  Its ``Weights.stereo`` settings are
         applied first, the ``hyperparameters`` given here override them;
@@ -309,7 +309,7 @@ class StereoMatcher:
         self.margin = self.cost.margin
 
         from .stages.cbca import CBCA
-        from .stages.sgm import make_sgm
+        from .stages.sgm_select import make_sgm
 
         ctx = self.ctx
         self.cross = CrossArms(ctx)

@@ -290,24 +290,13 @@ def shipped_models() -> dict:
             if f.name.endswith(".npz")}
 
 
-def resolve(spec=None) -> Weights:
-    """Weights from what a user may name: None (the default shipped network),
-    a :class:`Weights`, a shipped model's name (:func:`shipped_models`), an
-    ``.npz`` in this format, or a published network to convert on the fly
-    (``.t7`` Torch7, ``.pt`` PyTorch checkpoint; :mod:`mccnn_cl.importers`)."""
-    if spec is None or isinstance(spec, Weights):
-        return Weights.load() if spec is None else spec
-    text = os.fspath(spec)
-    models = shipped_models()
-    name = ALIASES.get(text, text)
-    if name in models and not os.path.exists(text):
-        return Weights.load(models[name])
-    ext = os.path.splitext(text)[1].lower()
-    if ext in (".t7", ".pt", ".pth"):
-        from .importers import convert  # torch only for .pt
+def __getattr__(name):
+    """``mccnn_cl.weights.resolve``, the documented name, kept for callers:
+    :func:`mccnn_cl.models.resolve` (which converts .t7/.pt through
+    :mod:`mccnn_cl.importers`, themselves built on this module, so it is not
+    imported from here at import time)."""
+    if name == "resolve":
+        import importlib
 
-        return convert(text)
-    if not os.path.exists(text) and not ext:
-        raise WeightsError(f"no weights file or shipped model named {text!r} "
-                           f"(shipped: {', '.join(models) or 'none'})")
-    return Weights.load(text)
+        return importlib.import_module("mccnn_cl.models").resolve
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

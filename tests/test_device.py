@@ -10,7 +10,8 @@ from helpers import fake_device
 
 from mccnn_cl.opencl.device import CLASSES, CPU, GPU, LLVMPIPE, LLVMPIPE_LOOP_LIMIT, RULES, DeviceProfile, device_class
 from mccnn_cl.stages.cbca import CBCA, SHORT_MAX
-from mccnn_cl.stages.sgm import SGM, make_sgm
+from mccnn_cl.stages.sgm import SGM
+from mccnn_cl.stages.sgm_select import make_sgm
 from mccnn_cl.stages.sgm_wg import SGMWorkGroup
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mccnn_cl"

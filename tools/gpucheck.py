@@ -185,7 +185,8 @@ def _bench_costs():
 
 def bench_plan(cpu: bool, data: Path | None, tmp: Path):
     """[(title, bench arguments or None, note)]."""
-    from mccnn_cl.weights import FST, PAPER, Weights, resolve, shipped_models
+    from mccnn_cl.models import resolve
+    from mccnn_cl.weights import FST, PAPER, Weights, shipped_models
 
     pair = []
     if data is not None and all((data / f).is_file() for f in DATA_FILES[:2]):

@@ -25,7 +25,7 @@ import sys
 import traceback
 import warnings
 
-from .. import __version__
+from .._version import __version__
 from ..errors import InputError, MccnnError
 
 DEMO_OUTPUT = "mccnn_demo.png"

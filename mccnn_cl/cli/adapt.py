@@ -37,7 +37,7 @@ def _inputs(args):
 
 
 def run(args):
-    from ..weights import resolve
+    from ..models import resolve
 
     for name in ("rounds", "steps", "ndisp", "threads"):
         v = getattr(args, name)

@@ -49,7 +49,8 @@ def _load_weights(args):
             raise InputError(f"--weights is for --cost cnn; --cost {args.cost} uses no network "
                              f"(drop --weights {args.weights} or the --cost option)")
         return None
-    from ..weights import default_weights_path, resolve
+    from ..models import resolve
+    from ..weights import default_weights_path
     if args.weights is None and not os.path.exists(default_weights_path()):
         raise WeightsError(f"the shipped weights are not installed ({default_weights_path()}); "
                            "pass --weights FILE or use --cost census")

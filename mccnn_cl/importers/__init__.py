@@ -74,7 +74,7 @@ def convert(path, dataset: str | None = None) -> Weights:
     meta["dataset"] = dataset or meta["dataset"]
     meta["stereo"] = authors_settings(weights.architecture, meta["dataset"])
     meta["source"].update(file=os.path.basename(path), sha256=sha256(path))
-    from .. import __version__
+    from .._version import __version__
 
     meta["converted_by"] = f"mccnn_cl {__version__} ({meta.pop('_converter')})"
     return weights.validate(path)

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..opencl.context import launch
-from ..reference.disparity import CORRECT, DIRECTIONS, MISMATCH, OCCLUSION  # noqa: F401
+from ..conventions import CORRECT, DIRECTIONS, MISMATCH, OCCLUSION  # noqa: F401
 
 _I32 = np.dtype(np.int32).itemsize
 _F32 = np.dtype(np.float32).itemsize

@@ -23,7 +23,7 @@ C_lr, + C_rl, + C_tb, + C_bt, / 4; ``sgm_paired`` (two work-items, each adding
 one horizontal and one vertical path per row, for devices with few compute
 units) gives ((C_lr + C_tb) + (C_rl + C_bt)) / 4, equal to rounding.  The
 defaults per device come from ``ctx.profile`` (mccnn_cl.opencl.device); under its
-loop limit the paths are walked in bands.  :func:`make_sgm` picks the stage
+loop limit the paths are walked in bands.  :func:`.sgm_select.make_sgm` picks the stage
 per device (SGM here, or :class:`.sgm_wg.SGMWorkGroup` for GPU-shaped
 devices).  Measurements: BENCHMARKS.md, "History".
 """
@@ -264,19 +264,6 @@ def check_call(d_cost, D, H, W, out) -> tuple:
     if out is not None and out is d_cost:
         raise InputError("SGM cannot work in place: out must differ from d_cost")
     return D, H, W
-
-
-def make_sgm(ctx, half: bool = False):
-    """The SGM stage for ``ctx``'s device (the profile's ``sgm_stage`` rule):
-    :class:`SGM` ("lines") or :class:`~.sgm_wg.SGMWorkGroup` ("workgroup");
-    both take the same call and expose ``cols``, ``paired``, ``scratch_bytes``."""
-    impl = ctx.profile.rule("sgm_stage")
-    if impl == "workgroup":
-        from .sgm_wg import SGMWorkGroup  # imports this module
-        return SGMWorkGroup(ctx, half=half)
-    if impl != "lines":
-        raise InputError(f"unknown SGM stage {impl!r} in the device rules (\"lines\" or \"workgroup\")")
-    return SGM(ctx, half=half)
 
 
 def state_bytes(D, W, cols=32, paired=False) -> int:

@@ -1,6 +1,7 @@
 """Fit a crop-sampler run into a wall-clock budget: time a few steps, then choose the schedule.
 
-``--fit-minutes M`` (:mod:`.train` CLI): before training, :func:`calibrate`
+``--fit-minutes M`` (:mod:`.train` CLI): before training,
+:func:`mccnn_cl.train.train.calibrate` (beside the pieces of the run it times)
 times ``--calibrate-steps`` SGD steps of the run's own recipe (sampler,
 network, device; after a few untimed warm-up steps) on a throwaway copy of the
 network, one validation on the held-out pairs, and the writes that end an
@@ -16,17 +17,13 @@ with the printed ``--epochs``/``--steps-per-epoch`` given.
 from __future__ import annotations
 
 import math
-import tempfile
-import time
 from dataclasses import dataclass
-from pathlib import Path
 
-import numpy as np
 import torch
 
 from mccnn_cl.errors import InputError
 
-__all__ = ["Calibration", "calibrate", "plan"]
+__all__ = ["Calibration", "plan"]
 
 
 @dataclass
@@ -42,64 +39,9 @@ class Calibration:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
 
 
-def _sync(device: torch.device) -> None:
+def sync_device(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-
-
-def calibrate(cfg, train_pairs, val_pairs, device, steps: int = 20, warmup: int = 3) -> Calibration:
-    """Time ``steps`` steps of ``cfg``'s crop-sampler recipe on ``device`` (after ``warmup`` untimed).
-
-    Nothing of the run is touched: a fresh network and optimizer, the
-    sampler's random numbers from a generator of their own, torch's global
-    random state restored afterwards.
-    """
-    from .crops import crop_loss
-    from .validation import validate
-    from .train import _atomic_torch_save, _export, crop_sampler, new_model, new_optimizer, plot_history, validation_set
-
-    if cfg.sampler != "crop":
-        raise InputError("--fit-minutes times crop-sampler steps: use --sampler crop")
-    if steps < 1 or warmup < 0:
-        raise InputError(f"need at least one calibration step, got {steps}")
-    device = torch.device(device)
-    devices = [device] if device.type == "cuda" else []
-    with torch.random.fork_rng(devices=devices):
-        torch.manual_seed(cfg.seed + 7919)
-        model = new_model(cfg, device)
-        opt = new_optimizer(cfg, model)
-        t = time.time()
-        sampler = crop_sampler(cfg, train_pairs, model.patch_size)
-        vset = validation_set(cfg, val_pairs, model.patch_size)
-        setup_s = time.time() - t
-        rng = np.random.default_rng([cfg.seed, 2**31 - 1])  # not a step's generator (those are (seed, epoch, i))
-        model.train()
-        for i in range(warmup + steps):
-            if i == warmup:
-                _sync(device)
-                t = time.time()
-            loss = crop_loss(model, sampler.sample(rng, cfg.crops_per_step), device)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            float(loss.detach())  # the training loop reads the loss every step (a device sync)
-        _sync(device)
-        step_s = (time.time() - t) / steps
-        t = time.time()
-        rec = {"epoch": 1, "train_loss": float(loss.detach()), "examples": 1, "lr": cfg.lr}
-        rec.update(validate(model, vset, device))
-        with tempfile.TemporaryDirectory() as tmp:
-            tmp = Path(tmp)
-            t_ck = time.time()
-            _atomic_torch_save({"model": model.state_dict(), "optimizer": opt.state_dict()}, tmp / "checkpoint.pt")
-            checkpoint_s = time.time() - t_ck
-            t_exp = time.time()
-            _export(model, tmp / "latest.npz", {"training": {"calibration": True}})
-            export_s = time.time() - t_exp
-            plot_history([rec, {**rec, "epoch": 2}], tmp / "training.png")
-        epoch_end_s = time.time() - t
-    return Calibration(step_s=step_s, epoch_end_s=epoch_end_s, setup_s=setup_s, export_s=export_s,
-                       checkpoint_s=checkpoint_s, steps=steps)
 
 
 def plan(seconds: float, cal: Calibration, steps_per_epoch: int, checkpoint_minutes: float = 5.0,

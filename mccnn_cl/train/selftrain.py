@@ -50,7 +50,8 @@ import numpy as np
 
 from mccnn_cl.evaluation.datasets import StereoPair, discover, to_gray
 from mccnn_cl.errors import InputError
-from mccnn_cl.weights import ARCHITECTURES, Weights, resolve
+from mccnn_cl.models import resolve
+from mccnn_cl.weights import ARCHITECTURES, Weights
 
 __all__ = ["DEFAULT_MIN_CONFIDENCE", "UnlabeledPair", "pseudo_labels", "pseudo_pair", "label_pairs",
            "thin", "default_config", "self_train", "load_unlabeled", "threshold_table", "choose_threshold", "main"]

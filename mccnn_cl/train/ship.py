@@ -22,7 +22,8 @@ import sys
 
 from mccnn_cl.errors import InputError
 from mccnn_cl.settings import AUTHORS, authors_settings
-from mccnn_cl.weights import Weights, resolve
+from mccnn_cl.models import resolve
+from mccnn_cl.weights import Weights
 
 LICENCE = "BSD-3-Clause (mccnn_cl); trained on KITTI (CC BY-NC-SA 3.0) images"
 

@@ -41,6 +41,7 @@ import platform
 import shlex
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import asdict, dataclass, field, replace
 from datetime import timedelta
@@ -59,6 +60,7 @@ from .crops import KITTI_AUGMENT, MIDDLEBURY_AUGMENT, CropSampler, crop_loss
 from .validation import make_validation, validate
 from .model import DEFAULT_LAYERS, MCCNN
 from .patches import PatchSampler
+from .budget import Calibration, plan, sync_device
 
 __all__ = ["TrainConfig", "train", "select_pairs", "lr_at", "augment_batch", "init_distributed", "record_init",
            "main"]
@@ -340,6 +342,57 @@ def validation_set(cfg: TrainConfig, pairs, patch_size: int):
     return make_validation(pairs, patch_size, n_examples=cfg.val_examples, n_pixels=cfg.val_pixels,
                            seed=cfg.seed + 1, n_lo=int(round(cfg.n_lo)), n_hi=int(round(cfg.n_hi)),
                            p_hi=int(round(cfg.p_hi)), ndisp=cfg.val_ndisp)
+
+
+def calibrate(cfg, train_pairs, val_pairs, device, steps: int = 20, warmup: int = 3) -> Calibration:
+    """Time ``steps`` steps of ``cfg``'s crop-sampler recipe on ``device`` (after ``warmup`` untimed).
+
+    Nothing of the run is touched: a fresh network and optimizer, the
+    sampler's random numbers from a generator of their own, torch's global
+    random state restored afterwards.
+    """
+    if cfg.sampler != "crop":
+        raise InputError("--fit-minutes times crop-sampler steps: use --sampler crop")
+    if steps < 1 or warmup < 0:
+        raise InputError(f"need at least one calibration step, got {steps}")
+    device = torch.device(device)
+    devices = [device] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        torch.manual_seed(cfg.seed + 7919)
+        model = new_model(cfg, device)
+        opt = new_optimizer(cfg, model)
+        t = time.time()
+        sampler = crop_sampler(cfg, train_pairs, model.patch_size)
+        vset = validation_set(cfg, val_pairs, model.patch_size)
+        setup_s = time.time() - t
+        rng = np.random.default_rng([cfg.seed, 2**31 - 1])  # not a step's generator (those are (seed, epoch, i))
+        model.train()
+        for i in range(warmup + steps):
+            if i == warmup:
+                sync_device(device)
+                t = time.time()
+            loss = crop_loss(model, sampler.sample(rng, cfg.crops_per_step), device)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            float(loss.detach())  # the training loop reads the loss every step (a device sync)
+        sync_device(device)
+        step_s = (time.time() - t) / steps
+        t = time.time()
+        rec = {"epoch": 1, "train_loss": float(loss.detach()), "examples": 1, "lr": cfg.lr}
+        rec.update(validate(model, vset, device))
+        with tempfile.TemporaryDirectory() as tmp:
+            tmp = Path(tmp)
+            t_ck = time.time()
+            _atomic_torch_save({"model": model.state_dict(), "optimizer": opt.state_dict()}, tmp / "checkpoint.pt")
+            checkpoint_s = time.time() - t_ck
+            t_exp = time.time()
+            _export(model, tmp / "latest.npz", {"training": {"calibration": True}})
+            export_s = time.time() - t_exp
+            plot_history([rec, {**rec, "epoch": 2}], tmp / "training.png")
+        epoch_end_s = time.time() - t
+    return Calibration(step_s=step_s, epoch_end_s=epoch_end_s, setup_s=setup_s, export_s=export_s,
+                       checkpoint_s=checkpoint_s, steps=steps)
 
 
 def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None, log=print,
@@ -755,7 +808,6 @@ def main(argv=None) -> int:
 
 def _fit_schedule(cfg, args, train_pairs, val_pairs, device, t0, world):
     """``--fit-minutes``: calibrate, then ``cfg`` with the epochs (and steps per epoch) that fit."""
-    from .budget import calibrate, plan
     if args.resume is not None:
         raise InputError("--fit-minutes plans a new run: resume with the --epochs and --steps-per-epoch it chose")
     if world > 1:
@@ -805,7 +857,7 @@ def _main(args, argv, device, t0=None) -> int:
         init = None
         if args.init is not None:
             from mccnn_cl.errors import WeightsError
-            from mccnn_cl.weights import resolve
+            from mccnn_cl.models import resolve
             try:
                 init = resolve(args.init)
             except WeightsError as exc:

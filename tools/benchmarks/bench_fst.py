@@ -151,7 +151,8 @@ def main(argv=None):
     from mccnn_cl.settings import authors_settings
     from mccnn_cl.costs.registry import make_cost
     from mccnn_cl.costs.features import normalise
-    from mccnn_cl.weights import Weights, resolve
+    from mccnn_cl.models import resolve
+    from mccnn_cl.weights import Weights
 
     data = os.environ.get("MCCNN_SHARED_DATA", os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data"))
     pair = datasets.load_kitti2015(os.path.join(data, "kitti2015", "training"), "000000")
