@@ -4,7 +4,7 @@
                                               [--pairs tsukuba venus cones kitti2015] [--weights PATH]
 
 Runs :class:`mccnn_cl.pipeline.StereoMatcher` on real pairs from
-``../shared/data`` (or ``$MCCNN_SHARED_DATA``) once per implementation, each
+``../shared/data`` (or ``$MCCNN_DATA``) once per implementation, each
 in its own process whose ICD loader sees only that implementation
 (``scripts/opencl_impls.sh --env``), then compares every implementation with
 the first: the matching cost volume (max |diff|), the integer disparity
@@ -43,7 +43,7 @@ PAIRS = {
 
 
 def _data_dir() -> Path:
-    return Path(os.environ.get("MCCNN_SHARED_DATA", REPO.parent / "shared" / "data"))
+    return Path(os.environ.get("MCCNN_DATA", REPO.parent / "shared" / "data"))
 
 
 def _load(name):

@@ -16,7 +16,15 @@ install hint (usage error, exit status 4), never a skip.  Known gaps of one
 implementation are expected failures for that implementation only: mark a
 test ``@pytest.mark.cl_impl_xfail("rusticl", reason=...)`` or list its node id
 in :data:`KNOWN_GAPS`.  See docs/portability.md.
+
+Real data: the ``shared_data`` fixture is ``$MCCNN_DATA`` when set (a full
+data folder: CI sets ``../shared/data``), else ``tests/data``, small crops
+bundled with the tests in their datasets' official layouts
+(tests/data/README.md).  A test that needs more than those crops (whole
+images, other scenes, dataset counts) is marked ``@pytest.mark.full_data``:
+without ``$MCCNN_DATA`` it is skipped with that reason (``-rs`` lists it).
 """
+
 
 import os
 import subprocess
@@ -29,6 +37,9 @@ import pytest
 from mccnn_cl.opencl.context import ClContext
 
 REPO = Path(__file__).resolve().parents[1]
+#: the real crops bundled with the tests (tests/data/README.md)
+BUNDLED_DATA = REPO / "tests" / "data"
+FULL_DATA_REASON = "needs the full data set: set MCCNN_DATA to a data folder (CI: ../shared/data)"
 
 # Value written into output buffers before a launch: no kernel ever writes it
 # (it is neither a cost, a disparity nor the NaN marking invalid cells), so an
@@ -168,7 +179,23 @@ def pytest_report_header(config):
     return None
 
 
+def full_data_root():
+    """``$MCCNN_DATA`` as a Path, None when unset; set but missing is an error."""
+    value = os.environ.get("MCCNN_DATA")
+    if not value:
+        return None
+    p = Path(value).resolve()
+    if not p.is_dir():
+        raise pytest.UsageError(f"MCCNN_DATA={value}: no such folder")
+    return p
+
+
 def pytest_collection_modifyitems(config, items):
+    if full_data_root() is None:
+        skip = pytest.mark.skip(reason=FULL_DATA_REASON)
+        for item in items:
+            if item.get_closest_marker("full_data"):
+                item.add_marker(skip)
     impl = config.getoption("--cl-impl")
     if not impl:
         return
@@ -221,8 +248,8 @@ def _oclgrind_log_guard(request):
 
 @pytest.fixture(scope="session")
 def shared_data():
-    """Path of ../shared/data (or $MCCNN_SHARED_DATA); missing data fails loudly."""
-    p = Path(os.environ.get("MCCNN_SHARED_DATA", REPO.parent / "shared" / "data"))
-    if not p.is_dir():
-        pytest.fail(f"real test data not found at {p}; set MCCNN_SHARED_DATA")
+    """The real data: ``$MCCNN_DATA`` when set, else the bundled crops (tests/data)."""
+    p = full_data_root() or BUNDLED_DATA
+    if not (p / "kitti2015").is_dir():
+        pytest.fail(f"real test data not found at {p} (bundled: {BUNDLED_DATA}; or set MCCNN_DATA)")
     return p

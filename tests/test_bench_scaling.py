@@ -59,7 +59,7 @@ def test_quick_run_json_is_consistent(tmp_path, shared_data, request):
     device = request.config.getoption("--cl-device")
     if device:
         cmd += ["--device", device]
-    env = dict(os.environ, MCCNN_SHARED_DATA=str(shared_data))
+    env = dict(os.environ, MCCNN_DATA=str(shared_data))
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout + p.stderr
     r = json.loads(out.read_text())

@@ -71,6 +71,7 @@ def check(ctx, cost, img_l, img_r, iterations=4, eta=4, include_neighbor=False):
     return results[0], want
 
 
+@pytest.mark.gpu_check
 def test_random_odd_size(ctx):
     rng = np.random.default_rng(1)
     D, H, W = 16, 37, 53
@@ -102,6 +103,7 @@ def test_random_long_arms_neighbor_variant_and_tight_bound(ctx):
     ("middlebury/Cones/im0.png", "middlebury/Cones/im1.png", 150, 200),
     ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png", 200, 500),
 ])
+@pytest.mark.gpu_check
 def test_real_images_ad_volume(ctx, shared_data, rel_l, rel_r, y0, x0):
     H, W, D = 24, 41, 16
     imgs = []
@@ -114,6 +116,7 @@ def test_real_images_ad_volume(ctx, shared_data, rel_l, rel_r, y0, x0):
     check(ctx, cost, imgs[0], imgs[1])
 
 
+@pytest.mark.gpu_check
 def test_d_at_least_w_single_row_single_column(ctx):
     rng = np.random.default_rng(3)
     for D, H, W in [(20, 7, 12), (5, 1, 40), (4, 30, 1), (1, 1, 1), (3, 2, 2), (7, 5, 300), (40, 3, 70)]:
@@ -247,6 +250,7 @@ def test_multi_iteration_counts_random(ctx, in_place):
             compare(got, cbca(cost, arms_l, arms_r, it), cost)
 
 
+@pytest.mark.gpu_check
 def test_multi_iteration_counts_kitti_crop(ctx, shared_data):
     """The same on a real KITTI crop (AD volume, arms from the images)."""
     H, W, D = 40, 75, 20

@@ -42,6 +42,7 @@ def poisoned(ctx, nbytes, value, dtype):
     return buf
 
 
+@pytest.mark.gpu_check
 def test_half_roundtrip_and_nan(ctx):
     """The storage format is IEEE binary16 as numpy's float16: values rounded to
     nearest even, NaN kept (the invalid cells)."""
@@ -57,6 +58,7 @@ def test_half_roundtrip_and_nan(ctx):
 
 
 @pytest.mark.parametrize("levels", [None, 8])
+@pytest.mark.gpu_check
 def test_wta_half(ctx, levels):
     rng = np.random.default_rng(1 + (levels or 0))
     D, H, W = 13, 9, 40
@@ -81,6 +83,7 @@ def test_subpixel_half(ctx):
     np.testing.assert_allclose(ctx.from_device(out, (H, W)), ref.subpixel(C32, DINT), rtol=1e-6, atol=1e-6)
 
 
+@pytest.mark.gpu_check
 def test_census_half(ctx, shared_data):
     import cv2
     d = shared_data / "middlebury" / "Tsukuba"
@@ -95,6 +98,7 @@ def test_census_half(ctx, shared_data):
     np.testing.assert_array_equal(got, ref.census_cost(left, right, D).astype(np.float16))
 
 
+@pytest.mark.gpu_check
 def test_network_half(ctx):
     w = Weights.random(seed=5)
     rng = np.random.default_rng(6)
@@ -160,6 +164,7 @@ def test_cbca_half(ctx, shared_data, short, fused, multi, bound):
     np.testing.assert_array_equal(ctx.from_device(d_in, C.shape, np.float16).astype(np.float32), got)
 
 
+@pytest.mark.gpu_check
 def test_cbca_half_multi_matches_single(ctx, shared_data):
     """Half volumes: the multi-iteration fused kernel (each iteration's output
     row rounded to half before the next reads it) gives the same half bits as
@@ -185,6 +190,7 @@ def test_cbca_half_multi_matches_single(ctx, shared_data):
 
 
 @pytest.mark.parametrize("W", [45, 100])
+@pytest.mark.gpu_check
 def test_sgm_half(ctx, shared_data, W):
     """Half SGM against the reference on the half input.  The recurrences run in
     float on exactly the reference's inputs; the four directions accumulate in

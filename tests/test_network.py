@@ -87,6 +87,7 @@ def read_gray(path):
 
 # -- the paper-size network --------------------------------------------------
 
+@pytest.mark.gpu_check
 def test_paper_net_random_image(ctx, paper_weights):
     rng = np.random.default_rng(1)
     left, right = random_pair(rng, 21, 34)
@@ -100,6 +101,7 @@ def test_paper_net_random_image(ctx, paper_weights):
     ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png", 180, 600),
     ("middlebury/Cones/im0.png", "middlebury/Cones/im1.png", 150, 200),
 ], ids=["kitti2015-000000", "middlebury-cones"])
+@pytest.mark.gpu_check
 def test_paper_net_real_crops(ctx, paper_weights, shared_data, crop):
     lp, rp, y0, x0 = crop
     left = read_gray(shared_data / lp)[y0:y0 + 40, x0:x0 + 60]
@@ -148,6 +150,7 @@ def test_matches_torch_model(ctx, paper_weights, shared_data, monkeypatch):
     (SMALL_CONV, [20, 2], 12, 17, 5),              # no hidden layer after L4
     ([[5, 3], [7, 3]], [9, 9, 2], 11, 29, 9),      # two conv layers
 ], ids=["37x53", "one-row", "D>=W", "no-hidden", "two-conv"])
+@pytest.mark.gpu_check
 def test_small_nets(ctx, case, tiles):
     conv, fc, H, W, D = case
     w = Weights.random(conv, fc, seed=H * W)
@@ -159,6 +162,7 @@ def test_small_nets(ctx, case, tiles):
     check(got, ref.cost_volume(w, left, right, D), D, H - P + 1, W - P + 1)
 
 
+@pytest.mark.gpu_check
 def test_constant_images(ctx):
     w = Weights.random(SMALL_CONV, [16, 16, 2], seed=3)
     net = net_for(ctx, w, key="small")

@@ -243,8 +243,8 @@ HEAD_TILES = (None, dict(TM=4, RM=2, RN=4, CONV_RM=3), dict(TM=3, RM=1, RN=1, CO
 
 @pytest.mark.parametrize("cls,conv,fc,arch", [
     (PaperCost, [[8, 3], [12, 3], [12, 1]], [16, 16, 16, 2], "mccnn-paper"),   # 2 hidden layers
-    (AcrtCost, [[6, 3], [9, 3]], [10, 10, 1], "mccnn-acrt"),                  # 1 hidden layer
-    (AcrtCost, [[5, 3]], [7, 1], "mccnn-acrt"),                               # no hidden layer
+    pytest.param(AcrtCost, [[6, 3], [9, 3]], [10, 10, 1], "mccnn-acrt", marks=pytest.mark.slow),  # 1 hidden layer
+    pytest.param(AcrtCost, [[5, 3]], [7, 1], "mccnn-acrt", marks=pytest.mark.slow),  # no hidden layer
 ], ids=["paper-2-hidden", "acrt-1-hidden", "acrt-0-hidden"])
 def test_gemm_head_bit_identical(ctx, monkeypatch, cls, conv, fc, arch):
     """The head layer by layer equals the fused head bit for bit (same

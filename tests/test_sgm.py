@@ -45,6 +45,7 @@ def check(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_ro
     return got, want
 
 
+@pytest.mark.gpu_check
 def test_random_odd_size(ctx):
     rng = np.random.default_rng(11)
     D, H, W = 16, 37, 53
@@ -55,6 +56,7 @@ def test_random_odd_size(ctx):
     assert np.abs(got[valid] - cost[valid]).max() > 0.5  # smoothing did something
 
 
+@pytest.mark.gpu_check
 def test_variants_and_parameters(ctx):
     rng = np.random.default_rng(12)
     D, H, W = 11, 17, 23
@@ -70,6 +72,7 @@ def test_variants_and_parameters(ctx):
     ("middlebury/Cones/im0.png", "middlebury/Cones/im1.png", 150, 200),
     ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png", 200, 500),
 ])
+@pytest.mark.gpu_check
 def test_real_images_ad_volume(ctx, shared_data, rel_l, rel_r, y0, x0):
     H, W, D = 24, 41, 16
     imgs = []
@@ -81,6 +84,7 @@ def test_real_images_ad_volume(ctx, shared_data, rel_l, rel_r, y0, x0):
     check(ctx, ad_volume(imgs[0], imgs[1], D), imgs[0], imgs[1])
 
 
+@pytest.mark.gpu_check
 def test_d_at_least_w_single_row_single_column(ctx):
     rng = np.random.default_rng(13)
     for D, H, W in [(20, 7, 12), (5, 1, 40), (4, 30, 1), (1, 1, 1), (3, 2, 2), (40, 3, 5), (5, 3, 32), (17, 4, 33), (37, 9, 45)]:
@@ -187,6 +191,7 @@ def test_paired_sweeps_match_reference_and_one_direction_kernels(ctx, D, H, W):
     np.testing.assert_allclose(paired, one_dir, rtol=0, atol=2e-5 * scale)
 
 
+@pytest.mark.gpu_check
 def test_paired_sweeps_on_real_images_both_variants(ctx, shared_data):
     """Paired sweeps on a real KITTI crop (AD costs), both penalty variants and
     the outside-the-image choice, against the reference."""
@@ -267,6 +272,7 @@ def test_single_direction_matches_path_reference(ctx):
     np.testing.assert_allclose(got, (lr + rl + 2 * cost) / 4, rtol=0, atol=1e-5 * 33)
 
 
+@pytest.mark.gpu_check
 def test_clear_minimum_is_kept(ctx):
     """A volume with one clear minimum per pixel on a smooth disparity map:
     the winner-take-all disparity after SGM is that minimum."""

@@ -35,28 +35,24 @@ REPO = Path(__file__).resolve().parents[1]
 
 #: (title, pytest arguments, modules needed beyond the package's): the
 #: kernel-vs-reference tests run on the device, most important first (subsets
-#: chosen to take ~200 s on a loaded 2-core CPU, far less on a GPU).
+#: chosen to take ~200 s on a loaded 2-core CPU, far less on a GPU), selected
+#: by marker: ``gpu_check`` where a module's subset is run, ``not slow`` for
+#: the GPU-layout network group.
 TEST_GROUPS = (
     ("SGM, work-group per line (GPU layout)", ["tests/test_sgm_wg.py"], ()),
-    ("SGM, CPU-shaped kernels", ["tests/test_sgm.py", "-k",
-                                 "random_odd_size or variants_and_parameters or real_images_ad_volume or "
-                                 "d_at_least_w or paired_sweeps_on_real or clear_minimum"], ()),
+    ("SGM, CPU-shaped kernels", ["tests/test_sgm.py", "-m", "gpu_check"], ()),
     ("census", ["tests/test_census.py"], ()),
     ("network fst", ["tests/test_fst.py"], ()),
     ("networks, local-memory tiles (GPU layout: conv GEMM, fst volume, fc head)",
-     ["tests/test_network_gpu.py", "-k", "not (gemm_head_bit_identical and acrt)"], ()),
+     ["tests/test_network_gpu.py", "-m", "not slow"], ()),
     ("network acrt", ["tests/test_acrt.py"], ()),
-    ("network paper", ["tests/test_network.py", "-k",
-                       "paper_net_random_image or small_nets or constant_images or real_crops"], ("torch",)),
+    ("network paper", ["tests/test_network.py", "-m", "gpu_check"], ("torch",)),
     ("cross arms", ["tests/test_cross.py"], ()),
     ("CBCA, work-groups (GPU layout)", ["tests/test_cbca_gpu.py"], ()),
-    ("CBCA", ["tests/test_cbca.py", "-k",
-              "random_odd_size or real_images or d_at_least_w or multi_iteration_counts_kitti"], ()),
+    ("CBCA", ["tests/test_cbca.py", "-m", "gpu_check"], ()),
     ("disparity, interpolation, sub-pixel", ["tests/test_disparity.py"], ()),
     ("refinement filters", ["tests/test_refine.py"], ()),
-    ("half-precision volumes", ["tests/test_half.py", "-k",
-                                "sgm_half or census_half or wta_half or network_half or roundtrip or "
-                                "cbca_half_multi"], ()),
+    ("half-precision volumes", ["tests/test_half.py", "-m", "gpu_check"], ()),
 )
 #: Seconds: the whole check (set-up excluded), the tests, one test group, one bench
 #: (a GPU run must end within a lent machine's 8 minutes, set-up included) ...
@@ -266,7 +262,7 @@ def pack_data(src: Path, dst: Path) -> None:
 
 
 def find_data(given=None):
-    for cand in (given, os.environ.get("MCCNN_SHARED_DATA"), REPO.parent / "shared" / "data",
+    for cand in (given, os.environ.get("MCCNN_DATA"), REPO.parent / "shared" / "data",
                  REPO / "shared" / "data", REPO / ".gpucheck" / "data"):
         if cand and all((Path(cand) / f).is_file() for f in DATA_FILES):
             return Path(cand).resolve()
@@ -278,7 +274,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cpu", action="store_true", help="run the checks on the CPU device (rehearsal)")
     ap.add_argument("--device", help="device spec instead of the first GPU (or CPU with --cpu)")
     ap.add_argument("--out", default="gpu_check_report.md", help="markdown report (default %(default)s)")
-    ap.add_argument("--data", help="shared-data folder (default: $MCCNN_SHARED_DATA, ../shared/data, "
+    ap.add_argument("--data", help="shared-data folder (default: $MCCNN_DATA, ../shared/data, "
                                    "shared/data, .gpucheck/data)")
     ap.add_argument("--pack-data", metavar="DST", help="only copy the data files the check reads to DST")
     ap.add_argument("--env-note", default="", help=argparse.SUPPRESS)
@@ -310,7 +306,7 @@ def main(argv=None) -> int:
     env = dict(os.environ)
     data = find_data(args.data)
     if data is not None:
-        env["MCCNN_SHARED_DATA"] = str(data)
+        env["MCCNN_DATA"] = str(data)
     else:
         say("gpu_check: no shared data found: the tests that read real images will fail (see --pack-data)")
     test_budget, total_budget, group_limit = ((CPU_TEST_BUDGET_S, CPU_TOTAL_BUDGET_S, CPU_GROUP_LIMIT_S) if args.cpu

@@ -21,7 +21,7 @@ from mccnn_cl.imageops import to_gray
 from mccnn_cl.costs.census import CensusCost
 from mccnn_cl.stages.confidence import Confidence
 
-DATA = os.environ.get("MCCNN_SHARED_DATA", os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data"))
+DATA = os.environ.get("MCCNN_DATA", os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "data"))
 
 
 def main():

@@ -154,7 +154,7 @@ def main(argv=None):
     from mccnn_cl.models import resolve
     from mccnn_cl.weights import Weights
 
-    data = os.environ.get("MCCNN_SHARED_DATA", os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data"))
+    data = os.environ.get("MCCNN_DATA", os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "data"))
     pair = datasets.load_kitti2015(os.path.join(data, "kitti2015", "training"), "000000")
     left, right = to_gray(pair.left, "left"), to_gray(pair.right, "right")
     H, W = left.shape

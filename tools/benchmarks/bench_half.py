@@ -8,7 +8,7 @@ runs ``StereoMatcher(volume_dtype=...)`` with float32 and float16 storage
 (one untimed warm-up each), and prints the error on non-occluded and all
 ground-truth pixels, the share of pixels whose disparity is within 0.5 px /
 1 px of the float32 map, the wall time and the measured device peak.
-Data: ``../shared/data`` or ``$MCCNN_SHARED_DATA``.
+Data: ``../shared/data`` or ``$MCCNN_DATA``.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from mccnn_cl.opencl.context import ClContext
 from mccnn_cl.evaluation.datasets import discover
 from mccnn_cl.pipeline import StereoMatcher
 
-DATA = Path(os.environ.get("MCCNN_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+DATA = Path(os.environ.get("MCCNN_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
 
 
 def error(disp, gt, mask, thr):

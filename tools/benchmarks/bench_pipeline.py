@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("MCCNN_SHARED_DATA", REPO.parent / "shared" / "data"))
+DATA = Path(os.environ.get("MCCNN_DATA", REPO.parent / "shared" / "data"))
 
 # Groups of mccnn_cl.benchmark.STAGE_GROUP (the one stage-name table) -> rows of the paper's table.
 ROWS = {"cost": "matching cost", "CBCA": "CBCA", "SGM": "SGM", "rest": "everything else"}

@@ -10,7 +10,7 @@ Quick check (tiny sizes, a few seconds; what tests/test_bench_scaling.py runs):
     .venv/bin/python bench/bench_scaling.py --quick --json /tmp/scaling.json
 
 The pair is KITTI 2015 training 000000 (image_2 / image_3; data directory
-``../shared/data`` or ``$MCCNN_SHARED_DATA``), gray, cropped to its top rows
+``../shared/data`` or ``$MCCNN_DATA``), gray, cropped to its top rows
 and left columns as each size needs (padded by repeating the last row up to
 376 rows, as bench/bench_pipeline.py does).  Four series, three points each:
 
@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("MCCNN_SHARED_DATA", REPO.parent / "shared" / "data"))
+DATA = Path(os.environ.get("MCCNN_DATA", REPO.parent / "shared" / "data"))
 
 MARGIN = 4  # half the 9x9 patch: the cost volume covers (H - 8) x (W - 8)
 
@@ -86,7 +86,7 @@ def kitti_gray(height=376, width=1240):
     d = DATA / "kitti2015" / "training"
     paths = d / "image_2" / "000000_10.png", d / "image_3" / "000000_10.png"
     if not all(p.exists() for p in paths):
-        sys.exit(f"KITTI 2015 000000 not found under {d} (set MCCNN_SHARED_DATA)")
+        sys.exit(f"KITTI 2015 000000 not found under {d} (set MCCNN_DATA)")
     out = []
     for p in paths:
         img = read_image(p, gray=True)[:height, :width]

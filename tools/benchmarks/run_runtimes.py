@@ -52,7 +52,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("MCCNN_SHARED_DATA", REPO.parent / "shared" / "data"))
+DATA = Path(os.environ.get("MCCNN_DATA", REPO.parent / "shared" / "data"))
 KITTI = DATA / "kitti2015" / "training"
 
 # What each implementation's device description must contain (isolation check).
@@ -153,7 +153,7 @@ def main(argv=None):
     else:
         left, right = KITTI / "image_2" / "000000_10.png", KITTI / "image_3" / "000000_10.png"
         if not (left.exists() and right.exists()):
-            sys.exit(f"KITTI 2015 000000 not found under {KITTI} (set MCCNN_SHARED_DATA)")
+            sys.exit(f"KITTI 2015 000000 not found under {KITTI} (set MCCNN_DATA)")
         pair = ["--left", str(left), "--right", str(right)]
         agg = ["--H", "376", "--W", "1240", "--D", str(D)]
         what = f"KITTI 2015 000000 (1242 x 375), D = {D}; aggregation volume {D} x 376 x 1240"

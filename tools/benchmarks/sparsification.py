@@ -12,7 +12,7 @@ disparity on the pixels kept as the lowest-confidence fraction is dropped
 (:func:`mccnn_cl.evaluation.metrics.sparsification`), on non-occluded and on all GT.
 ``--render`` writes, per scene folder holding im0.png/im1.png, the left
 image, the disparity and the confidence side by side (census, D = 64).
-Data: ``../shared/data`` or ``$MCCNN_SHARED_DATA``.
+Data: ``../shared/data`` or ``$MCCNN_DATA``.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from mccnn_cl.evaluation.metrics import sparsification
 from mccnn_cl.pipeline import StereoMatcher
 from mccnn_cl.visualize import colorize, label
 
-DATA = Path(os.environ.get("MCCNN_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+DATA = Path(os.environ.get("MCCNN_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
 
 RUNS = (("KITTI 2015 000000, census (3-px)", "kitti", "census"),
         ("Cones, census (bad-2.0)", "cones", "census"),
