@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One-call GPU check: OpenCL devices, kernel-vs-reference tests on the GPU,
 # `mccnn-cl bench` with its in-run baselines, one markdown report
-# (mccnn_cl/gpucheck.py; docs/portability.md, "GPU paths and the GPU check").
+# (tools/gpucheck.py; docs/portability.md, "GPU paths and the GPU check").
 #   bash scripts/gpu_check.sh [--cpu] [--out FILE] [--device SPEC] [--data DIR]
 #                             [--wheels DIR] [--setup]
 #   bash scripts/gpu_check.sh --pack-data DST   # copy the data files it reads

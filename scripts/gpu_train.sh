@@ -3,7 +3,7 @@
 #   bash scripts/pack_gpu_data.sh                 # here, first: the data -> .gpu_data/
 #   bash scripts/gpu_train.sh [ARCH] [MINUTES]    # there, from the repository root
 # ARCH: fst (default), acrt or paper.  MINUTES (default 8): the trainer's wall
-# time; it times a few steps (--fit-minutes, train/budget.py) and picks the
+# time; it times a few steps (--fit-minutes, mccnn_cl/train/budget.py) and picks the
 # number of epochs so that the whole lr schedule ends in time.  Trains on the
 # 11 KITTI pairs of .gpu_data with kitti2015/000000 and middlebury/Cones held
 # out, with a GPU-sized crop recipe, into $OUT/gpu_ARCH when $OUT is set (the

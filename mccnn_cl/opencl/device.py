@@ -34,7 +34,7 @@ CLASSES = (CPU, LLVMPIPE, GPU)
 LLVMPIPE_LOOP_LIMIT = 65535
 
 #: option -> {device class: value}.  ``sgm_stage``: SGM's implementation
-#: (:func:`~mccnn_cl.stages.sgm.make_sgm`): "lines" (:class:`~mccnn_cl.stages.sgm.SGM`,
+#: (:func:`~mccnn_cl.stages.sgm_select.make_sgm`): "lines" (:class:`~mccnn_cl.stages.sgm.SGM`,
 #: a work-item walks whole path lines) or "workgroup" (:class:`~mccnn_cl.stages.sgm_wg.SGMWorkGroup`,
 #: a work-group per line; Oclgrind takes it too).  SGM's one-direction kernels: ``sgm_prefetch``
 #: (host prefetch instructions where the kernel is compiled to x86/AArch64),
