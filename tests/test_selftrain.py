@@ -40,8 +40,8 @@ def art(shared_data):
 @pytest.fixture(scope="module")
 def result(ctx, fst, art):
     m = StereoMatcher(weights=fst, max_disparity=D, device=ctx)
-    from mccnn_cl.evaluation.datasets import to_gray
-    return m.compute(to_gray(art[0]), to_gray(art[1]), confidence=True)
+    from mccnn_cl.evaluation.datasets import to_gray_u8
+    return m.compute(to_gray_u8(art[0]), to_gray_u8(art[1]), confidence=True)
 
 
 def test_pseudo_labels_keep_exactly_the_confident_lr_correct_pixels(result):

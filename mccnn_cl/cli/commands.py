@@ -329,8 +329,8 @@ def _tty() -> bool:
 
 
 def _gray(img):
-    from ..evaluation.datasets import to_gray
-    return to_gray(img)
+    from ..evaluation.datasets import to_gray_u8
+    return to_gray_u8(img)
 
 
 def _save_outputs(out, disp, left_img, args, calib, max_disp):

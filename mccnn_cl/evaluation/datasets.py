@@ -82,7 +82,7 @@ class StereoPair:
 
     def gray(self) -> tuple:
         """(left, right) as (H, W) uint8 gray images (colour → luminance, cv2's BGR2GRAY)."""
-        return to_gray(self.left), to_gray(self.right)
+        return to_gray_u8(self.left), to_gray_u8(self.right)
 
     def max_gt(self) -> float:
         """Largest known GT disparity (NaN without GT)."""
@@ -91,7 +91,7 @@ class StereoPair:
         return float(np.nanmax(self.disp))
 
 
-def to_gray(img: np.ndarray) -> np.ndarray:
+def to_gray_u8(img: np.ndarray) -> np.ndarray:
     """uint8 BGR or gray → (H, W) uint8 gray (:func:`mccnn_cl.imageops.luminance`)."""
     return luminance(img)
 

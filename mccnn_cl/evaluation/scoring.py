@@ -21,7 +21,7 @@ import numpy as np
 
 from . import metrics
 from .baseline import sgbm
-from .datasets import to_gray
+from .datasets import to_gray_u8
 
 __all__ = ["training_pairs", "training_status", "default_max_disparity", "evaluate_pair",
            "mean_metrics", "format_table", "KITTI_DEFAULT_DISPARITY"]
@@ -110,7 +110,7 @@ def evaluate_pair(pair, matcher, max_disparity, baseline="sgbm", fill=True, erro
     Returns a JSON-ready dict: pair, size, max_disparity, training, and per
     method the metrics plus ``seconds``.
     """
-    left, right = to_gray(pair.left), to_gray(pair.right)
+    left, right = to_gray_u8(pair.left), to_gray_u8(pair.right)
     result = {"pair": pair.key, "size": [int(left.shape[1]), int(left.shape[0])],
               "max_disparity": int(max_disparity), "training": status, "methods": {}}
     t0 = time.perf_counter()

@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mccnn_cl.evaluation.datasets import StereoPair, discover, to_gray
+from mccnn_cl.evaluation.datasets import StereoPair, discover, to_gray_u8
 from mccnn_cl.errors import InputError
 from mccnn_cl.models import resolve
 from mccnn_cl.weights import ARCHITECTURES, Weights
@@ -120,7 +120,7 @@ def label_pairs(weights, pairs, min_confidence: float, ctx=None, labeler: str = 
         if p.ndisp not in matchers:
             matchers[p.ndisp] = _matcher(weights, p.ndisp, ctx, labeler)
         t0 = time.time()
-        lg, rg = to_gray(p.left), to_gray(p.right)
+        lg, rg = to_gray_u8(p.left), to_gray_u8(p.right)
         res = matchers[p.ndisp].compute(lg, rg, confidence=True)
         disp, mask = pseudo_labels(res, min_confidence)
         frac = float(mask.mean())
