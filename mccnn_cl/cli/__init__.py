@@ -7,7 +7,7 @@ timings), ``demo`` (the bundled Middlebury Cones pair) and ``adapt``
 (self-training on unlabeled pairs, :mod:`mccnn_cl.cli.adapt`).  See docs/cli.md.
 This module only parses and dispatches (:data:`COMMANDS`): ``match``,
 ``evaluate`` and ``devices`` and the helpers they share are implemented in
-:mod:`mccnn_cl.cli.commands`, ``bench`` in :mod:`mccnn_cl.benchmark`, ``demo`` in
+:mod:`mccnn_cl.cli.commands`, ``bench`` in :mod:`mccnn_cl.cli.bench`, ``demo`` in
 :mod:`mccnn_cl.cli.demo`, ``convert-weights`` and ``models`` (parsers too) in
 :mod:`mccnn_cl.cli.convert`; input checks are in :mod:`mccnn_cl.validate`.
 
@@ -37,7 +37,7 @@ COMMANDS = {
     "match": ("mccnn_cl.cli.commands", "cmd_match"),
     "evaluate": ("mccnn_cl.cli.commands", "cmd_evaluate"),
     "devices": ("mccnn_cl.cli.commands", "cmd_devices"),
-    "bench": ("mccnn_cl.benchmark", "run"),
+    "bench": ("mccnn_cl.cli.bench", "run"),
     "demo": ("mccnn_cl.cli.demo", "run"),
     "adapt": ("mccnn_cl.cli.adapt", "run"),
 }

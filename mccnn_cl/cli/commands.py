@@ -8,7 +8,7 @@ lists OpenCL devices and the choice.  The shared helpers -- :func:`_load_weights
 (weights checked before any OpenCL work), :func:`_make_matcher` (options and
 ``--set`` hyperparameters to a StereoMatcher), :func:`_check_outputs`,
 :func:`_gray`, :func:`_tty`, :func:`_say` -- are also used by
-:mod:`mccnn_cl.benchmark` and :mod:`mccnn_cl.cli.demo`.  Bad input raises
+:mod:`mccnn_cl.cli.bench` and :mod:`mccnn_cl.cli.demo`.  Bad input raises
 :class:`~mccnn_cl.errors.InputError`; :func:`mccnn_cl.cli.main` turns it into
 one line and exit status 2.
 """
