@@ -57,7 +57,7 @@ class CensusCost:
         volume = 2 * 3 * D * h * w
         return {"transform": transform, "volume": volume, "total": transform + volume}
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None):
         """The volume as a host array (computed on the device, then copied)."""
         if not isinstance(left, np.ndarray):
             raise InputError("census to_host needs host images")
@@ -67,11 +67,12 @@ class CensusCost:
         d.release()
         return out
 
-    def __call__(self, left, right, max_disparity, shape=None, out=None, progress=None):
+    def __call__(self, left, right, max_disparity, shape=None, out=None, progress=None, stats=None):
         """Cost volume of ``left`` vs ``right`` (host arrays or device buffers).
 
         ``shape`` (H_img, W_img) is needed only for device buffers; ``progress``
-        is accepted for symmetry with the network stage and ignored (one launch).
+        is accepted for symmetry with the network stage and ignored (one launch),
+        so is ``stats`` (census compares intensities, it standardises nothing).
         """
         if isinstance(left, np.ndarray):
             if left.shape != right.shape or left.ndim != 2:

@@ -282,10 +282,12 @@ def setup_network_cost(cost, ctx, weights, tiles, half: bool, local_tiles=None) 
                            local_tiles=local_tiles)
 
 
-def volume_on_device(cost, left, right, max_disparity, out, progress, label: str):
+def volume_on_device(cost, left, right, max_disparity, out, progress, label: str, stats=None):
     """A network cost's ``__call__``: inputs checked, the volume's buffer (``out``
     or a new one), ``cost._enqueue`` over ``cost.band_rows`` bands; ``label``
-    names the cost in an OpenCL error."""
+    names the cost in an OpenCL error; ``stats``: ``((mean, std) of the left,
+    (mean, std) of the right)`` to standardise with instead of the images'
+    own (:func:`mccnn_cl.imageops.standardise`; None: their own)."""
     ctx = cost.ctx
     L, R, D, h, w = check_cost_inputs(left, right, max_disparity, cost.channels, cost.patch)
     nbytes = D * h * w * cost.vdtype.itemsize
@@ -296,13 +298,13 @@ def volume_on_device(cost, left, right, max_disparity, out, progress, label: str
     elif out.size < nbytes:
         raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
     try:
-        cost._enqueue(L, R, D, h, w, rows, out, progress)
+        cost._enqueue(L, R, D, h, w, rows, out, progress, stats=stats)
     except ctx.cl.Error as exc:
         raise OpenCLError(f"{label} ({D} x {h} x {w}) failed on {ctx.describe()}: {exc}") from exc
     return out
 
 
-def volume_to_host(cost, left, right, max_disparity, max_bytes, progress, label: str):
+def volume_to_host(cost, left, right, max_disparity, max_bytes, progress, label: str, stats=None):
     """A network cost's ``to_host``: each band computed into one device buffer of
     at most ``max_bytes`` (default: the max allocation) and copied into the host
     volume (``cost._enqueue(..., host=)``); values identical to :func:`volume_on_device`'s."""
@@ -318,7 +320,7 @@ def volume_to_host(cost, left, right, max_disparity, max_bytes, progress, label:
     host = np.empty((D, h, w), cost.vdtype)
     d_band = ctx.empty(D * rows * w * cost.vdtype.itemsize, "cost volume band")
     try:
-        cost._enqueue(L, R, D, h, w, rows, d_band, progress, host=host)
+        cost._enqueue(L, R, D, h, w, rows, d_band, progress, host=host, stats=stats)
     except ctx.cl.Error as exc:
         raise OpenCLError(f"{label} ({D} x {h} x {w}, in bands of {rows} rows) failed on "
                           f"{ctx.describe()}: {exc}") from exc

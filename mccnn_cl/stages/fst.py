@@ -172,21 +172,21 @@ class FstCost:
         self.stack.give(d_feat)
         return d_out
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None):
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None):
         """Cost volume on the device (``[D][H_img-2m][W_img-2m]``); ``out``: a
         buffer of at least the volume's bytes to write into; ``progress``:
         ``callable(done, D)`` after each band."""
-        return volume_on_device(self, left, right, max_disparity, out, progress, "fst cost")
+        return volume_on_device(self, left, right, max_disparity, out, progress, "fst cost", stats)
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None):
         """The volume as a host array, computed band by band into one device
         buffer of at most ``max_bytes`` (default: the max allocation); values
         identical to :meth:`__call__`'s."""
-        return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "fst cost")
+        return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "fst cost", stats)
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None):
         q, P = self.ctx.queue, self.patch
-        Ln, Rn = normalise(L), normalise(R)
+        Ln, Rn = (normalise(L), normalise(R)) if stats is None else (normalise(L, stats[0]), normalise(R, stats[1]))
         bands = range(0, h, rows)
         for i, y0 in enumerate(bands):
             hb = min(rows, h - y0)

@@ -257,7 +257,7 @@ class PaperCost:
         self.ctx.check_alloc(row, f"network L4 split of one row ({w} x {self.hp})")
         return max(1, min(h, min(BAND_BYTES, self.ctx.max_alloc) // row))
 
-    def __call__(self, left, right, max_disparity, progress=None, out=None):
+    def __call__(self, left, right, max_disparity, progress=None, out=None, stats=None):
         """Cost volume C_CNN on the device (see module docstring).
 
         ``left``, ``right``: 2-D gray images of the same shape (any scale; each
@@ -273,18 +273,18 @@ class PaperCost:
         feature maps of a band are smaller); each band's input rows overlap
         the next band's by P - 1 rows, so the band seams are exact.
         """
-        return volume_on_device(self, left, right, max_disparity, out, progress, "network (C_CNN)")
+        return volume_on_device(self, left, right, max_disparity, out, progress, "network (C_CNN)", stats)
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None):
         """C_CNN as a host array (``[D][H_img-8][W_img-8]``, float32 or float16
         with half storage), for
         volumes larger than the device can hold: each band of rows is
         computed into one band-sized device buffer of at most ``max_bytes``
         (default: the device's max allocation) and copied out.  Values are
         identical to :meth:`__call__`'s (same kernels, same bands' seams)."""
-        return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "network (C_CNN)")
+        return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "network (C_CNN)", stats)
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None):
         """The launches of :meth:`__call__` (inputs already checked).  With
         ``host`` (a [D][h][w] array), ``d_cost`` holds one band at a time
         ([D][hb][w]), copied into ``host`` after each band."""
@@ -293,7 +293,7 @@ class PaperCost:
         i32 = np.int32
         if host is None:  # NaN into every invalid cell (x < d) of the volume, once
             self._mark(q, (w, h, D), None, d_cost, i32(h), i32(w), i32(0))
-        Ln, Rn = normalise(L), normalise(R)
+        Ln, Rn = (normalise(L), normalise(R)) if stats is None else (normalise(L, stats[0]), normalise(R, stats[1]))
         bands = range(0, h, rows)
         done = 0
         for y0 in bands:
