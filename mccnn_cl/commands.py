@@ -335,10 +335,11 @@ def cmd_match(args):
                 auto = matchers[key].choose_range(gray_l, gray_r)
                 lo, hi = auto["range"]
                 if out.lower().endswith(".png"):  # the format holds no negative disparity
-                    if hi <= 0:
-                        raise InputError(f"{out}: the automatic range {lo}..{hi} is negative, which a KITTI "
-                                         "16-bit PNG cannot store; write .pfm or .npy")
-                    lo = max(lo, 0)
+                    if auto["found"][0] < 0:  # the scene's own, not the margin's
+                        raise InputError(f"{out}: the automatic range {lo}..{hi} holds the pair's negative "
+                                         f"disparities (down to {auto['found'][0]:.0f}), which a KITTI 16-bit PNG "
+                                         "cannot store; write .pfm or .npy")
+                    lo = max(lo, 0)  # only the margin went below 0
             else:
                 lo, hi = min_disp, min_disp + max_disp - 1
             range_line = _range_text(lo, hi, auto)

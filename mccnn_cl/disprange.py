@@ -238,7 +238,8 @@ def coarse_scale(shape) -> int:
 def choose_range(matcher, I_L, I_R) -> dict:
     """The automatic range of one pair (gray float32 [0, 1] images).
 
-    Returns ``{"range": (lo, hi), "scale", "window": (lo_c, hi_c) coarse,
+    Returns ``{"range": (lo, hi), "found": the trimmed extremes before the
+    margin (full-size px), "scale", "window": the coarse window (full-size px),
     "consistent": fraction of coarse pixels used, "seconds"}``."""
     import cv2
 
@@ -264,6 +265,7 @@ def choose_range(matcher, I_L, I_R) -> dict:
     else:  # nothing consistent: the whole coarse window
         q_lo, q_hi = lo_c, hi_c
     lo, hi = s * float(q_lo), s * float(q_hi)
+    found = (lo, hi)
     margin = max(AUTO_MARGIN[0], AUTO_MARGIN[1] * (hi - lo))
     lo, hi = math.floor(lo - margin), math.ceil(hi + margin)
     # within what the image allows: fewer levels than the width, some pixel with a match
@@ -272,5 +274,5 @@ def choose_range(matcher, I_L, I_R) -> dict:
     hi = min(hi, wcrop - 1, lo + Wi - 2)
     if hi <= lo:
         hi = lo + 1
-    return {"range": (int(lo), int(hi)), "scale": s, "window": (lo_c * s, hi_c * s),
+    return {"range": (int(lo), int(hi)), "found": found, "scale": s, "window": (lo_c * s, hi_c * s),
             "consistent": used, "seconds": time.perf_counter() - t0}

@@ -81,7 +81,8 @@ def test_range_mask_matches_reference(ctx, half, D, H, W, lo, hi):
     d = np.arange(D)[:, None, None]
     x = np.arange(W)[None, None, :]
     v[np.broadcast_to(x < d, v.shape)] = np.nan
-    buf = ctx.to_device(v)
+    buf = ctx.empty(v.nbytes, "test volume")  # read-write (to_device's is read-only)
+    ctx.cl.enqueue_copy(ctx.queue, buf, v)
     RangeMask(ctx, half=half)(buf, D, H, W, lo, hi)
     got = ctx.from_device(buf, (D, H, W), dt)
     want = mask_reference(v, lo, hi)
