@@ -58,15 +58,28 @@ def _scaled(a: np.ndarray, scale: float) -> np.ndarray:
     return (a.astype(np.float32) / np.float32(scale)).astype(np.float32)
 
 
-def standardise(img) -> np.ndarray:
+def standardise(img, stats=None) -> np.ndarray:
     """(I - mean(I)) / std(I), float32, stats in float64 over all pixels and
-    channels; std 0 divides by 1 (module docstring)."""
+    channels; std 0 divides by 1 (module docstring).  ``stats``: the
+    ``(mean, std)`` to use instead (:func:`image_stats` of another image, e.g.
+    the real image a padded one was made from)."""
+    a = _float64(img)
+    mean, std = image_stats(a) if stats is None else stats
+    return ((a - mean) / std).astype(np.float32)
+
+
+def _float64(img) -> np.ndarray:
     a = np.asarray(img)
     if a.dtype in _UNIT_SCALE:  # as to_gray scales them
         a = _scaled(a, _UNIT_SCALE[a.dtype])
-    a = np.asarray(a, dtype=np.float64)
+    return np.asarray(a, dtype=np.float64)
+
+
+def image_stats(img) -> tuple:
+    """``(mean, std)`` that :func:`standardise` divides ``img`` by (std 0 -> 1)."""
+    a = _float64(img)
     mean = a.mean()
     std = a.std()
     if not std > 0:
         std = 1.0
-    return ((a - mean) / std).astype(np.float32)
+    return mean, std

@@ -40,6 +40,7 @@ from .stages.cross import CrossArms, max_arm
 from .stages.confidence import Confidence
 from .stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpixel, WinnerTakeAll
 from .stages.refine import BilateralFilter, Enlarge, MedianFilter
+from .disprange import RangeFrame, RangeMask, check_min_disparity, choose_range, levels_of
 from .weights import Weights
 
 log = logging.getLogger(__name__)
@@ -192,6 +193,13 @@ class StereoResult:
     C_CBCA: the right reference's first aggregation), ``cross_R``,
     ``C_R_SGM``, ``C_R`` (the later stages for the right reference).
     ``margin``: m, the offset of the cropped domain in the image.
+    ``disparity_range``: ``(min, max)``, the disparities searched (inclusive;
+    chosen per pair with ``max_disparity="auto"``), and ``auto``: what the
+    automatic range's coarse pass found (:func:`mccnn_cl.disprange.choose_range`),
+    None otherwise.  With a minimum disparity M != 0 every intermediate is
+    in the image's frame as with M = 0 (volumes ``[D][H-2m][W-2m]``, level k
+    = disparity M + k, NaN where the right pixel is outside the image; maps
+    in disparities).
     ``plan``: the :class:`MemoryPlan` followed; ``peak_device_bytes``: the
     peak of the device buffers the run held beyond those alive when it began
     (measured: every buffer made through the context, freed when released or
@@ -214,6 +222,8 @@ class StereoResult:
     peak_device_bytes: int = 0
     confidence: np.ndarray | None = None
     labels: np.ndarray | None = None
+    disparity_range: tuple | None = None
+    auto: dict | None = None
 
 
 def _resolve_weights(spec) -> Weights:
@@ -240,8 +250,10 @@ class StereoMatcher:
         architecture (paper, fst, acrt).  Its ``Weights.stereo`` settings are
         applied first, the ``hyperparameters`` given here override them;
         :attr:`params` shows the result.
-    max_disparity : int
-        D, the number of disparity levels (disparities 0 .. D-1); 228 = KITTI.
+    max_disparity : int or "auto"
+        D, the number of disparity levels (disparities M .. M+D-1); 228 =
+        KITTI.  "auto": chosen per pair by a coarse pass
+        (:func:`mccnn_cl.disprange.choose_range`).
     device : None, str or ClContext
         OpenCL device spec (see :func:`mccnn_cl.opencl.context.select_device`) or a context.
     cost : "cnn" or "census"
@@ -263,13 +275,17 @@ class StereoMatcher:
         ``TILE_OVERLAP``).  The network and cross-based aggregation are exact
         within it; SGM's vertical paths and interpolation's search are cut at
         the tile's edge (see docs/method.md, "Large images").
+    min_disparity : int
+        M, the smallest disparity searched (negative allowed; as OpenCV's
+        ``minDisparity``).  0 by default.
     **hyperparameters
         Overrides of :class:`Hyperparameters` fields by name.
     """
 
     def __init__(self, weights=None, max_disparity: int = 228, device=None, cost: str = "cnn",
                  progress: bool = False, memory_limit: int | None = None,
-                 tile_overlap: int = TILE_OVERLAP, volume_dtype: str = "float32", **hyperparameters):
+                 tile_overlap: int = TILE_OVERLAP, volume_dtype: str = "float32", min_disparity: int = 0,
+                 **hyperparameters):
         unknown = sorted(set(hyperparameters) - set(Hyperparameters.names()))
         if unknown:
             raise TypeError(f"unknown hyperparameter(s) {', '.join(unknown)}; valid names: "
@@ -286,7 +302,11 @@ class StereoMatcher:
             raise WeightsError(f"the weights' stereo settings name unknown hyperparameter(s) {', '.join(bad)}")
         settings.update(hyperparameters)
         self.params = Hyperparameters(**settings)
-        self.max_disparity = check_disparity_range(max_disparity)
+        self.auto_range = isinstance(max_disparity, str) and max_disparity == "auto"
+        self.max_disparity = None if self.auto_range else check_disparity_range(max_disparity)
+        self.min_disparity = check_min_disparity(min_disparity)
+        if self.auto_range and self.min_disparity:
+            raise InputError("min_disparity is chosen per pair with max_disparity='auto'; give one or the other")
         self.cost_name = cost
         self.progress = bool(progress)
         if volume_dtype not in ("float32", "float16"):
@@ -324,6 +344,8 @@ class StereoMatcher:
         self.enlarge = Enlarge(ctx)
         self.median = MedianFilter(ctx, self.params.median_size)
         self.bilateral = BilateralFilter(ctx)
+        self.range_mask = RangeMask(ctx, half=self.half)
+        self._coarse = None  # the automatic range's census matcher, made on first use
         # cost volumes are reused between stages and calls (see release_buffers)
         self._pool = BufferPool(ctx)
 
@@ -344,14 +366,37 @@ class StereoMatcher:
         self.cost.release_buffers()
 
     # -- input checks ------------------------------------------------------
-    def _inputs(self, left, right):
+    def _inputs(self, left, right, disparity_range=None):
+        """Gray images, M, D and the automatic range's report (None unless auto)."""
         I_L, I_R = to_gray(left, "left"), to_gray(right, "right")
-        check_pair(I_L, I_R, self.max_disparity, 2 * self.margin + 1)
-        return I_L, I_R
+        auto = None
+        if disparity_range is None and self.auto_range:
+            check_pair(I_L, I_R, 1, 2 * self.margin + 1)
+            auto = self.choose_range(I_L, I_R)
+            disparity_range = auto["range"]
+        if disparity_range is None:
+            M, D = self.min_disparity, self.max_disparity
+        else:
+            M, D = levels_of(disparity_range)
+        check_pair(I_L, I_R, D, 2 * self.margin + 1, min_disparity=M)
+        return I_L, I_R, M, D, auto
+
+    def choose_range(self, left, right) -> dict:
+        """The automatic disparity range of a pair (``max_disparity="auto"``):
+        ``{"range": (min, max), ...}`` (:func:`mccnn_cl.disprange.choose_range`)."""
+        I_L, I_R = to_gray(left, "left"), to_gray(right, "right")
+        check_pair(I_L, I_R, 1, 2 * self.margin + 1)
+        return choose_range(self, I_L, I_R)
+
+    def _coarse_matcher(self):
+        if self._coarse is None:
+            self._coarse = StereoMatcher(cost="census", max_disparity=2, device=self.ctx,
+                                         memory_limit=self.memory_limit)
+        return self._coarse
 
     # -- the method ----------------------------------------------------------
     def compute(self, left, right, return_intermediates: bool = False, timings: bool = False,
-                confidence: bool = False):
+                confidence: bool = False, disparity_range=None):
         """Disparity map (float32, the left image's size, pixels) of a rectified pair.
 
         ``return_intermediates``: return a :class:`StereoResult` with every
@@ -359,11 +404,14 @@ class StereoMatcher:
         :class:`StereoResult` with per-stage times only (no copies).
         ``confidence``: return a :class:`StereoResult` whose ``confidence``
         and ``labels`` are set (computed on the final volume C; also tiled).
+        ``disparity_range``: ``(min, max)`` (inclusive) for this call instead
+        of the matcher's range (e.g. one from :meth:`choose_range`).
         """
-        I_L, I_R = self._inputs(left, right)
+        I_L, I_R, M, D, auto = self._inputs(left, right, disparity_range)
         rec = _Recorder(self.ctx, keep=return_intermediates, timed=return_intermediates or timings)
         rec.wanted = {"confidence", "labels"} if confidence else set()
-        plan = self.memory_plan(I_L.shape)
+        rec.range = (M, D)
+        plan = self.memory_plan(I_L.shape, D, M)
         self._pool.trim(plan.largest_volume)  # kept volumes of another size are freed
         self.ctx.memory.reset_peak()
         # buffers alive before the call (weights, other matchers' ...), less the
@@ -372,29 +420,51 @@ class StereoMatcher:
         out = self._run(I_L, I_R, rec, plan)
         if not (return_intermediates or timings or confidence):
             return out
-        res = StereoResult(out, rec.arrays, rec.times, self.margin, rec.plan, self.ctx.memory.peak - base)
+        res = StereoResult(out, rec.arrays, rec.times, self.margin, rec.plan, self.ctx.memory.peak - base,
+                           disparity_range=(M, M + D - 1), auto=auto)
         if confidence:  # cropped maps -> image size, border as Enlarge (refine_enlarge: clamped indices)
             pick = rec.arrays.get if return_intermediates else rec.arrays.pop
             res.confidence, res.labels = (np.pad(pick(k), self.margin, mode="edge") for k in ("confidence", "labels"))
         return res
 
     def _run(self, I_L, I_R, rec, plan):
-        ctx, m, D = self.ctx, self.margin, self.max_disparity
+        ctx, m = self.ctx, self.margin
+        M, D = rec.range
         Hi, Wi = I_L.shape
         H, W = Hi - 2 * m, Wi - 2 * m
         rec.plan = plan
         d_I_L = ctx.to_device(I_L)                    # I^L, image size (bilateral)
         S_L, S_R = self._threshold_images(I_L, I_R)
-        J_L = S_L[m:m + H, m:m + W]                   # I^L, I^R on the cost volume's domain
-        J_R = S_R[m:m + H, m:m + W]
+        frame = None
+        if M == 0:
+            J_L = S_L[m:m + H, m:m + W]               # I^L, I^R on the cost volume's domain
+            J_R = S_R[m:m + H, m:m + W]
+        else:  # the working frame of a range not starting at 0 (mccnn_cl.disprange)
+            frame = RangeFrame(M, D, (Hi, Wi), m)
+            J_L, J_R = frame.thresholds(S_L, S_R)
+            rec.stats = frame.stats(I_L, I_R) if self.weights is not None else None
+            I_L, I_R = frame.images(I_L, I_R)
+            W = frame.Ww
+        rec.frame = frame
         rec.start()
         if not plan.tiled:
-            C_CNN = rec("C_CNN", self._matching_cost(I_L, I_R, D, out=self._take_volume(D, H, W)), (D, H, W),
+            C_CNN = rec("C_CNN", self._mask(self._matching_cost(I_L, I_R, D, out=self._take_volume(D, H, W),
+                                                                stats=rec.stats), D, H, W, rec), (D, H, W),
                         self.vdtype)
             D_SE = self._volume_stages(C_CNN, J_L, J_R, rec)
         else:
             D_SE = ctx.to_device(self._tiled_volume_stages(I_L, I_R, J_L, J_R, plan, rec))
+        if frame is not None:  # back to the image's frame and disparities
+            D_SE = ctx.to_device(frame.disparity(ctx.from_device(D_SE, (H, W))))
+            frame.arrays(rec.arrays)
         return self._map_stages(D_SE, d_I_L, Hi, Wi, rec)
+
+    def _mask(self, d_cost, D, H, W, rec):
+        """The padding's cells of a working-frame volume (M < 0) set to the cost ceiling."""
+        f = rec.frame
+        if f is not None and f.masked:
+            self.range_mask(d_cost, D, H, W, f.p, f.W)
+        return d_cost
 
     def _threshold_images(self, I_L, I_R):
         """The images the cross arms and SGM compare with cbca_tau / sgm_tau_so:
@@ -410,22 +480,22 @@ class StereoMatcher:
         each tile's core rows kept.  The network's volume is computed once into
         host memory and each tile's rows streamed to the device; census is
         computed per tile (it is local)."""
-        ctx, m, D = self.ctx, self.margin, self.max_disparity
+        ctx, m, D = self.ctx, self.margin, rec.range[1]
         H, W = J_L.shape
         host = None
         if not self.cost.local:
-            host = rec("C_CNN", self._matching_cost(I_L, I_R, D, to_host=plan.tile_budget))
+            host = rec("C_CNN", self._matching_cost(I_L, I_R, D, to_host=plan.tile_budget, stats=rec.stats))
         D_SE = np.empty((H, W), np.float32)
         for i, (c0, c1, e0, e1) in enumerate(plan.tiles):
             log.info("tile %d/%d: volume rows %d..%d (core %d..%d)", i + 1, len(plan.tiles), e0, e1, c0, c1)
             rec.tile(c0 - e0, c1 - e0, c0, (H, W))
             if host is None:
-                d_cost = rec("C_CNN", self.cost(I_L[e0:e1 + 2 * m], I_R[e0:e1 + 2 * m], D,
-                                                out=self._take_volume(D, e1 - e0, W)))
+                d_cost = rec("C_CNN", self._mask(self.cost(I_L[e0:e1 + 2 * m], I_R[e0:e1 + 2 * m], D,
+                                                           out=self._take_volume(D, e1 - e0, W)), D, e1 - e0, W, rec))
             else:
                 d_cost = self._take_volume(D, e1 - e0, W)
                 ctx.cl.enqueue_copy(ctx.queue, d_cost, np.ascontiguousarray(host[:, e0:e1]))
-                rec("C_CNN_upload", d_cost)
+                rec("C_CNN_upload", self._mask(d_cost, D, e1 - e0, W, rec))
             d_se = self._volume_stages(d_cost, J_L[e0:e1], J_R[e0:e1], rec)  # gives d_cost back
             del d_cost
             D_SE[c0:c1] = ctx.from_device(d_se, (e1 - e0, W))[c0 - e0:c1 - e0]
@@ -441,7 +511,7 @@ class StereoMatcher:
         check, interpolation and subpixel enhancement; returns D_SE (device).
         ``J_L``, ``J_R``: the images on the volume's domain (host, h x W).
         C_CNN's buffer and every volume made here go back to the pool."""
-        p, ctx, D = self.params, self.ctx, self.max_disparity
+        p, ctx, D = self.params, self.ctx, rec.range[1]
         H, W = J_L.shape
         vol, crop = (D, H, W), (H, W)
         d_J_L = ctx.to_device(np.ascontiguousarray(J_L))
@@ -505,7 +575,7 @@ class StereoMatcher:
         shifted, mirrored C_CBCA; network not rerun) through SGM, CBCA and the
         left WTA with the mirrored right and left images as (left, right); the
         map is mirrored back."""
-        p, ctx, D = self.params, self.ctx, self.max_disparity
+        p, ctx, D = self.params, self.ctx, rec.range[1]
         H, W = J_L.shape
         d_K_L = ctx.to_device(np.ascontiguousarray(J_R[:, ::-1]))  # mirrored right image
         d_K_R = ctx.to_device(np.ascontiguousarray(J_L[:, ::-1]))  # mirrored left image
@@ -521,14 +591,18 @@ class StereoMatcher:
         self._pool.give(C_R)
         return D_R
 
-    def _matching_cost(self, I_L, I_R, D, to_host=None, out=None):
+    def _matching_cost(self, I_L, I_R, D, to_host=None, out=None, stats=None):
         """C_CNN on the device (into ``out`` when given), or with ``to_host``
         (bytes of device memory the bands may use; network only) as a host
         array computed band by band."""
         def run(progress=None):
+            if stats is not None:  # a working frame's padded images: the real images' standardisation
+                kw = {"stats": stats}
+            else:
+                kw = {}
             if to_host is not None:
-                return self.cost.to_host(I_L, I_R, D, max_bytes=to_host, progress=progress)
-            return self.cost(I_L, I_R, D, progress=progress, out=out)
+                return self.cost.to_host(I_L, I_R, D, max_bytes=to_host, progress=progress, **kw)
+            return self.cost(I_L, I_R, D, progress=progress, out=out, **kw)
 
         if not self.progress:
             return run()
@@ -543,12 +617,19 @@ class StereoMatcher:
         return out
 
     # -- memory --------------------------------------------------------------
-    def memory_plan(self, shape) -> "MemoryPlan":
+    def memory_plan(self, shape, levels=None, min_disparity=None) -> "MemoryPlan":
         """How :meth:`compute` will use device memory for images of ``shape``
         (H_img, W_img): the whole image at once when its volumes fit
-        ``memory_limit`` and the device's max allocation, else row tiles."""
-        Hi, Wi = int(shape[0]), int(shape[1])
-        m, D = self.margin, self.max_disparity
+        ``memory_limit`` and the device's max allocation, else row tiles.
+        ``levels``, ``min_disparity``: the range (default: the matcher's; with
+        ``max_disparity="auto"`` ``levels`` must be given); a range not
+        starting at 0 runs on images W_img - min_disparity wide (mccnn_cl.disprange)."""
+        D = self.max_disparity if levels is None else int(levels)
+        M = self.min_disparity if min_disparity is None else int(min_disparity)
+        if D is None:
+            raise InputError("memory_plan needs levels= with max_disparity='auto' (the range is chosen per pair)")
+        Hi, Wi = int(shape[0]), int(shape[1]) - M
+        m = self.margin
         H, W = Hi - 2 * m, Wi - 2 * m
         row = D * W * self.vdtype.itemsize                 # one volume row, bytes
         nvol = 3 if self.params.right_reference == "aggregated" else 2
@@ -606,6 +687,9 @@ class _Recorder:
         self.plan = None
         self._tile = None
         self.wanted = set()  # names kept even when not keeping (compute's confidence=True)
+        self.range = (0, 0)   # (M, D) of the call
+        self.frame = None     # its disprange.RangeFrame when M != 0
+        self.stats = None     # the real images' standardisation (networks, M != 0)
 
     def start(self):
         if self.timed:

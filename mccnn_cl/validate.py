@@ -79,12 +79,15 @@ def check_cost_inputs(left, right, max_disparity, channels: int, patch: int) -> 
     return L, R, D, L.shape[0] - patch + 1, L.shape[1] - patch + 1
 
 
-def check_pair(left, right, max_disparity: int, patch: int = PATCH, names=("left", "right")) -> None:
+def check_pair(left, right, max_disparity: int, patch: int = PATCH, names=("left", "right"),
+               min_disparity: int = 0) -> None:
     """Clear errors for a pair the method cannot match with ``max_disparity`` levels.
 
     ``left``, ``right``: arrays H x W or H x W x C (only the first two axes are
     looked at); ``patch``: the matching cost's patch side (see :func:`patch_size`);
-    ``names``: what to call the two images in the messages (file names)."""
+    ``names``: what to call the two images in the messages (file names);
+    ``min_disparity``: M, the range being M .. M + max_disparity - 1
+    (:func:`mccnn_cl.disprange.check_range`: some pixel must have a match)."""
     h, w = _same_size(left, right, names)
     patch = max(int(patch), PATCH)
     if h < patch or w < patch:
@@ -92,6 +95,9 @@ def check_pair(left, right, max_disparity: int, patch: int = PATCH, names=("left
     if max_disparity >= w:
         raise InputError(f"disparity range {max_disparity} (max_disparity, --max-disp) is not smaller than "
                          f"the image width {w}")
+    if min_disparity:
+        from .disprange import check_range
+        check_range(min_disparity, max_disparity, w, patch)
 
 
 #: Valid range of every numeric :class:`~mccnn_cl.pipeline.Hyperparameters`

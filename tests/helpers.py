@@ -84,6 +84,7 @@ CASE_KERNELS = {
     "fst_wg": {"network_conv_wg", "fst_normalise", "fst_volume_wg"},
     "acrt": {"network_conv", "network_head", "network_mark_invalid"},
     "census": {"census_transform", "census_cost"},
+    "range": {"range_mask"},
     "cross": {"cross_build"},
     "cbca": {"cbca_rows", "cbca_columns", "cbca_rows_short", "cbca_columns_short", "cbca_fused_short",
              "cbca_fused_multi_short"},

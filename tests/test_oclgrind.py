@@ -276,6 +276,23 @@ def case_census(ctx, rng, chk):
         chk.close(f"census {h}x{wd} D={D}", ctx.from_device(out, (D, H, W)), ref.census_cost(left, right, D))
 
 
+def case_range(ctx, rng, chk):
+    """range.cl: the cost ceiling into a working frame's padding cells (mccnn_cl.disprange)."""
+    from mccnn_cl.disprange import RangeMask, mask_reference
+
+    for half in (False, True):
+        st = RangeMask(ctx, half=half)
+        for (D, H, W, lo, hi) in ((6, 3, 15, 4, 9), (5, 2, 7, 0, 3)):
+            C = _volume(rng, D, H, W)
+            if half:
+                C = C.astype(np.float16)
+            buf = ctx.empty(C.nbytes, "test volume")  # read-write (to_device's is read-only)
+            ctx.cl.enqueue_copy(ctx.queue, buf, C)
+            st(buf, D, H, W, lo, hi)
+            chk.close(f"range mask D={D} {H}x{W} lo={lo} hi={hi} half={half}",
+                      ctx.from_device(buf, (D, H, W), C.dtype), mask_reference(C, lo, hi))
+
+
 def case_disparity(ctx, rng, chk):
     """disparity.cl (WTA left/right, LR check), interpolate.cl, subpixel.cl."""
     from mccnn_cl.reference import disparity as ref
@@ -600,6 +617,7 @@ CASES = {
     "fst_wg": case_fst_wg,
     "acrt": case_acrt,
     "census": case_census,
+    "range": case_range,
     "cross": case_cross,
     "cbca": case_cbca,
     "cbca_wg": case_cbca_wg,

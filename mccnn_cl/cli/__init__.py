@@ -47,7 +47,8 @@ COMMANDS = {
 
 def _matcher_options(p, default_disp_help):
     p.add_argument("--max-disp", type=int, default=None, metavar="N",
-                   help=f"number of disparity levels D (disparities 0..D-1); {default_disp_help}")
+                   help=f"number of disparity levels D (disparities 0..D-1, or M..M+D-1 with --min-disp "
+                        f"where offered); {default_disp_help}")
     p.add_argument("--cost", choices=("cnn", "census"), default="cnn",
                    help="matching cost: the MC-CNN network (default) or census (no network)")
     p.add_argument("--weights", metavar="FILE", default=None,
@@ -66,6 +67,16 @@ def _matcher_options(p, default_disp_help):
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", dest="hyper",
                    help="stereo-method hyperparameter, e.g. --set sgm_pi2=64 --set interpolation=code "
                         "(names: mccnn_cl.pipeline.Hyperparameters); repeatable")
+
+
+def _range_options(p):
+    """--min-disp and --disp-range (match, evaluate): ranges not starting at 0, the automatic range."""
+    p.add_argument("--min-disp", type=int, default=None, metavar="M",
+                   help="smallest disparity searched, negative allowed: disparities M..M+D-1 with D = "
+                        "--max-disp (default 0)")
+    p.add_argument("--disp-range", default=None, metavar="auto|MIN:MAX",
+                   help="'auto': a coarse pass chooses the range per pair (printed); or MIN:MAX inclusive "
+                        "(write --disp-range=-32:95 when MIN is negative); replaces --min-disp/--max-disp")
 
 
 # -- parser and main ---------------------------------------------------------
@@ -97,6 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--output-dir", metavar="DIR", help="batch: folder for <left name>.<format>")
     m.add_argument("--format", choices=("pfm", "png", "npy"), default="pfm", help="batch: output format")
     _matcher_options(m, "default: ndisp from --calib if given, else 228 (KITTI)")
+    _range_options(m)
     m.add_argument("--color", nargs="?", const="", default=None, metavar="FILE.png",
                    help="also write a colour picture with a disparity legend (default name: <OUT>_color.png)")
     m.add_argument("--confidence", nargs="?", const="", default=None, metavar="FILE",
@@ -123,6 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                        "or keys like kitti2015/000000)")
     e.add_argument("--baseline", choices=("sgbm", "none"), default="sgbm")
     _matcher_options(e, "default: the pair's ndisp (Middlebury calib.txt), else 228")
+    _range_options(e)
     e.add_argument("--json", action="store_true", help="print the results as JSON")
     e.add_argument("--error-maps", metavar="DIR", help="write error-map PNGs here (green ok, red bad, "
                                                        "magenta no prediction, black no GT)")

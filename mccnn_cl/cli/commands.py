@@ -57,11 +57,14 @@ def _load_weights(args):
     return resolve(args.weights)  # .npz, .t7/.pt (converted), or a shipped model's name
 
 
-def _make_matcher(args, max_disparity, weights, progress=False, ctx=None):
-    """A StereoMatcher; pass ``ctx`` (a ClContext) to share one context and its program cache."""
+def _make_matcher(args, max_disparity, weights, progress=False, ctx=None, min_disparity=0):
+    """A StereoMatcher; pass ``ctx`` (a ClContext) to share one context and its program cache.
+    ``max_disparity``: D or "auto"; ``min_disparity``: M (disparities M .. M+D-1)."""
     from ..pipeline import StereoMatcher
-    kwargs = dict(max_disparity=int(max_disparity), device=ctx if ctx is not None else args.device,
-                  cost=args.cost, progress=progress)
+    kwargs = dict(max_disparity=max_disparity if max_disparity == "auto" else int(max_disparity),
+                  device=ctx if ctx is not None else args.device, cost=args.cost, progress=progress)
+    if min_disparity:
+        kwargs["min_disparity"] = int(min_disparity)
     if args.cost == "cnn":
         kwargs["weights"] = weights
     kwargs["volume_dtype"] = getattr(args, "volume_dtype", "float32")
@@ -101,10 +104,31 @@ def _hyperparameters(items) -> dict:
     return out
 
 
-def _check_pair(left, right, max_disparity, weights, names=("left", "right")):
+def _check_pair(left, right, max_disparity, weights, names=("left", "right"), min_disparity=0):
     """Clear errors for inputs the pipeline cannot match (:func:`mccnn_cl.validate.check_pair`)."""
     from ..validate import check_pair, patch_size
-    check_pair(left, right, max_disparity, patch_size(weights), names)
+    check_pair(left, right, max_disparity, patch_size(weights), names, min_disparity=min_disparity)
+
+
+def _range_request(args):
+    """The range asked for: "auto", or (M, D) with D None when not given
+    (--disp-range, else --min-disp and --max-disp)."""
+    from ..disprange import levels_of, parse_range
+    spec = getattr(args, "disp_range", None)
+    low = getattr(args, "min_disp", None)
+    if spec is not None:
+        if args.max_disp is not None or low is not None:
+            raise InputError("--disp-range gives the whole range; drop --max-disp and --min-disp (or --disp-range)")
+        rng = parse_range(spec)
+        return "auto" if rng == "auto" else levels_of(rng)
+    return (low or 0, args.max_disp)
+
+
+def _range_text(lo, hi, auto=None) -> str:
+    text = f"disparities {lo}..{hi}"
+    if auto is not None:
+        text += f" (auto: coarse pass at 1/{auto['scale']} size, {auto['seconds']:.2f} s)"
+    return text
 
 
 def _check_outputs(paths, force):
@@ -227,6 +251,7 @@ def _save_confidence(out, res, args):
 def cmd_match(args):
     from ..io import read_image
     _positive("--max-disp", args.max_disp)
+    request = _range_request(args)
     single = args.left is not None or args.right is not None
     batch = args.left_glob is not None or args.right_glob is not None
     if single == batch:
@@ -270,6 +295,9 @@ def cmd_match(args):
                 raise InputError(f"file not found: {f}")
         if os.path.splitext(out)[1].lower() not in DISPARITY_FORMATS:
             raise InputError(f"{out}: output must end in {', '.join(DISPARITY_FORMATS)}")
+        if out.lower().endswith(".png") and request != "auto" and request[0] < 0:
+            raise InputError(f"{out}: a KITTI 16-bit PNG cannot store negative disparities (the range starts "
+                             f"at {request[0]}); write .pfm or .npy")
         color, depth, ply = _side_outputs(out, args)
         if color is not None and not color.lower().endswith((".png", ".jpg", ".jpeg", ".bmp")):
             raise InputError(f"{color}: the colour picture must be a .png/.jpg/.bmp file")
@@ -286,25 +314,48 @@ def cmd_match(args):
         for lp, rp, out in jobs:
             left_img = read_image(lp)
             right_img = read_image(rp)
-            max_disp = args.max_disp
-            if max_disp is None:
-                max_disp = calib.ndisp if (calib is not None and calib.ndisp) else 228
-            _check_pair(left_img, right_img, max_disp, weights, (lp, rp))
-            if max_disp not in matchers:
+            if request == "auto":
+                key, min_disp, max_disp = "auto", 0, "auto"
+                _check_pair(left_img, right_img, 1, weights, (lp, rp))
+            else:
+                min_disp, max_disp = request
+                if max_disp is None:
+                    max_disp = calib.ndisp if (calib is not None and calib.ndisp) else 228
+                key = (min_disp, max_disp)
+                _check_pair(left_img, right_img, max_disp, weights, (lp, rp), min_disparity=min_disp)
+            if key not in matchers:
                 if ctx is None:
                     ctx = ClContext(args.device)
-                matchers[max_disp] = _make_matcher(args, max_disp, weights, progress=single and _tty(),
-                                                   ctx=ctx)
+                matchers[key] = _make_matcher(args, max_disp, weights, progress=single and _tty(),
+                                              ctx=ctx, min_disparity=min_disp)
             t0 = time.perf_counter()
             want = args.confidence is not None or args.labels is not None
-            res = matchers[max_disp].compute(_gray(left_img), _gray(right_img), confidence=want)
+            gray_l, gray_r = _gray(left_img), _gray(right_img)
+            auto = None
+            if request == "auto":
+                auto = matchers[key].choose_range(gray_l, gray_r)
+                lo, hi = auto["range"]
+                if out.lower().endswith(".png"):  # the format holds no negative disparity
+                    if auto["found"][0] < 0:  # the scene's own, not the margin's
+                        raise InputError(f"{out}: the automatic range {lo}..{hi} holds the pair's negative "
+                                         f"disparities (down to {auto['found'][0]:.0f}), which a KITTI 16-bit PNG "
+                                         "cannot store; write .pfm or .npy")
+                    lo = max(lo, 0)  # only the margin went below 0
+            else:
+                lo, hi = min_disp, min_disp + max_disp - 1
+            range_line = _range_text(lo, hi, auto)
+            if auto is not None and progress is not None:
+                progress.write(f"{out}: {range_line}")
+            res = matchers[key].compute(gray_l, gray_r, confidence=want,
+                                        disparity_range=(lo, hi) if auto is not None else None)
             disp = res.disparity if want else res
             seconds = time.perf_counter() - t0
-            _save_outputs(out, disp, left_img, args, calib, max_disp)
+            _save_outputs(out, disp, left_img, args, calib, (lo, hi))
             if want:
                 _save_confidence(out, res, args)
             fin = np.isfinite(disp)
-            msg = (f"{out}: {disp.shape[1]}x{disp.shape[0]}, {max_disp} disparities, "
+            levels = f"{hi - lo + 1} disparities" if (lo == 0 and auto is None) else range_line
+            msg = (f"{out}: {disp.shape[1]}x{disp.shape[0]}, {levels}, "
                    f"{fin.mean():.1%} valid, {seconds:.2f} s")
             if progress is not None:
                 progress.update(1)
@@ -333,16 +384,19 @@ def _gray(img):
     return to_gray_u8(img)
 
 
-def _save_outputs(out, disp, left_img, args, calib, max_disp):
+def _save_outputs(out, disp, left_img, args, calib, disparity_range):
     from ..io import write_image
     from ..visualize import colorize_with_legend
     write_disparity(out, disp)
     color, depth_path, ply = _side_outputs(out, args)
     if color is not None:
-        # scale: 0 .. the map's largest disparity (the range D - 1 would waste most colours on KITTI)
+        # scale: 0 (or the range's negative minimum) .. the map's largest disparity (the range's
+        # maximum would waste most colours on KITTI)
+        lo, hi = disparity_range
         fin = disp[np.isfinite(disp)]
-        vmax = min(float(fin.max()), max_disp - 1) if fin.size else max_disp - 1
-        write_image(color, colorize_with_legend(disp, 0, max(vmax, 1.0)))
+        vmax = min(float(fin.max()), hi) if fin.size else hi
+        vmin = 0 if lo >= 0 else (max(float(fin.min()), lo) if fin.size else lo)
+        write_image(color, colorize_with_legend(disp, vmin, max(vmax, vmin + 1.0)))
     if calib is not None:
         from ..depth import disparity_to_depth, point_cloud, write_ply
         _write_depth(depth_path, disparity_to_depth(disp, calib))
@@ -354,8 +408,9 @@ def _save_outputs(out, disp, left_img, args, calib, max_disp):
 
 def cmd_evaluate(args):
     from ..evaluation.datasets import discover
-    from ..evaluation.scoring import default_max_disparity, evaluate_pair, format_table, mean_metrics, training_status
+    from ..evaluation.scoring import default_range, evaluate_pair, format_table, mean_metrics, training_status
     _positive("--max-disp", args.max_disp)
+    request = _range_request(args)
     refs = discover(args.dataset_dir, args.dataset, labeled=True)  # scores need ground truth
     if args.pairs:
         wanted = [w.strip() for w in args.pairs.split(",") if w.strip()]
@@ -380,16 +435,26 @@ def cmd_evaluate(args):
         if pair.disp is None:
             bar.write(f"{pair.key}: no ground truth, skipped")
             continue
-        max_disp = args.max_disp or default_max_disparity(pair)
-        _check_pair(pair.left, pair.right, max_disp, weights, (pair.key + " left", "right"))
-        if max_disp not in matchers:
+        stated_min, stated_levels = default_range(pair)  # the layout's range (calib.txt), else 0..227
+        if request == "auto":
+            key, min_disp, max_disp = "auto", 0, "auto"
+            _check_pair(pair.left, pair.right, 1, weights, (pair.key + " left", "right"))
+        else:
+            min_disp = stated_min if args.min_disp is None and args.disp_range is None else request[0]
+            max_disp = request[1] or stated_levels
+            key = (min_disp, max_disp)
+            _check_pair(pair.left, pair.right, max_disp, weights, (pair.key + " left", "right"),
+                        min_disparity=min_disp)
+        if key not in matchers:
             if ctx is None:
                 ctx = ClContext(args.device)
-            matchers[max_disp] = _make_matcher(args, max_disp, weights, ctx=ctx)
+            matchers[key] = _make_matcher(args, max_disp, weights, ctx=ctx, min_disparity=min_disp)
         status = training_status(meta, pair.key, pair.name) if weights is not None else "n/a"
-        results.append(evaluate_pair(pair, matchers[max_disp], max_disp,
+        base_min, base_levels = (stated_min, stated_levels) if request == "auto" else (min_disp, max_disp)
+        results.append(evaluate_pair(pair, matchers[key], base_levels,
                                      baseline=args.baseline if args.baseline != "none" else None,
-                                     fill=not args.no_fill, error_maps=args.error_maps, status=status))
+                                     fill=not args.no_fill, error_maps=args.error_maps, status=status,
+                                     min_disparity=base_min))
     if not results:
         raise InputError("none of the pairs has ground truth")
     mean = mean_metrics(results)

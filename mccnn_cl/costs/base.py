@@ -21,7 +21,7 @@ def registered() -> dict:
 
 
 class MatchingCost:
-    """``cost(left, right, max_disparity, out=None, progress=None) -> device buffer``.
+    """``cost(left, right, max_disparity, out=None, progress=None, stats=None) -> device buffer``.
 
     Subclasses set ``margin``, ``local``, ``floor`` and ``kind`` or
     ``architecture``, and implement :meth:`__call__`, :meth:`to_host`,
@@ -51,12 +51,14 @@ class MatchingCost:
         """The cost for ``weights`` (a network's :class:`~mccnn_cl.weights.Weights`)."""
         return cls(ctx, weights, tiles=tiles, half=half)
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None):
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None):
         """The volume ``[D][H_img - 2m][W_img - 2m]`` on the device (into ``out``
-        when given); ``progress(done, D)`` as disparities or bands complete."""
+        when given); ``progress(done, D)`` as disparities or bands complete;
+        ``stats``: ``((mean, std), (mean, std))`` of the left and right images to
+        standardise with instead of the inputs' own (None: their own)."""
         raise NotImplementedError
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None) -> np.ndarray:
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None) -> np.ndarray:
         """The volume in host memory, using at most ``max_bytes`` of device memory at a time."""
         raise NotImplementedError
 

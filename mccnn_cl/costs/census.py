@@ -63,7 +63,7 @@ class CensusCost(MatchingCost):
         volume = 2 * 3 * D * h * w
         return {"transform": transform, "volume": volume, "total": transform + volume}
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None):
         """The volume as a host array (computed on the device, then copied)."""
         if not isinstance(left, np.ndarray):
             raise InputError("census to_host needs host images")
@@ -73,9 +73,10 @@ class CensusCost(MatchingCost):
         d.release()
         return out
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None):
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None):
         """Cost volume of the host images ``left`` vs ``right``; ``progress`` is
-        accepted as every cost's and not called (one launch)."""
+        accepted as every cost's and not called (one launch), so is ``stats``
+        (census compares intensities, it standardises nothing)."""
         if not (isinstance(left, np.ndarray) and isinstance(right, np.ndarray)):
             raise InputError("census needs host images (numpy arrays)")
         if left.shape != right.shape or left.ndim != 2:

@@ -293,12 +293,14 @@ class ConvNetCost(MatchingCost):
     def band_rows(self, h: int, w: int) -> int:
         raise NotImplementedError
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None):
         raise NotImplementedError
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None):
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None):
         """Inputs checked, the volume's buffer (``out`` or a new one), :meth:`_enqueue`
-        over :meth:`band_rows` bands."""
+        over :meth:`band_rows` bands; ``stats``: ``((mean, std) of the left, (mean, std)
+        of the right)`` to standardise with instead of the images' own
+        (:func:`mccnn_cl.imageops.standardise`; None: their own)."""
         ctx = self.ctx
         L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
         nbytes = D * h * w * self.vdtype.itemsize
@@ -309,12 +311,12 @@ class ConvNetCost(MatchingCost):
         elif out.size < nbytes:
             raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
         try:
-            self._enqueue(L, R, D, h, w, rows, out, progress)
+            self._enqueue(L, R, D, h, w, rows, out, progress, stats=stats)
         except ctx.cl.Error as exc:
             raise OpenCLError(f"{self.label} ({D} x {h} x {w}) failed on {ctx.describe()}: {exc}") from exc
         return out
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None):
         """Each band computed into one device buffer of at most ``max_bytes``
         (default: the max allocation) and copied into the host volume
         (``_enqueue(..., host=)``); values identical to :meth:`__call__`'s."""
@@ -330,7 +332,7 @@ class ConvNetCost(MatchingCost):
         host = np.empty((D, h, w), self.vdtype)
         d_band = ctx.empty(D * rows * w * self.vdtype.itemsize, "cost volume band")
         try:
-            self._enqueue(L, R, D, h, w, rows, d_band, progress, host=host)
+            self._enqueue(L, R, D, h, w, rows, d_band, progress, host=host, stats=stats)
         except ctx.cl.Error as exc:
             raise OpenCLError(f"{self.label} ({D} x {h} x {w}, in bands of {rows} rows) failed on "
                               f"{ctx.describe()}: {exc}") from exc

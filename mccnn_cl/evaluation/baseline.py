@@ -34,24 +34,25 @@ SGBM_DESCRIPTION = ("OpenCV StereoSGBM, MODE_SGBM_3WAY, blockSize 5, P1 = 8Â·cnÂ
                     "uniqueness 10, speckle 100/2, disp12MaxDiff 1")
 
 
-def sgbm_parameters(max_disparity, channels=1, block_size=5) -> dict:
+def sgbm_parameters(max_disparity, channels=1, block_size=5, min_disparity=0) -> dict:
     """Keyword arguments of ``cv2.StereoSGBM_create`` used by :func:`sgbm`."""
     max_disparity = int(max_disparity)
     if max_disparity < 1:
         raise InputError(f"disparity range must be >= 1, got {max_disparity}")
     num = ((max_disparity + 15) // 16) * 16
     cn = int(channels)
-    return dict(minDisparity=0, numDisparities=num, blockSize=block_size,
+    return dict(minDisparity=int(min_disparity), numDisparities=num, blockSize=block_size,
                 P1=8 * cn * block_size ** 2, P2=32 * cn * block_size ** 2,
                 disp12MaxDiff=1, preFilterCap=63, uniquenessRatio=10,
                 speckleWindowSize=100, speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
 
 
-def sgbm(left, right, max_disparity, block_size=5, return_time=False):
+def sgbm(left, right, max_disparity, block_size=5, return_time=False, min_disparity=0):
     """Disparity of ``left`` against ``right`` (8-bit gray or BGR) with OpenCV StereoSGBM.
 
     Returns float32 (H, W) disparities in pixels, NaN where invalid; with
-    ``return_time`` also the seconds the matching took.
+    ``return_time`` also the seconds the matching took.  ``min_disparity``:
+    the range is min_disparity .. min_disparity + max_disparity - 1.
     """
     left = np.ascontiguousarray(left)
     right = np.ascontiguousarray(right)
@@ -60,7 +61,7 @@ def sgbm(left, right, max_disparity, block_size=5, return_time=False):
     if left.dtype != np.uint8 or right.dtype != np.uint8:
         raise InputError("sgbm: images must be 8-bit")
     channels = 1 if left.ndim == 2 else left.shape[2]
-    params = sgbm_parameters(max_disparity, channels, block_size)
+    params = sgbm_parameters(max_disparity, channels, block_size, min_disparity)
     if params["numDisparities"] >= left.shape[1]:
         raise InputError(f"disparity range {params['numDisparities']} (rounded up to a multiple of 16 "
                          f"for SGBM) is not smaller than the image width {left.shape[1]}")
@@ -72,5 +73,5 @@ def sgbm(left, right, max_disparity, block_size=5, return_time=False):
         raise InputError(f"OpenCV StereoSGBM failed: {str(exc).strip().splitlines()[-1]}") from exc
     seconds = time.perf_counter() - t0
     disp = raw.astype(np.float32) / np.float32(16.0)
-    disp[(raw < 0) | (disp > max_disparity - 1)] = np.nan
+    disp[(disp < min_disparity) | (disp > min_disparity + max_disparity - 1)] = np.nan
     return (disp, seconds) if return_time else disp

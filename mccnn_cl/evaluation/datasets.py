@@ -58,7 +58,8 @@ class StereoPair:
     occlusion information).  ``valid_all``: True where GT is known (``None``
     without GT).  ``ndisp``: the disparity-range bound from ``calib.txt``
     (Middlebury) or ``None``.  ``calib``: path of the calibration file or
-    ``None``.  ``kind``: one of :data:`KINDS`.
+    ``None``.  ``kind``: one of :data:`KINDS`.  ``disp_range``: ``(vmin, vmax)``
+    when the layout states the GT's disparity bounds (MiddEval3 calib.txt), else None.
     """
 
     name: str
@@ -70,6 +71,7 @@ class StereoPair:
     ndisp: int | None
     calib: str | None
     kind: str
+    disp_range: tuple | None = None
 
     @property
     def key(self) -> str:
@@ -195,6 +197,19 @@ def _calib_int(calib: dict, key: str, path) -> int | None:
         raise InputError(f"{path}: {key}={calib[key]!r} is not a number") from exc
 
 
+def _calib_range(calib: dict, path):
+    """``(vmin, vmax)`` of a calib.txt that states both (MiddEval3), else None."""
+    if "vmin" not in calib or "vmax" not in calib:
+        return None
+    try:
+        lo, hi = float(calib["vmin"]), float(calib["vmax"])
+    except ValueError as exc:
+        raise InputError(f"{path}: vmin/vmax are not numbers") from exc
+    if not (np.isfinite(lo) and np.isfinite(hi)) or lo >= hi:
+        raise InputError(f"{path}: vmin={lo:g} must be smaller than vmax={hi:g}")
+    return lo, hi
+
+
 def load_middlebury(scene_dir) -> StereoPair:
     """Load a MiddEval3-layout scene folder (``im0.png``, ``im1.png``, ``disp0GT.pfm``, ...)."""
     scene = Path(scene_dir)
@@ -203,30 +218,32 @@ def load_middlebury(scene_dir) -> StereoPair:
     left = read_image(scene / "im0.png")
     right = read_image(scene / "im1.png")
     disp = valid_noc = valid_all = None
+    calib_path = scene / "calib.txt"
+    c = read_calib(calib_path) if calib_path.exists() else {}
+    disp_range = _calib_range(c, calib_path)
     gt_path = next((scene / n for n in MIDDLEBURY_GT if (scene / n).exists()), None)
     if gt_path is not None:
         gt = read_pfm(gt_path)
         if gt.ndim != 2:
             raise InputError(f"{gt_path}: expected a 1-channel PFM, got {gt.shape[2]} channels")
-        valid_all = np.isfinite(gt) & (gt >= 0)  # +inf marks unknown
+        # +inf marks unknown; negative disparities only where calib.txt's vmin says the range has them
+        valid_all = np.isfinite(gt) & (gt >= min(0.0, disp_range[0] if disp_range else 0.0))
         disp = np.where(valid_all, gt, np.float32(np.nan)).astype(np.float32)
     mask_path = scene / "mask0nocc.png"
     mask = read_image(mask_path, gray=True) if mask_path.exists() else None
     _check_shapes(f"Middlebury {scene}", im0=left, im1=right, disp0GT=disp, mask0nocc=mask)
     if mask is not None and valid_all is not None:
         valid_noc = (mask == 255) & valid_all
-    calib_path = scene / "calib.txt"
     ndisp, calib = None, None
     if calib_path.exists():
         calib = str(calib_path)
-        c = read_calib(calib_path)
         ndisp = _calib_int(c, "ndisp", calib_path)
         w, h = _calib_int(c, "width", calib_path), _calib_int(c, "height", calib_path)
         if (w is not None and w != left.shape[1]) or (h is not None and h != left.shape[0]):
             raise InputError(f"{calib_path}: says {w}x{h} but im0.png is "
                              f"{left.shape[1]}x{left.shape[0]}")
     return StereoPair(name=scene.name, left=left, right=right, disp=disp, valid_noc=valid_noc,
-                      valid_all=valid_all, ndisp=ndisp, calib=calib, kind="middlebury")
+                      valid_all=valid_all, ndisp=ndisp, calib=calib, kind="middlebury", disp_range=disp_range)
 
 
 # -- layout detection -------------------------------------------------------

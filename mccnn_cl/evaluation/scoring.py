@@ -23,7 +23,7 @@ from . import metrics
 from .baseline import sgbm
 from .datasets import to_gray_u8
 
-__all__ = ["training_pairs", "training_status", "default_max_disparity", "evaluate_pair",
+__all__ = ["training_pairs", "training_status", "default_max_disparity", "default_range", "evaluate_pair",
            "mean_metrics", "format_table", "KITTI_DEFAULT_DISPARITY"]
 
 KITTI_DEFAULT_DISPARITY = 228
@@ -93,6 +93,20 @@ def default_max_disparity(pair) -> int:
     return int(pair.ndisp) if pair.ndisp else KITTI_DEFAULT_DISPARITY
 
 
+def default_range(pair) -> tuple:
+    """``(M, D)``: disparities M .. M+D-1 covering what the layout states: 0 ..
+    :func:`default_max_disparity` - 1, widened to the calib.txt's ``vmin`` /
+    ``vmax`` (``pair.disp_range``) where they reach outside it (e.g. negative
+    disparities)."""
+    levels = default_max_disparity(pair)
+    stated = getattr(pair, "disp_range", None)
+    if not stated:
+        return 0, levels
+    lo = min(0, math.floor(stated[0]))
+    hi = max(levels - 1, math.ceil(stated[1]))
+    return lo, hi - lo + 1
+
+
 def _score(pred, pair, fill):
     scored = metrics.fill_invalid(pred) if fill else pred
     out = metrics.evaluate_disparity(scored, pair.disp, pair.valid_noc, pair.valid_all)
@@ -101,25 +115,35 @@ def _score(pred, pair, fill):
 
 
 def evaluate_pair(pair, matcher, max_disparity, baseline="sgbm", fill=True, error_maps=None,
-                  status="unknown") -> dict:
+                  status="unknown", min_disparity=0) -> dict:
     """Metrics of one :class:`~mccnn_cl.evaluation.datasets.StereoPair` for ``matcher`` and the baseline.
 
     ``matcher`` is an object with ``compute(left, right)`` returning the
     left disparity map (e.g. :class:`mccnn_cl.pipeline.StereoMatcher`);
     ``error_maps`` is a folder for ``<kind>_<name>_{mccnn,sgbm}_err.png``.
     Returns a JSON-ready dict: pair, size, max_disparity, training, and per
-    method the metrics plus ``seconds``.
+    method the metrics plus ``seconds``.  ``min_disparity``: the range's M
+    (the baseline's too).  A matcher with ``max_disparity="auto"`` chooses its
+    range (in ``disparity_range``; the coarse pass counts in its seconds),
+    the baseline searches M .. M + max_disparity - 1.
     """
     left, right = to_gray_u8(pair.left), to_gray_u8(pair.right)
     result = {"pair": pair.key, "size": [int(left.shape[1]), int(left.shape[0])],
-              "max_disparity": int(max_disparity), "training": status, "methods": {}}
+              "max_disparity": int(max_disparity), "training": status, "methods": {},
+              "disparity_range": [int(min_disparity), int(min_disparity + max_disparity - 1)]}
     t0 = time.perf_counter()
-    ours = np.asarray(matcher.compute(left, right), dtype=np.float32)
+    if getattr(matcher, "auto_range", False):
+        lo, hi = matcher.choose_range(left, right)["range"]
+        result["disparity_range"], result["auto"] = [lo, hi], True
+        result["max_disparity"] = hi - lo + 1
+        ours = np.asarray(matcher.compute(left, right, disparity_range=(lo, hi)), dtype=np.float32)
+    else:
+        ours = np.asarray(matcher.compute(left, right), dtype=np.float32)
     seconds = time.perf_counter() - t0
     maps = {"mccnn": ours}
     result["methods"]["mccnn"] = dict(_score(ours, pair, fill), seconds=seconds)
     if baseline == "sgbm":
-        base, seconds = sgbm(left, right, max_disparity, return_time=True)
+        base, seconds = sgbm(left, right, max_disparity, return_time=True, min_disparity=min_disparity)
         maps["sgbm"] = base
         result["methods"]["sgbm"] = dict(_score(base, pair, fill), seconds=seconds)
     if error_maps:
@@ -185,7 +209,9 @@ def format_table(results, mean=None) -> str:
         return s
 
     for r in results:
-        lines.append(row(r["pair"], str(r["max_disparity"]), r["training"], r["methods"]))
+        rng = r.get("disparity_range")
+        shown = (f"{rng[0]}..{rng[1]}" if rng and (rng[0] != 0 or r.get("auto")) else str(r["max_disparity"]))
+        lines.append(row(r["pair"], shown, r["training"], r["methods"]))
     if mean is not None and len(results) > 1:
         lines.append("-" * len(head2))
         lines.append(row("mean", "", "", mean))

@@ -212,12 +212,14 @@ def census_transform(img: np.ndarray) -> np.ndarray:
     return bits
 
 
-def census_cost(left: np.ndarray, right: np.ndarray, D: int) -> np.ndarray:
-    """C[d, y, x] = Hamming(census_L(x, y), census_R(x - d, y)) / 80; NaN if x - d < 0."""
+def census_cost(left: np.ndarray, right: np.ndarray, D: int, min_disparity: int = 0) -> np.ndarray:
+    """C[k, y, x] = Hamming(census_L(x, y), census_R(x - d, y)) / 80 at d = min_disparity + k;
+    NaN unless 0 <= x - d < W."""
     bl, br = census_transform(left), census_transform(right)
     H, W, _ = bl.shape
     C = np.full((D, H, W), np.nan, np.float32)
-    for d in range(D):
-        for x in range(d, W):
-            C[d, :, x] = (bl[:, x] != br[:, x - d]).sum(axis=1).astype(np.float32) / np.float32(80)
+    for k in range(D):
+        d = min_disparity + k
+        for x in range(max(d, 0), min(W, W + d)):
+            C[k, :, x] = (bl[:, x] != br[:, x - d]).sum(axis=1).astype(np.float32) / np.float32(80)
     return C

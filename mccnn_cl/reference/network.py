@@ -73,8 +73,9 @@ def head(weights: Weights, fl: np.ndarray, fr: np.ndarray) -> np.ndarray:
     return e[:, 0] / e.sum(axis=1)
 
 
-def cost_volume(weights: Weights, left, right, max_disparity: int) -> np.ndarray:
-    """C_CNN as float32 ``[D][H_img-P+1][W_img-P+1]``, NaN where x - d < 0.
+def cost_volume(weights: Weights, left, right, max_disparity: int, min_disparity: int = 0) -> np.ndarray:
+    """C_CNN as float32 ``[D][H_img-P+1][W_img-P+1]``, NaN where x - d < 0
+    (level k is disparity ``min_disparity + k``; NaN also where x - d >= W).
 
     ``left``/``right``: 2-D gray images (normalised here, like the stage does).
     """
@@ -87,14 +88,24 @@ def cost_volume(weights: Weights, left, right, max_disparity: int) -> np.ndarray
     h, w = pl.shape[:2]
     fl = tower(weights, pl.reshape(h * w, *pl.shape[2:])).reshape(h, w, -1)
     fr = tower(weights, pr.reshape(h * w, *pr.shape[2:])).reshape(h, w, -1)
-    D = int(max_disparity)
+    D, M = int(max_disparity), int(min_disparity)
     out = np.full((D, h, w), np.nan, np.float32)
-    for d in range(min(D, w)):
-        # valid cells x = d .. w-1: left patch at x, right patch at x - d
-        a = fl[:, d:, :].reshape(-1, fl.shape[2])
-        b = fr[:, :w - d, :].reshape(-1, fr.shape[2])
-        out[d, :, d:] = head(weights, a, b).reshape(h, w - d)
+    for k, x0, x1 in _valid_columns(D, M, w):
+        # valid cells x = x0 .. x1-1: left patch at x, right patch at x - d
+        d = M + k
+        a = fl[:, x0:x1, :].reshape(-1, fl.shape[2])
+        b = fr[:, x0 - d:x1 - d, :].reshape(-1, fr.shape[2])
+        out[k, :, x0:x1] = head(weights, a, b).reshape(h, x1 - x0)
     return out
+
+
+def _valid_columns(D, M, w):
+    """(k, x0, x1) for each level k = d - M with valid cells x0 <= x < x1 (0 <= x - d < w)."""
+    for k in range(D):
+        d = M + k
+        x0, x1 = max(d, 0), min(w, w + d)
+        if x1 > x0:
+            yield k, x0, x1
 
 
 def image_features(weights: Weights, img) -> np.ndarray:
@@ -114,15 +125,17 @@ def fst_features(weights: Weights, img) -> np.ndarray:
     return f / np.sqrt((f * f).sum(axis=2, keepdims=True) + 1e-5)
 
 
-def fst_cost_volume(weights: Weights, left, right, max_disparity: int) -> np.ndarray:
+def fst_cost_volume(weights: Weights, left, right, max_disparity: int, min_disparity: int = 0) -> np.ndarray:
     """MC-CNN-fst's volume, float32 ``[D][H_img-P+1][W_img-P+1]``:
-    C(d, y, x) = -f_L(x, y) . f_R(x - d, y), NaN where x - d < 0."""
+    C(k, y, x) = -f_L(x, y) . f_R(x - d, y) at d = min_disparity + k, NaN
+    unless 0 <= x - d < W."""
     fl, fr = fst_features(weights, left), fst_features(weights, right)
     h, w = fl.shape[:2]
-    D = int(max_disparity)
+    D, M = int(max_disparity), int(min_disparity)
     out = np.full((D, h, w), np.nan, np.float32)
-    for d in range(min(D, w)):
-        out[d, :, d:] = -np.einsum("yxk,yxk->yx", fl[:, d:], fr[:, :w - d])
+    for k, x0, x1 in _valid_columns(D, M, w):
+        d = M + k
+        out[k, :, x0:x1] = -np.einsum("yxk,yxk->yx", fl[:, x0:x1], fr[:, x0 - d:x1 - d])
     return out
 
 

@@ -1,0 +1,390 @@
+"""Disparity ranges not starting at 0 (min_disparity, negative too) and the
+automatic range (mccnn_cl.disprange, kernels/range.cl).
+
+* range_mask against its numpy twin (random volumes, float32 and float16);
+* the method's C_CNN with min_disparity against the numpy reference costs
+  (census exact; fst within float rounding), both signs;
+* the shift test of issue 27 with every cost: a real pair with the left
+  image's first s columns and the right image's last s dropped (d -> d - s),
+  matched with min_disparity = -s, gives the original's error on the same
+  pixels within 0.5 points and the original's map (minus s) within 0.5 px on
+  >= 98 % of the pixels away from the borders;
+* M = 0 is the unchanged method: outputs hashed on main before the change;
+* row tiles, intermediates in the image's frame, the automatic range,
+  bad input (one line, exit status 2), dataset ranges (calib.txt vmin/vmax).
+"""
+
+import hashlib
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from mccnn_cl import StereoMatcher
+from mccnn_cl.disprange import CEILING, RangeMask, mask_reference
+from mccnn_cl.errors import InputError
+from mccnn_cl.reference import disparity as ref
+from mccnn_cl.reference import network as netref
+from mccnn_cl.weights import Weights, resolve
+
+from helpers import kitti_crop
+
+# Outputs of compute(..., confidence=True) on main before min_disparity existed
+# (commit b001859), on pthread-skylake-avx512-AMD EPYC (PoCL 3.1):
+# sha256 of the disparity and confidence bytes, and summary statistics that
+# other devices are compared with (they may round differently).
+BEFORE = {
+    "census/demo": ("5933bad561fdf429083c9046e86ff9c7d8b1906fde253d01af35ee317e97ad04",
+                    "302ae8102ce682b8c46f018f0f89fd7c5819d229f10c2eb891dee8ec9d5a85d2", 16.696453094482422),
+    "census/kitti": ("97fdf43c107e6f6afeff098a88d330467e9dee18a218858f7190c4eb3366beec",
+                     "43b461c116239855bc5fcf84595be9ad8202187590d52b9af8c8d91370bf1b11", 23.44327163696289),
+    "kitti-fst/demo": ("84dfb27edae0c44ba29108f0e961eebe03b0957fafcbe1c3eb04df3e7ad15534",
+                       "5015bae743cb243b1cba7e6d096fce452246f215971d28c1e542f27349a70376", 16.7133846282959),
+    "kitti-fst/kitti": ("cb66e78b59edae711540cc7fb6ca6e1ecfb4df62a50105e7462685cd64f0ceb1",
+                        "584ae8517eb2d1b27dbdaae73eb185a1df8390c056f0c605ab87bcfe6fa5b585", 23.368999481201172),
+}
+RECORDED_ON = "pthread-skylake-avx512-AMD EPYC"
+
+
+def _demo(repo):
+    d = repo / "mccnn_cl" / "demo"
+    return [cv2.imread(str(d / f), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255 for f in ("im0.png", "im1.png")]
+
+
+def _kitti_gt(shared_data, y0, x0, H, W):
+    raw = cv2.imread(str(shared_data / "kitti2015/training/disp_occ_0/000000_10.png"), cv2.IMREAD_UNCHANGED)
+    g = raw[y0:y0 + H, x0:x0 + W].astype(np.float32) / 256
+    g[raw[y0:y0 + H, x0:x0 + W] == 0] = np.nan
+    return g
+
+
+def _cost_kwargs(name):
+    return dict(cost="census") if name == "census" else dict(weights=name)
+
+
+@pytest.fixture(scope="module")
+def repo():
+    from pathlib import Path
+    return Path(__file__).resolve().parents[1]
+
+
+# -- the kernel -------------------------------------------------------------------
+@pytest.mark.parametrize("half", [False, True], ids=["float32", "float16"])
+@pytest.mark.parametrize("D,H,W,lo,hi", [(7, 3, 19, 5, 11), (4, 2, 9, 0, 3), (12, 5, 17, 9, 8)])
+def test_range_mask_matches_reference(ctx, half, D, H, W, lo, hi):
+    rng = np.random.default_rng(D * W)
+    dt = np.float16 if half else np.float32
+    v = rng.random((D, H, W)).astype(dt)
+    d = np.arange(D)[:, None, None]
+    x = np.arange(W)[None, None, :]
+    v[np.broadcast_to(x < d, v.shape)] = np.nan
+    buf = ctx.empty(v.nbytes, "test volume")  # read-write (to_device's is read-only)
+    ctx.cl.enqueue_copy(ctx.queue, buf, v)
+    RangeMask(ctx, half=half)(buf, D, H, W, lo, hi)
+    got = ctx.from_device(buf, (D, H, W), dt)
+    want = mask_reference(v, lo, hi)
+    np.testing.assert_array_equal(got, want)
+    assert (want == dt(CEILING)).any() and np.isnan(want).any()  # the case exercises both kinds of cell
+
+
+# -- costs against the references -------------------------------------------------
+@pytest.mark.parametrize("M", [-6, 5])
+def test_census_volume_with_min_disparity(ctx, shared_data, M):
+    left, right = kitti_crop(shared_data, 200, 500, 24, 48)
+    D = 9
+    res = StereoMatcher(cost="census", max_disparity=D, min_disparity=M, device=ctx).compute(
+        left, right, return_intermediates=True)
+    want = ref.census_cost(left, right, D, min_disparity=M)
+    np.testing.assert_array_equal(res.intermediates["C_CNN"], want)
+    assert res.disparity_range == (M, M + D - 1)
+
+
+@pytest.mark.parametrize("M", [-7, 4])
+def test_fst_volume_with_min_disparity(ctx, shared_data, M):
+    """The padded working frame standardises with the real images' stats: the
+    real cells are the reference's, to float rounding (test_fst's tolerance)."""
+    left, right = kitti_crop(shared_data, 190, 600, 30, 60)
+    D = 10
+    w = resolve("kitti-fst")
+    res = StereoMatcher(weights=w, max_disparity=D, min_disparity=M, device=ctx).compute(
+        left, right, return_intermediates=True)
+    got = res.intermediates["C_CNN"]
+    want = netref.fst_cost_volume(w, left, right, D, min_disparity=M)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    v = ~np.isnan(want)
+    assert np.abs(got[v] - want[v]).max() < 1e-4
+
+
+def test_reference_min_zero_unchanged():
+    """The references' M = 0 is their old volume: x - d < 0 invalid, nothing else."""
+    rng = np.random.default_rng(0)
+    left, right = rng.random((12, 20)).astype(np.float32), rng.random((12, 20)).astype(np.float32)
+    C = ref.census_cost(left, right, 6)
+    x = np.arange(12)[None, None, :]
+    d = np.arange(6)[:, None, None]
+    np.testing.assert_array_equal(np.isnan(C), np.broadcast_to(x < d, C.shape))
+    C2 = ref.census_cost(left, right, 6, min_disparity=-3)
+    np.testing.assert_array_equal(C2[3:], C[:3])
+
+
+# -- the shift test, every cost -----------------------------------------------------
+def _acrt_from_paper():
+    """An acrt network with the paper network's costs: sigmoid(z0 - z1) is softmax's P(bad)."""
+    p = resolve("kitti-paper")
+    (W8, b8) = p.fc[-1]
+    fc = list(p.fc[:-1]) + [((W8[0] - W8[1])[None, :].astype(np.float32), np.array([b8[0] - b8[1]], np.float32))]
+    return Weights(conv=p.conv, fc=fc, meta=dict(p.meta), architecture="mccnn-acrt")
+
+
+def _bad3(d, gt):
+    v = np.isfinite(gt)
+    return 100.0 * np.mean(np.abs(d[v] - gt[v]) > 3)
+
+
+SHIFT_CASES = {  # cost -> (crop y0, x0, H, W, D, s)
+    "census": (150, 380, 110, 300, 64, 20),
+    "kitti-fst": (150, 380, 110, 300, 64, 20),
+    "kitti-paper": (200, 500, 40, 130, 36, 12),
+    "acrt": (200, 500, 40, 130, 36, 12),
+}
+
+
+@pytest.mark.parametrize("name", list(SHIFT_CASES))
+def test_shift_negative_min_disparity(ctx, shared_data, name):
+    y0, x0, H, W, D, s = SHIFT_CASES[name]
+    left, right = kitti_crop(shared_data, y0, x0, H, W)
+    gt = _kitti_gt(shared_data, y0, x0, H, W)
+    kw = dict(weights=_acrt_from_paper()) if name == "acrt" else _cost_kwargs(name)
+    orig = StereoMatcher(max_disparity=D, device=ctx, **kw).compute(left, right)
+    shifted = StereoMatcher(max_disparity=D, min_disparity=-s, device=ctx, **kw).compute(
+        left[:, s:], right[:, :-s])
+    assert shifted.shape == (H, W - s)
+    # the same pixels: the original's columns s.. are the shifted pair's 0.., scored
+    # where the true match is in both pairs (the shifted right image lost its last
+    # s columns: left pixels matching there have no match left, in either method)
+    g = gt[:, s:] - s
+    x = np.arange(W - s)[None, :]
+    g = np.where(x - g <= W - s - 1 - 4, g, np.nan)
+    e_orig, e_shift = _bad3(orig[:, s:] - s, g), _bad3(shifted, g)
+    assert np.isfinite(g).sum() > 500
+    assert abs(e_orig - e_shift) <= 0.5, (e_orig, e_shift)
+    # away from the borders: b pixels (margin, arms, SGM's start), and on the right
+    # the s columns whose right-image matches the shifted pair dropped, plus b
+    b = 16
+    agree = np.abs(shifted[b:-b, b:-(s + b)] + s - orig[b:-b, s + b:-(s + b)]) <= 0.5
+    assert agree.mean() >= 0.98, agree.mean()
+    assert (shifted < 0).any()  # the shifted pair really has negative disparities
+
+
+def test_positive_min_disparity_matches_zero_where_range_covers(ctx, shared_data):
+    """A range starting above 0 (KITTI road: nothing closer than d = 5 in the crop's lower half)."""
+    left, right = kitti_crop(shared_data, 150, 380, 110, 300)
+    full = StereoMatcher(cost="census", max_disparity=64, device=ctx).compute(left, right)
+    part = StereoMatcher(cost="census", max_disparity=59, min_disparity=5, device=ctx).compute(left, right)
+    b = 16
+    assert part.min() >= 0  # columns without a disparity in the range copy the nearest
+    sel = np.zeros(full.shape, bool)
+    sel[b:-b, 64:-b] = full[b:-b, 64:-b] >= 10  # where the true disparity is well inside 5..63
+    agree = np.abs(part[sel] - full[sel]) <= 0.5
+    assert sel.sum() > 5000 and agree.mean() >= 0.98, (sel.sum(), agree.mean())
+
+
+# -- M = 0 unchanged ----------------------------------------------------------------
+@pytest.mark.parametrize("key", list(BEFORE))
+def test_min_zero_bit_identical_to_before(ctx, shared_data, repo, key):
+    name, pair = key.split("/")
+    if pair == "demo":
+        left, right = _demo(repo)
+        D = 32
+    else:
+        left, right = kitti_crop(shared_data, 200, 400, 96, 200)
+        D = 64
+    res = StereoMatcher(max_disparity=D, min_disparity=0, device=ctx, **_cost_kwargs(name)).compute(
+        left, right, confidence=True)
+    h_disp, h_conf, mean = BEFORE[key]
+    if ctx.describe().startswith(RECORDED_ON):
+        assert hashlib.sha256(res.disparity.tobytes()).hexdigest() == h_disp
+        assert hashlib.sha256(res.confidence.tobytes()).hexdigest() == h_conf
+    else:  # another device rounds otherwise: the map's mean within 0.05 px
+        assert abs(float(np.nanmean(res.disparity)) - mean) < 0.05
+    assert res.disparity_range == (0, D - 1) and res.auto is None
+
+
+# -- tiles, intermediates ------------------------------------------------------------
+@pytest.mark.parametrize("name", ["census"])
+def test_tiled_negative_range_matches_whole(ctx, shared_data, name):
+    """Row tiles (census: the volume per tile, masked per tile) against the whole image.
+    (A network tiles only when its volumes outweigh its feature maps: larger
+    images than a fast test takes.)"""
+    left, right = kitti_crop(shared_data, 120, 380, 150, 240)
+    kw = _cost_kwargs(name)
+    whole = StereoMatcher(max_disparity=48, min_disparity=-12, device=ctx, **kw)
+    res_w = whole.compute(left, right, confidence=True)
+    tiled = StereoMatcher(max_disparity=48, min_disparity=-12, device=ctx, tile_overlap=24, **kw)
+    peak = whole.memory_plan(left.shape, 48, -12).peak_bytes
+    for f in np.linspace(0.95, 0.2, 16):  # the largest budget that tiles
+        tiled.memory_limit = int(peak * f)
+        try:
+            if len(tiled.memory_plan(left.shape).tiles) > 1:
+                break
+        except InputError:
+            continue
+    res_t = tiled.compute(left, right, confidence=True)
+    assert res_t.plan.tiled and len(res_t.plan.tiles) > 1
+    agree = np.abs(res_t.disparity - res_w.disparity) <= 0.5
+    assert agree.mean() >= 0.97, agree.mean()
+    assert (res_t.labels == res_w.labels).mean() >= 0.95
+
+
+def test_intermediates_in_image_frame(ctx, shared_data):
+    left, right = kitti_crop(shared_data, 200, 500, 24, 60)
+    D, M = 12, -4
+    res = StereoMatcher(cost="census", max_disparity=D, min_disparity=M, device=ctx).compute(
+        left, right, return_intermediates=True, confidence=True)
+    H, W = 24 - 8, 60 - 8
+    for k in ("C_CNN", "C_CBCA", "C_SGM", "C", "C_R"):
+        assert res.intermediates[k].shape == (D, H, W), k
+    for k in ("D_L", "D_R", "D_INT", "D_SE", "labels", "confidence"):
+        assert res.intermediates[k].shape == (H, W), k
+    for k in ("D_L", "D_R", "D_INT"):
+        assert res.intermediates[k].min() >= M and res.intermediates[k].max() <= M + D - 1, k
+    d = M + np.arange(D)[:, None, None]
+    x = np.arange(W)[None, None, :]
+    invalid = np.broadcast_to((x - d < 0) | (x - d >= W), (D, H, W))
+    np.testing.assert_array_equal(np.isnan(res.intermediates["C"]), invalid)
+    assert res.confidence.shape == res.labels.shape == left.shape
+
+
+# -- automatic range --------------------------------------------------------------
+def test_auto_range_covers_demo_ground_truth(ctx, repo):
+    from mccnn_cl.io import read_pfm
+
+    left, right = _demo(repo)
+    gt = read_pfm(repo / "mccnn_cl" / "demo" / "disp0GT.pfm")
+    gt = np.where(np.isfinite(gt), gt, np.nan)
+    m = StereoMatcher(cost="census", max_disparity="auto", device=ctx)
+    res = m.compute(left, right, timings=True)
+    lo, hi = res.disparity_range
+    assert res.auto is not None and res.auto["range"] == (lo, hi)
+    v = np.isfinite(gt)
+    outside = np.mean((gt[v] < lo) | (gt[v] > hi))
+    assert outside < 0.001, (lo, hi, outside)
+    assert hi - lo + 1 < 0.5 * left.shape[1]  # narrower than the coarse window
+    fixed = StereoMatcher(cost="census", max_disparity=32, device=ctx).compute(left, right)
+    assert abs(_bad3(res.disparity, gt) - _bad3(fixed, gt)) <= 1.0
+
+
+def test_auto_finds_negative_range(ctx, shared_data):
+    """The shifted KITTI crop (disparities moved down by 40, many negative)."""
+    left, right = kitti_crop(shared_data, 150, 380, 110, 360)
+    gt = _kitti_gt(shared_data, 150, 380, 110, 360)
+    s = 40
+    m = StereoMatcher(cost="census", max_disparity="auto", device=ctx)
+    lo, hi = m.choose_range(left[:, s:], right[:, :-s])["range"]
+    g = gt[:, s:] - s
+    v = np.isfinite(g)
+    assert lo < 0 and np.mean((g[v] < lo) | (g[v] > hi)) < 0.005, (lo, hi, np.nanmin(g), np.nanmax(g))
+
+
+# -- bad input ----------------------------------------------------------------------
+def test_bad_ranges_api(ctx):
+    rng = np.random.default_rng(1)
+    left = rng.random((30, 50)).astype(np.float32)
+    m = StereoMatcher(cost="census", max_disparity=10, device=ctx)
+    with pytest.raises(InputError, match="smaller than the maximum"):
+        m.compute(left, left, disparity_range=(5, 5))
+    with pytest.raises(InputError, match="not smaller than the image width"):
+        m.compute(left, left, disparity_range=(-30, 30))
+    with pytest.raises(InputError, match="leave no pixel a match"):
+        StereoMatcher(cost="census", max_disparity=5, min_disparity=45, device=ctx).compute(left, left)
+    with pytest.raises(InputError, match="leave no pixel a match"):
+        StereoMatcher(cost="census", max_disparity=5, min_disparity=-46, device=ctx).compute(left, left)
+    with pytest.raises(InputError, match="min_disparity must be an integer"):
+        StereoMatcher(cost="census", min_disparity=1.5, device=ctx)
+    with pytest.raises(InputError, match="one or the other"):
+        StereoMatcher(cost="census", max_disparity="auto", min_disparity=-3, device=ctx)
+    with pytest.raises(InputError, match="max_disparity must be an integer"):
+        StereoMatcher(cost="census", max_disparity="wide", device=ctx)
+
+
+def _cli(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "mccnn_cl", *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=300)
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--disp-range=10:5"], "minimum must be smaller"),
+    (["--min-disp", "-10", "--max-disp", "300"], "not smaller than the image width"),
+    (["--min-disp", "300", "--max-disp", "10"], "leave no pixel a match"),
+    (["--disp-range", "auto", "--max-disp", "10"], "drop --max-disp"),
+    (["--disp-range", "wide"], "expects 'auto' or MIN:MAX"),
+], ids=["min>=max", "wider-than-image", "no-valid-pixel", "auto-and-max", "bad-spec"])
+def test_bad_ranges_cli(tmp_path, repo, args, message):
+    d = repo / "mccnn_cl" / "demo"
+    p = _cli("match", str(d / "im0.png"), str(d / "im1.png"), "-o", str(tmp_path / "d.pfm"), "--cost", "census",
+             *args, cwd=tmp_path)
+    assert p.returncode == 2, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], p.stderr
+    assert not (tmp_path / "d.pfm").exists()
+
+
+def test_kitti_png_refuses_negative_before_work(tmp_path, repo):
+    d = repo / "mccnn_cl" / "demo"
+    p = _cli("match", str(d / "im0.png"), str(d / "im1.png"), "-o", str(tmp_path / "d.png"), "--cost", "census",
+             "--min-disp", "-8", "--max-disp", "32", "--device", "no-such-device", cwd=tmp_path)
+    # refused before the OpenCL device is even looked for
+    assert p.returncode == 2 and "cannot store negative disparities" in p.stderr, p.stderr
+
+
+def test_cli_negative_range_and_auto(tmp_path, repo):
+    d = repo / "mccnn_cl" / "demo"
+    p = _cli("match", str(d / "im0.png"), str(d / "im1.png"), "-o", str(tmp_path / "d.pfm"), "--cost", "census",
+             "--min-disp", "-32", "--max-disp", "64", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert "disparities -32..31" in p.stdout
+    p = _cli("match", str(d / "im0.png"), str(d / "im1.png"), "-o", str(tmp_path / "a.npy"), "--cost", "census",
+             "--disp-range", "auto", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert "(auto: coarse pass" in p.stdout
+    a = np.load(tmp_path / "a.npy")
+    assert a.shape == (188, 225) and np.isfinite(a).all()
+
+
+# -- datasets -----------------------------------------------------------------------
+def test_calib_range_read_and_used(tmp_path, repo):
+    from mccnn_cl.evaluation.datasets import load_middlebury
+    from mccnn_cl.evaluation.scoring import default_range
+    from mccnn_cl.io import write_pfm
+
+    scene = tmp_path / "Neg"
+    scene.mkdir()
+    d = repo / "mccnn_cl" / "demo"
+    for f in ("im0.png", "im1.png"):
+        (scene / f).write_bytes((d / f).read_bytes())
+    gt = np.full((188, 225), -3.5, np.float32)
+    gt[0, 0] = np.inf
+    write_pfm(scene / "disp0GT.pfm", gt)
+    (scene / "calib.txt").write_text("width=225\nheight=188\nndisp=32\nvmin=-9.5\nvmax=20\n")
+    pair = load_middlebury(scene)
+    assert pair.disp_range == (-9.5, 20.0)
+    assert default_range(pair) == (-10, 42)          # -10 .. 31
+    assert pair.valid_all.sum() == gt.size - 1        # negative GT kept where vmin says so
+    (scene / "calib.txt").write_text("width=225\nheight=188\nndisp=32\nvmin=30\nvmax=20\n")
+    with pytest.raises(InputError, match="smaller than vmax"):
+        load_middlebury(scene)
+
+
+@pytest.mark.full_data
+def test_stated_ranges_of_shared_pairs_unchanged(shared_data):
+    """Every shared MiddEval3 pair's vmin/vmax lies within 0 .. ndisp-1: evaluate's range is ndisp from 0."""
+    from mccnn_cl.evaluation.datasets import load_middlebury
+    from mccnn_cl.evaluation.scoring import default_range
+
+    for scene in sorted((shared_data / "middeval3" / "trainingQ").iterdir()):
+        pair = load_middlebury(scene)
+        assert pair.disp_range is not None
+        assert default_range(pair) == (0, pair.ndisp), scene.name
