@@ -302,10 +302,13 @@ def volume_on_device(cost, left, right, max_disparity, out, progress, label: str
     return out
 
 
-def volume_to_host(cost, left, right, max_disparity, max_bytes, progress, label: str):
+def volume_to_host(cost, left, right, max_disparity, max_bytes, progress, label: str, normalised=False):
     """A network cost's ``to_host``: each band computed into one device buffer of
     at most ``max_bytes`` (default: the max allocation) and copied into the host
-    volume (``cost._enqueue(..., host=)``); values identical to :func:`volume_on_device`'s."""
+    volume (``cost._enqueue(..., host=)``); values identical to :func:`volume_on_device`'s.
+    ``normalised``: the images are already standardised (:func:`normalise`, over
+    a larger image whose rows they are: a row tile's volume then equals those
+    rows of the whole image's volume; :mod:`mccnn_cl.distributed`)."""
     ctx = cost.ctx
     L, R, D, h, w = check_cost_inputs(left, right, max_disparity, cost.channels, cost.patch)
     row = D * w * cost.vdtype.itemsize
@@ -318,7 +321,7 @@ def volume_to_host(cost, left, right, max_disparity, max_bytes, progress, label:
     host = np.empty((D, h, w), cost.vdtype)
     d_band = ctx.empty(D * rows * w * cost.vdtype.itemsize, "cost volume band")
     try:
-        cost._enqueue(L, R, D, h, w, rows, d_band, progress, host=host)
+        cost._enqueue(L, R, D, h, w, rows, d_band, progress, host=host, normalised=normalised)
     except ctx.cl.Error as exc:
         raise OpenCLError(f"{label} ({D} x {h} x {w}, in bands of {rows} rows) failed on "
                           f"{ctx.describe()}: {exc}") from exc

@@ -178,15 +178,16 @@ class FstCost:
         ``callable(done, D)`` after each band."""
         return volume_on_device(self, left, right, max_disparity, out, progress, "fst cost")
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, normalised=False):
         """The volume as a host array, computed band by band into one device
         buffer of at most ``max_bytes`` (default: the max allocation); values
         identical to :meth:`__call__`'s."""
-        return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "fst cost")
+        return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "fst cost",
+                              normalised=normalised)
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, normalised=False):
         q, P = self.ctx.queue, self.patch
-        Ln, Rn = normalise(L), normalise(R)
+        Ln, Rn = (L, R) if normalised else (normalise(L), normalise(R))
         bands = range(0, h, rows)
         for i, y0 in enumerate(bands):
             hb = min(rows, h - y0)

@@ -275,16 +275,17 @@ class PaperCost:
         """
         return volume_on_device(self, left, right, max_disparity, out, progress, "network (C_CNN)")
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None):
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, normalised=False):
         """C_CNN as a host array (``[D][H_img-8][W_img-8]``, float32 or float16
         with half storage), for
         volumes larger than the device can hold: each band of rows is
         computed into one band-sized device buffer of at most ``max_bytes``
         (default: the device's max allocation) and copied out.  Values are
         identical to :meth:`__call__`'s (same kernels, same bands' seams)."""
-        return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "network (C_CNN)")
+        return volume_to_host(self, left, right, max_disparity, max_bytes, progress, "network (C_CNN)",
+                              normalised=normalised)
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None):
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, normalised=False):
         """The launches of :meth:`__call__` (inputs already checked).  With
         ``host`` (a [D][h][w] array), ``d_cost`` holds one band at a time
         ([D][hb][w]), copied into ``host`` after each band."""
@@ -293,7 +294,7 @@ class PaperCost:
         i32 = np.int32
         if host is None:  # NaN into every invalid cell (x < d) of the volume, once
             self._mark(q, (w, h, D), None, d_cost, i32(h), i32(w), i32(0))
-        Ln, Rn = normalise(L), normalise(R)
+        Ln, Rn = (L, R) if normalised else (normalise(L), normalise(R))
         bands = range(0, h, rows)
         done = 0
         for y0 in bands:
