@@ -192,10 +192,16 @@ def _pair_keys(lefts, lkeys, rights, rkeys, how):
 
 
 def pair_globs(left_spec, right_spec, image_extensions):
-    """``[(key, left, right)]`` for ``--left-glob``/``--right-glob`` (module docstring)."""
+    """``[(name, left, right)]`` for ``--left-glob``/``--right-glob`` (module docstring);
+    ``name``: the left image's file name without extension when those differ,
+    else the pair's key (``Adirondack`` for ``trainingQ/*/im0.png``)."""
     lefts, lkeys = _image_files(left_spec, "left", image_extensions)
     rights, rkeys = _image_files(right_spec, "right", image_extensions)
-    return _pair_keys(lefts, lkeys, rights, rkeys, "the text the globs' wildcards match (file name, or folder)")
+    pairs = _pair_keys(lefts, lkeys, rights, rkeys, "the text the globs' wildcards match (file name, or folder)")
+    stems = [os.path.splitext(os.path.basename(lp))[0] for _, lp, _ in pairs]
+    if len(set(stems)) == len(stems):  # outputs named after the left images when their names differ
+        pairs = [(stem, lp, rp) for stem, (_, lp, rp) in zip(stems, pairs)]
+    return pairs
 
 
 def pair_folders(root, image_extensions):
