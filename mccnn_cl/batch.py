@@ -71,6 +71,20 @@ class Job:
 
 
 @dataclass
+class Outputs:
+    """The output options :func:`write_pair` reads (the CLI passes its parsed
+    arguments): ``color``/``confidence``/``labels`` "" for the default file
+    next to the disparity map, None for none; ``calib`` a calibration file
+    (depth and point cloud; pass the parsed calibration to write_pair too)."""
+
+    color: str | None = None
+    confidence: str | None = None
+    labels: str | None = None
+    calib: str | None = None
+    ply_ascii: bool = False
+
+
+@dataclass
 class PairResult:
     """What matching one pair gives (computed by a worker or by this process)."""
 

@@ -250,6 +250,8 @@ def cmd_match(args):
             raise InputError("match needs LEFT RIGHT and -o OUT")
         if args.output_dir:
             raise InputError("--output-dir is for batches (-l/-r); use -o for one pair")
+        if getattr(args, "resume", False):
+            raise InputError("--resume is for batches (-l/-r or --pairs-dir)")
         jobs = [(args.left, args.right, args.output)]
     for lp, rp, out in jobs:
         for f in (lp, rp):

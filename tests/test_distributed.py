@@ -18,7 +18,7 @@ import time
 import numpy as np
 import pytest
 
-from mccnn_cl.batch import Job, pair_globs, write_pair
+from mccnn_cl.batch import Job, Outputs, pair_globs, write_pair
 from mccnn_cl.cli import main
 from mccnn_cl.commands import IMAGE_EXTENSIONS, _gray
 from mccnn_cl.errors import InputError
@@ -229,10 +229,7 @@ def test_killed_worker_work_redone(kitti, reference, cluster, tmp_path):
     results = []
     for job, res in dd.match_pairs(cluster, jobs, config, D):
         assert not isinstance(res, BaseException), res
-        class A:  # the options write_pair reads
-            color = confidence = labels = calib = None
-            ply_ascii = False
-        write_pair(job, res, A, None)
+        write_pair(job, res, Outputs(), None)
         results.append(job.name)
     t.join()
     assert killed, "no worker was caught holding a pair"
