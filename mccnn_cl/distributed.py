@@ -135,9 +135,11 @@ def plan_task(config, shape, max_disp, dask_worker=None) -> dict:
     """Run on every worker: its memory plan for images of ``shape`` (raises
     InputError when a tile cannot fit its device or its memory limit)."""
     from .pipeline import MAP_BUFFERS
-    with _LOCK:
-        m = _matcher(config, max_disp)
-        plan = m.memory_plan(shape)
+    m = _MATCHERS.get(_key(config, max_disp))
+    if m is None:  # normally built by warm(); client.run calls this beside a running task
+        with _LOCK:
+            m = _matcher(config, max_disp)
+    plan = m.memory_plan(shape)  # device facts only: no queue work, no lock needed
     Hi, Wi = int(shape[0]), int(shape[1])
     H, W = Hi - 2 * m.margin, Wi - 2 * m.margin
     # host bytes of one tile task: images (gray, thresholds, standardised) and, for

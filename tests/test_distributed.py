@@ -189,8 +189,9 @@ def test_resume_writes_only_missing(kitti, reference, cluster, tmp_path, capsys,
     assert rewritten == {p for p in after if p.startswith((FRAMES[0], FRAMES[1]))}
 
 
-def test_interrupt_leaves_complete_pairs_only(kitti, tmp_path, monkeypatch, capsys):
-    """Ctrl-C while a pair is written: its side files go, earlier pairs stay whole."""
+def test_interrupt_leaves_complete_pairs_only(kitti, reference, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while a pair is written: its side files go, earlier pairs stay whole;
+    --resume then writes only the missing pairs."""
     import mccnn_cl.commands as commands
     real, calls = commands.write_disparity, []
 
@@ -203,7 +204,17 @@ def test_interrupt_leaves_complete_pairs_only(kitti, tmp_path, monkeypatch, caps
     monkeypatch.setattr(commands, "write_disparity", interrupted)
     out = tmp_path / "out"
     assert main(["match", *glob_args(kitti), "--output-dir", str(out), "--color", "--confidence", *COMMON]) == 130
-    assert sorted(os.listdir(out)) == sorted(f"{FRAMES[0]}_10{s}" for s in (".pfm", "_color.png", "_confidence.pfm"))
+    first = sorted(f"{FRAMES[0]}_10{s}" for s in (".pfm", "_color.png", "_confidence.pfm"))
+    assert sorted(os.listdir(out)) == first
+    monkeypatch.setattr(commands, "write_disparity", real)
+    before = {p: os.stat(out / p).st_mtime_ns for p in first}
+    capsys.readouterr()
+    assert main(["match", *glob_args(kitti), "--output-dir", str(out), "--color", "--confidence", "--resume",
+                 *COMMON]) == 0
+    assert f"done {len(FRAMES) - 1}, skipped 1" in capsys.readouterr().out
+    assert {p: os.stat(out / p).st_mtime_ns for p in first} == before
+    ref = files(reference)
+    assert files(out) == {p: b for p, b in ref.items() if not p.endswith("_labels.png")}
 
 
 def test_killed_worker_work_redone(kitti, reference, cluster, tmp_path):
