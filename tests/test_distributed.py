@@ -304,3 +304,20 @@ def test_huge_image_split_network_cost(shared_data, cluster, tmp_path):
     """The network's volume per tile from the whole image's standardisation: bit for bit too."""
     job = _tall_pair(shared_data, tmp_path, width=260)
     _split_equals_tiled_run(job, cluster, "cnn", "kitti-fst", 200, tiles=2)
+
+
+def test_worker_devices(monkeypatch, capsys):
+    """LocalCluster worker i takes device i of the preferred kind; --device pins every worker."""
+    import mccnn_cl.cl as cl
+    gpus = [cl.DeviceInfo(0, i, "NVIDIA CUDA", "OpenCL 3.0", f"GPU {i}", "GPU", f"gpu{i}") for i in range(3)]
+    cpu = cl.DeviceInfo(1, 0, "Portable Computing Language", "OpenCL 3.0", "cpu", "CPU", "cpu")
+    monkeypatch.setattr(cl, "list_devices", lambda: [*gpus, cpu])
+    monkeypatch.delenv("PYOPENCL_CTX", raising=False)
+    assert [dd.worker_device(None, i)[0].device for i in range(5)] == ["GPU 0", "GPU 1", "GPU 2", "GPU 0", "GPU 1"]
+    assert dd.worker_device(None, None)[0].device == "GPU 0"  # not a LocalCluster worker: the default choice
+    monkeypatch.setattr(cl, "select_device", lambda spec=None: ("cpu", f"argument {spec!r}"))
+    assert [dd.worker_device("cpu", i)[0].device for i in range(2)] == ["cpu", "cpu"]
+    monkeypatch.undo()
+    assert main(["devices", "--workers", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "worker 0: " in out and "worker 1: " in out
