@@ -4,6 +4,7 @@ huge image's row tiles on 1 and 2 workers, A/B in one run.
     python bench/bench_dask.py                       # 8 KITTI 2015 pairs, kitti-fst, D = 228
     python bench/bench_dask.py --cost census --pairs 6 --rounds 2
     python bench/bench_dask.py --huge-only
+    python bench/bench_dask.py --overhead-only      # fixed cost per pair: 40 tiny pairs
 
 Pairs: the one-process batch (one StereoMatcher, as ``mccnn-cl match -l -r``)
 beside :func:`mccnn_cl.distributed.match_pairs` on a LocalCluster of 1 and of
@@ -74,6 +75,35 @@ def on_cluster(jobs, args, workers):
         return time.perf_counter() - t, [res[j.name].disparity for j in jobs], start
 
 
+def overhead(args, tmp):
+    """Fixed cost per pair of the Dask path: 40 tiny pairs (64 x 48 crops, census,
+    D = 8), whose matching takes a few ms, one process beside 1 worker."""
+    from mccnn_cl.batch import Job
+    from mccnn_cl.io import read_image, write_image
+    jobs = []
+    for i in range(40):
+        f = FRAMES[i % len(FRAMES)]
+        paths = []
+        for side in ("image_2", "image_3"):
+            p = os.path.join(tmp, f"tiny_{side}_{i}.png")
+            y, x = 100 + 4 * i, 300 + 10 * i
+            write_image(p, read_image(SHARED / side / f"{f}_10.png")[y:y + 48, x:x + 64])
+            paths.append(p)
+        jobs.append(Job(f"tiny{i}", paths[0], paths[1], os.path.join(tmp, f"tiny{i}.pfm")))
+    a = argparse.Namespace(cost="census", weights=None, max_disp=8)
+    best = {}
+    for _ in range(args.rounds):
+        t, ref = one_process(jobs, a)
+        best["one"] = min(best.get("one", 1e9), t)
+        t, outs, _ = on_cluster(jobs, a, 1)
+        best["dask"] = min(best.get("dask", 1e9), t)
+        assert all(np.array_equal(x, y, equal_nan=True) for x, y in zip(ref, outs)), "maps differ"
+    n = len(jobs)
+    print(f"{n} tiny pairs (64x48, census, D = 8): one process {best['one'] / n * 1000:.1f} ms/pair, "
+          f"Dask 1 worker {best['dask'] / n * 1000:.1f} ms/pair: overhead {(best['dask'] - best['one']) / n * 1000:.1f} "
+          "ms per pair (task round trip, image reading on the worker, maps back)")
+
+
 def huge(args, tmp):
     from distributed import Client
 
@@ -135,12 +165,16 @@ def main():
     ap.add_argument("--huge-limit", type=float, default=1200, help="MiB: the huge image's memory limit")
     ap.add_argument("--huge-only", action="store_true")
     ap.add_argument("--no-huge", action="store_true")
+    ap.add_argument("--overhead-only", action="store_true", help="only the tiny-pair overhead measurement")
     args = ap.parse_args()
     from mccnn_cl.batch import Job
     from mccnn_cl.cl import ClContext
     print(f"machine: {os.cpu_count()} CPU cores ({cpu_name()}), OpenCL {ClContext().describe()}; "
           f"load average at start {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory() as tmp:
+        if args.overhead_only:
+            overhead(args, tmp)
+            return
         if not args.huge_only:
             jobs = [Job(f, str(SHARED / f"image_2/{f}_10.png"), str(SHARED / f"image_3/{f}_10.png"),
                         os.path.join(tmp, f"{f}.pfm")) for f in FRAMES[:args.pairs]]
