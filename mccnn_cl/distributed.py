@@ -237,7 +237,10 @@ def local_cluster(n_workers: int, **kwargs):
     opts = dict(n_workers=int(n_workers), threads_per_worker=1, processes=True, dashboard_address=None,
                 silence_logs=logging.ERROR)
     opts.update(kwargs)
-    return LocalCluster(**opts)
+    import warnings
+    with warnings.catch_warnings():  # the scheduler's HTTP routes move off a busy port 8787: nothing to act on
+        warnings.filterwarnings("ignore", message="Port 8787 is already in use")
+        return LocalCluster(**opts)
 
 
 def n_workers(client) -> int:
