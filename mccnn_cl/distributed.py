@@ -223,7 +223,8 @@ def finish_task(config, job, max_disp, tiles, parts, want_confidence) -> PairRes
                 conf[c0:c1], labels[c0:c1] = c, lab
         rec = _Recorder(m.ctx, keep=False, timed=False)
         disp = m._map_stages(m.ctx.to_device(D_SE), m.ctx.to_device(I_L), Hi, Wi, rec)
-        res = PairResult(disp, int(max_disp), time.perf_counter() - t0, where=_where(m))
+        res = PairResult(disp, int(max_disp), time.perf_counter() - t0,
+                         where=f"{len(tiles)} row tiles on the workers, assembled on {_where(m)}")
         if want_confidence:
             res.confidence, res.labels = (np.pad(a, m.margin, mode="edge") for a in (conf, labels))
         return res

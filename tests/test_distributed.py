@@ -81,6 +81,7 @@ def test_batch_on_cluster_equals_one_process(kitti, reference, cluster, tmp_path
     assert f"done {len(FRAMES)}, skipped 0" in capsys.readouterr().out
 
 
+@pytest.mark.slow  # ~15-25 s here: a fresh process starts a cluster
 def test_cli_workers_two(kitti, reference, tmp_path):
     """The README's line, in a fresh process: a LocalCluster of 2 workers."""
     out = tmp_path / "out"
