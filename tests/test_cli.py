@@ -140,7 +140,7 @@ def test_batch_with_globs(crops, tmp_path):
     assert "wrote 2 disparity maps" in so
     rc, _, se = run("match", "-l", tmp_path / "l/a.png", "-r", tmp_path / "r", "--output-dir",
                     tmp_path / "out2", "--cost", "census")
-    assert_one_line_error(rc, se, 2, "1 left but 2 right")
+    assert_one_line_error(rc, se, 2, "without a left partner", "b.png")
 
 
 def test_input_errors(crops, tmp_path):

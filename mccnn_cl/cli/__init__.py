@@ -103,10 +103,23 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("right", nargs="?", help="right image")
     m.add_argument("-o", "--output", metavar="OUT", help="disparity file (.pfm, .png or .npy)")
     m.add_argument("-l", "--left-glob", metavar="GLOB", help="batch: left images (glob or folder)")
-    m.add_argument("-r", "--right-glob", metavar="GLOB", help="batch: right images (glob or folder), "
-                                                              "paired with the left ones by sorted order")
-    m.add_argument("--output-dir", metavar="DIR", help="batch: folder for <left name>.<format>")
+    m.add_argument("-r", "--right-glob", metavar="GLOB", help="batch: right images (glob or folder); a left and "
+                   "a right image pair when the globs' wildcards match the same text: the same file name "
+                   "(image_2/*.png, image_3/*.png) or folder (*/im0.png, */im1.png)")
+    m.add_argument("--pairs-dir", metavar="DIR", help="batch: every folder at or under DIR with im0.* and im1.* "
+                                                      "(Middlebury, ETH3D layouts) is a pair")
+    m.add_argument("--output-dir", metavar="DIR", help="batch: folder for <pair name>.<format>")
     m.add_argument("--format", choices=("pfm", "png", "npy"), default="pfm", help="batch: output format")
+    m.add_argument("--resume", action="store_true",
+                   help="batch: skip pairs whose outputs are all written; redo the others whole")
+    m.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="run on a Dask cluster of N local worker processes (one OpenCL device each, "
+                        "GPUs shared out in turn); see docs/cli.md, 'Many pairs and huge images on Dask'")
+    m.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="run on an existing Dask cluster (tcp://HOST:PORT or a scheduler file's address)")
+    m.add_argument("--split-tiles", action="store_true",
+                   help="with --workers/--scheduler: spread the row tiles of each tiled pair over the "
+                        "workers (default: only when there are fewer pairs than workers)")
     _matcher_options(m, "default: ndisp from --calib if given, else 228 (KITTI)")
     _range_options(m)
     m.add_argument("--color", nargs="?", const="", default=None, metavar="FILE.png",
@@ -144,6 +157,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("devices", parents=[verbose], help="list OpenCL devices and the one that would be used")
     d.add_argument("--device", metavar="SPEC", default=None, help="show which device SPEC selects")
+    d.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="also show the device each of N local Dask workers would use (match --workers N)")
 
     b = sub.add_parser("bench", parents=[verbose], help="per-stage runtime on a KITTI-size pair",
                        description="Time each stage of the pipeline (best of --repeat runs after a "

@@ -254,8 +254,18 @@ def cmd_match(args):
     request = _range_request(args)
     single = args.left is not None or args.right is not None
     batch = args.left_glob is not None or args.right_glob is not None
+    pairs_dir = getattr(args, "pairs_dir", None)
+    batch = batch or pairs_dir is not None
     if single == batch:
-        raise InputError("give either LEFT RIGHT -o OUT, or -l LEFT_GLOB -r RIGHT_GLOB --output-dir DIR")
+        raise InputError("give either LEFT RIGHT -o OUT, or -l LEFT_GLOB -r RIGHT_GLOB (or --pairs-dir DIR) "
+                         "--output-dir DIR")
+    distributed = getattr(args, "workers", None) is not None or getattr(args, "scheduler", None) is not None
+    if batch and not distributed:
+        from ..batch import run_batch
+        return run_batch(args)
+    if distributed:
+        from ..distributed import run as run_distributed
+        return run_distributed(args, single)
     calib = None
     if args.calib:
         from ..depth import read_calib
@@ -266,29 +276,9 @@ def cmd_match(args):
             raise InputError("match needs LEFT RIGHT and -o OUT")
         if args.output_dir:
             raise InputError("--output-dir is for batches (-l/-r); use -o for one pair")
+        if getattr(args, "resume", False):
+            raise InputError("--resume is for batches (-l/-r or --pairs-dir)")
         jobs = [(args.left, args.right, args.output)]
-    else:
-        if args.left_glob is None or args.right_glob is None or args.output_dir is None:
-            raise InputError("a batch needs -l LEFT_GLOB, -r RIGHT_GLOB and --output-dir DIR")
-        if args.output:
-            raise InputError("-o is for one pair; a batch writes into --output-dir")
-        if args.color:
-            raise InputError("in a batch, --color takes no file name (pictures go next to each output)")
-        if args.confidence or args.labels:
-            raise InputError("in a batch, --confidence and --labels take no file name (maps go next to each output)")
-        lefts, rights = _expand(args.left_glob, "left"), _expand(args.right_glob, "right")
-        if len(lefts) != len(rights):
-            raise InputError(f"{len(lefts)} left but {len(rights)} right images; they are paired "
-                             "by sorted order and must be as many")
-        os.makedirs(args.output_dir, exist_ok=True)
-        ext = "." + args.format
-        jobs, seen = [], set()
-        for lp, rp in zip(lefts, rights):
-            stem = os.path.splitext(os.path.basename(lp))[0]
-            if stem in seen:
-                raise InputError(f"two left images are named {stem}; outputs would collide")
-            seen.add(stem)
-            jobs.append((lp, rp, os.path.join(args.output_dir, stem + ext)))
     for lp, rp, out in jobs:
         for f in (lp, rp):
             if not os.path.isfile(f):
@@ -350,9 +340,9 @@ def cmd_match(args):
                                         disparity_range=(lo, hi) if auto is not None else None)
             disp = res.disparity if want else res
             seconds = time.perf_counter() - t0
-            _save_outputs(out, disp, left_img, args, calib, (lo, hi))
             if want:
                 _save_confidence(out, res, args)
+            _save_outputs(out, disp, left_img, args, calib, (lo, hi))  # the disparity file last
             fin = np.isfinite(disp)
             levels = f"{hi - lo + 1} disparities" if (lo == 0 and auto is None) else range_line
             msg = (f"{out}: {disp.shape[1]}x{disp.shape[0]}, {levels}, "
@@ -387,7 +377,6 @@ def _gray(img):
 def _save_outputs(out, disp, left_img, args, calib, disparity_range):
     from ..io import write_image
     from ..visualize import colorize_with_legend
-    write_disparity(out, disp)
     color, depth_path, ply = _side_outputs(out, args)
     if color is not None:
         # scale: 0 (or the range's negative minimum) .. the map's largest disparity (the range's
@@ -402,6 +391,7 @@ def _save_outputs(out, disp, left_img, args, calib, disparity_range):
         _write_depth(depth_path, disparity_to_depth(disp, calib))
         pts, rgb = point_cloud(disp, calib, left_img)
         write_ply(ply, pts, rgb, binary=not args.ply_ascii)
+    write_disparity(out, disp)  # last: a pair whose disparity file exists is complete (mccnn_cl.batch)
 
 
 # -- evaluate ----------------------------------------------------------------
@@ -503,4 +493,11 @@ def cmd_devices(args):
     name = next((str(d) for d in devices if d.handle == chosen), chosen.name.strip())
     _say(f"would use: {name}")
     _say(f"because:   {reason}")
+    workers = getattr(args, "workers", None)
+    if workers is not None:
+        _positive("--workers", workers)
+        from ..distributed import worker_device
+        for i in range(workers):
+            info, why = worker_device(args.device, i)
+            _say(f"worker {i}: {info.platform_index}:{info.device_index}  {info}  ({why})")
     return 0

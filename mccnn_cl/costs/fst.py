@@ -172,9 +172,14 @@ class FstCost(ConvNetCost):
         self.stack.give(d_feat)
         return d_out
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None):
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None, normalised=False):
         q, P = self.ctx.queue, self.patch
-        Ln, Rn = (normalise(L), normalise(R)) if stats is None else (normalise(L, stats[0]), normalise(R, stats[1]))
+        if normalised:
+            Ln, Rn = L, R
+        elif stats is None:
+            Ln, Rn = normalise(L), normalise(R)
+        else:
+            Ln, Rn = normalise(L, stats[0]), normalise(R, stats[1])
         bands = range(0, h, rows)
         for i, y0 in enumerate(bands):
             hb = min(rows, h - y0)

@@ -1,0 +1,435 @@
+"""Batches of stereo pairs for ``mccnn-cl match``: pairing by name, pair
+outputs that are complete or absent, ``--resume``, per-pair failures and a
+summary.  One process runs them here (:func:`run_batch`); with ``--workers`` or
+``--scheduler`` a Dask cluster does (:mod:`mccnn_cl.distributed`), with the
+same jobs, the same per-pair computation and the same writer.
+
+Pairing (:func:`pair_globs`, :func:`pair_folders`): a left and a right image
+are a pair when the text the wildcards of their globs matched is the same:
+``image_2/*.png`` and ``image_3/*.png`` pair equal file names (KITTI);
+``trainingQ/*/im0.png`` and ``trainingQ/*/im1.png`` pair the images of one
+folder (Middlebury, ETH3D); ``cam/L*.png`` and ``cam/R*.png`` pair ``L0001``
+with ``R0001``.  A folder given instead of a glob stands for its images, keyed
+by file name without the extension.  ``--pairs-dir DIR`` pairs ``im0.*`` with
+``im1.*`` in every folder at or under DIR.  Images without a partner are listed
+and the batch is refused before any work (:class:`InputError`, exit 2).
+
+A pair's outputs (:class:`Job`): the side files (colour picture, confidence,
+labels, depth, point cloud) are written first, the disparity map last, each to
+a temporary name renamed when complete; so a pair whose every output exists is
+complete, and one with only some is redone whole (``--resume`` skips complete
+pairs).  A failure or an interrupt while a pair is written removes the side
+files it has, so an interrupted run leaves complete pairs only (a process
+killed outright can leave side files, which ``--resume`` rewrites).
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import re
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError, MccnnError
+
+#: left / right file stems of the im0/im1 layout (Middlebury, ETH3D)
+FOLDER_PAIR = ("im0", "im1")
+
+
+@dataclass
+class Job:
+    """One pair of a batch: ``name`` (its key), images, the disparity file
+    ``out`` (written last) and the side files written before it."""
+
+    name: str
+    left: str
+    right: str
+    out: str
+    sides: list = field(default_factory=list)
+
+    @property
+    def outputs(self) -> list:
+        return [*self.sides, self.out]
+
+    def complete(self) -> bool:
+        return all(os.path.isfile(p) for p in self.outputs)
+
+    def started(self) -> bool:
+        return any(os.path.exists(p) for p in self.outputs)
+
+    def remove_partial(self) -> None:
+        """Delete the side files of a pair whose disparity map is not written."""
+        if os.path.exists(self.out):
+            return
+        for p in self.sides:
+            if os.path.isfile(p):
+                os.unlink(p)
+
+
+@dataclass
+class Outputs:
+    """The output options :func:`write_pair` reads (the CLI passes its parsed
+    arguments): ``color``/``confidence``/``labels`` "" for the default file
+    next to the disparity map, None for none; ``calib`` a calibration file
+    (depth and point cloud; pass the parsed calibration to write_pair too)."""
+
+    color: str | None = None
+    confidence: str | None = None
+    labels: str | None = None
+    calib: str | None = None
+    ply_ascii: bool = False
+
+
+@dataclass
+class PairResult:
+    """What matching one pair gives (computed by a worker or by this process)."""
+
+    disparity: np.ndarray
+    max_disp: int
+    seconds: float
+    confidence: np.ndarray | None = None
+    labels: np.ndarray | None = None
+    where: str = ""
+    min_disp: int = 0
+
+
+@dataclass
+class Summary:
+    done: list = field(default_factory=list)
+    skipped: list = field(default_factory=list)
+    failed: list = field(default_factory=list)   # (name, reason, is_input_error)
+
+    def report(self, out=None) -> None:
+        out = out or sys.stdout
+        print(f"done {len(self.done)}, skipped {len(self.skipped)} (outputs complete), "
+              f"failed {len(self.failed)}", file=out, flush=True)
+        for name, reason, _ in self.failed:
+            print(f"  failed {name}: {reason}", file=out, flush=True)
+
+    def exit_status(self) -> int:
+        """0 when nothing failed; 2 when every failure is bad input (unreadable
+        image, sizes differ ...); 1 otherwise."""
+        if not self.failed:
+            return 0
+        return 2 if all(bad_input for _, _, bad_input in self.failed) else 1
+
+
+# -- pairing -----------------------------------------------------------------
+
+def _image_files(spec, what, image_extensions):
+    """(files, keys): a folder's images keyed by stem, or a glob's matches keyed
+    by the text its wildcards matched."""
+    if os.path.isdir(spec):
+        files = sorted(os.path.join(spec, f) for f in os.listdir(spec)
+                       if f.lower().endswith(image_extensions) and os.path.isfile(os.path.join(spec, f)))
+        keys = [os.path.splitext(os.path.basename(f))[0] for f in files]
+    else:
+        files = sorted(f for f in glob.glob(spec) if os.path.isfile(f))
+        pattern = _wildcard_regex(spec)
+        keys = []
+        for f in files:
+            m = pattern.fullmatch(f)
+            if m is None or not m.groups():
+                key = os.path.splitext(os.path.basename(f))[0]
+            else:
+                key = "/".join(m.groups())
+            keys.append(_strip_extension(key, image_extensions))
+    if not files:
+        raise InputError(f"no {what} images match {spec!r}")
+    return files, keys
+
+
+def _strip_extension(key, image_extensions):
+    return key[:-len(os.path.splitext(key)[1])] if key.lower().endswith(image_extensions) else key
+
+
+def _wildcard_regex(pattern):
+    """A regex matching what ``glob`` matches for ``pattern``, one group per wildcard."""
+    out, i = [], 0
+    while i < len(pattern):
+        c = pattern[i]
+        if c == "*":
+            j = i
+            while j < len(pattern) and pattern[j] == "*":
+                j += 1
+            out.append("(.*)" if j - i > 1 else "([^/]*)" if os.sep == "/" else r"([^/\\]*)")
+            i = j
+            continue
+        if c == "?":
+            out.append("(.)")
+        elif c == "[":
+            j = pattern.find("]", i + 2)
+            if j < 0:
+                out.append(re.escape(c))
+            else:
+                body = pattern[i + 1:j]
+                if body.startswith("!"):
+                    body = "^" + body[1:]
+                out.append("([" + body.replace("\\", "\\\\") + "])")
+                i = j + 1
+                continue
+        else:
+            out.append(re.escape(c))
+        i += 1
+    return re.compile("".join(out))
+
+
+def _unpartnered(lefts_only, rights_only, how):
+    def names(items, n=8):
+        items = sorted(items)
+        text = ", ".join(items[:n])
+        return text + (f" ... and {len(items) - n} more" if len(items) > n else "")
+    parts = []
+    if lefts_only:
+        parts.append(f"{len(lefts_only)} left image(s) without a right partner: {names(lefts_only)}")
+    if rights_only:
+        parts.append(f"{len(rights_only)} right image(s) without a left partner: {names(rights_only)}")
+    return InputError("; ".join(parts) + f" (pairs are matched by {how}; nothing was matched)")
+
+
+def _pair_keys(lefts, lkeys, rights, rkeys, how):
+    for files, keys, side in ((lefts, lkeys, "left"), (rights, rkeys, "right")):
+        seen = {}
+        for f, k in zip(files, keys):
+            if k in seen:
+                raise InputError(f"{seen[k]} and {f} are both {side} images of pair {k!r} ({how})")
+            seen[k] = f
+    lmap, rmap = dict(zip(lkeys, lefts)), dict(zip(rkeys, rights))
+    lonly = [lmap[k] for k in lmap if k not in rmap]
+    ronly = [rmap[k] for k in rmap if k not in lmap]
+    if lonly or ronly:
+        raise _unpartnered(lonly, ronly, how)
+    return [(k, lmap[k], rmap[k]) for k in sorted(lmap)]
+
+
+def pair_globs(left_spec, right_spec, image_extensions):
+    """``[(name, left, right)]`` for ``--left-glob``/``--right-glob`` (module docstring);
+    ``name``: the left image's file name without extension when those differ,
+    else the pair's key (``Adirondack`` for ``trainingQ/*/im0.png``)."""
+    lefts, lkeys = _image_files(left_spec, "left", image_extensions)
+    rights, rkeys = _image_files(right_spec, "right", image_extensions)
+    pairs = _pair_keys(lefts, lkeys, rights, rkeys, "the text the globs' wildcards match (file name, or folder)")
+    stems = [os.path.splitext(os.path.basename(lp))[0] for _, lp, _ in pairs]
+    if len(set(stems)) == len(stems):  # outputs named after the left images when their names differ
+        pairs = [(stem, lp, rp) for stem, (_, lp, rp) in zip(stems, pairs)]
+    return pairs
+
+
+def pair_folders(root, image_extensions):
+    """``[(key, left, right)]``: ``im0.*`` and ``im1.*`` of each folder at or under ``root``."""
+    if not os.path.isdir(root):
+        raise InputError(f"--pairs-dir {root}: not a folder")
+    lefts, lkeys, rights, rkeys = [], [], [], []
+    base = os.path.basename(os.path.normpath(os.path.abspath(root)))
+    for folder, dirs, files in os.walk(root):
+        dirs.sort()
+        rel = os.path.relpath(folder, root)
+        key = base if rel == "." else rel.replace(os.sep, "/")
+        for f in sorted(files):
+            stem, ext = os.path.splitext(f)
+            if ext.lower() not in image_extensions:
+                continue
+            if stem == FOLDER_PAIR[0]:
+                lefts.append(os.path.join(folder, f))
+                lkeys.append(key)
+            elif stem == FOLDER_PAIR[1]:
+                rights.append(os.path.join(folder, f))
+                rkeys.append(key)
+    if not lefts and not rights:
+        raise InputError(f"no folder under {root} holds {FOLDER_PAIR[0]}/{FOLDER_PAIR[1]} images")
+    return _pair_keys(lefts, lkeys, rights, rkeys, f"folder ({FOLDER_PAIR[0]}.* with {FOLDER_PAIR[1]}.*)")
+
+
+def output_name(key) -> str:
+    """A pair's key as a file name stem (folders joined with '_')."""
+    name = re.sub(r"[/\\]+", "_", key).strip("_")
+    return name or "pair"
+
+
+# -- jobs --------------------------------------------------------------------
+
+def make_jobs(args):
+    """The batch's :class:`Job` list from ``args`` (pairing, output names, checks);
+    nothing is read or written."""
+    from .cli.commands import DISPARITY_FORMATS, IMAGE_EXTENSIONS, _confidence_outputs, _side_outputs
+    if args.pairs_dir is not None:
+        if args.left_glob is not None or args.right_glob is not None:
+            raise InputError("give either --pairs-dir DIR or -l LEFT_GLOB -r RIGHT_GLOB, not both")
+        pairs = pair_folders(args.pairs_dir, IMAGE_EXTENSIONS)
+    else:
+        pairs = pair_globs(args.left_glob, args.right_glob, IMAGE_EXTENSIONS)
+    ext = "." + args.format
+    if ext not in DISPARITY_FORMATS:
+        raise InputError(f"--format must be one of {', '.join(DISPARITY_FORMATS)}")
+    jobs, names = [], {}
+    for key, lp, rp in pairs:
+        name = output_name(key)
+        if name in names:
+            raise InputError(f"pairs {names[name]!r} and {key!r} would both write {name}{ext}")
+        names[name] = key
+        out = os.path.join(args.output_dir, name + ext)
+        color, depth, ply = _side_outputs(out, args)
+        sides = [p for p in (color, *_confidence_outputs(out, args), depth, ply) if p is not None]
+        jobs.append(Job(name, lp, rp, out, sides))
+    return jobs
+
+
+def plan_outputs(jobs, args):
+    """Jobs to run, and the complete ones ``--resume`` skips; existing outputs
+    without ``--resume``/``--force`` are refused before any work."""
+    from .cli.commands import _check_outputs
+    if not os.path.isdir(args.output_dir):
+        os.makedirs(args.output_dir, exist_ok=True)
+    todo, skipped = [], []
+    for job in jobs:
+        for p in job.outputs:
+            if os.path.isdir(p):
+                raise InputError(f"{p} is a folder, not a file")
+        if args.resume and job.complete():
+            skipped.append(job)
+            continue
+        if not (args.resume or args.force):
+            _check_outputs(job.outputs, False)
+        todo.append(job)
+    return todo, skipped
+
+
+# -- one pair -----------------------------------------------------------------
+
+def default_max_disp(args, calib):
+    """D, the number of levels: ``--max-disp`` (or ``--disp-range``'s), else the
+    calibration's ndisp, else 228.  A batch searches one stated range for every
+    pair: ``--disp-range auto`` is refused (it chooses per pair; match those one at
+    a time)."""
+    from .cli.commands import _range_request
+    request = _range_request(args)
+    if request == "auto":
+        raise InputError("--disp-range auto chooses a range per pair and runs one pair at a time; "
+                         "give a batch a stated range (--min-disp M --max-disp D, or --disp-range MIN:MAX)")
+    max_disp = request[1]
+    if max_disp is not None:
+        return max_disp
+    return calib.ndisp if (calib is not None and calib.ndisp) else 228
+
+
+def min_disp(args) -> int:
+    """M, the range's first disparity (``--min-disp`` or ``--disp-range``'s; 0 by default)."""
+    from .cli.commands import _range_request
+    request = _range_request(args)
+    return 0 if request == "auto" else int(request[0] or 0)
+
+
+def compute_pair(job, matcher_for, max_disp, want_confidence) -> PairResult:
+    """Read and match one pair; ``matcher_for(max_disp)`` gives the (kept) matcher."""
+    from .cli.commands import _gray
+    from .io import read_image
+    from .validate import check_pair, patch_size
+    left_img, right_img = read_image(job.left), read_image(job.right)
+    matcher = matcher_for(max_disp)
+    check_pair(left_img, right_img, max_disp, patch_size(matcher.weights), (job.left, job.right),
+               min_disparity=matcher.min_disparity)
+    t0 = time.perf_counter()
+    res = matcher.compute(_gray(left_img), _gray(right_img), confidence=want_confidence)
+    seconds = time.perf_counter() - t0
+    if want_confidence:
+        return PairResult(res.disparity, max_disp, seconds, res.confidence, res.labels,
+                          min_disp=matcher.min_disparity)
+    return PairResult(res, max_disp, seconds, min_disp=matcher.min_disparity)
+
+
+def write_pair(job, result, args, calib) -> None:
+    """Every output of ``job``: side files first, the disparity map last (each
+    atomic); on any failure or interrupt the pair's side files are removed."""
+    from .cli.commands import _save_confidence, _save_outputs
+    from .io import read_image
+    try:
+        left_img = read_image(job.left) if calib is not None else None  # point-cloud colours
+        if result.confidence is not None:
+            _save_confidence(job.out, result, args)
+        lo = result.min_disp
+        _save_outputs(job.out, result.disparity, left_img, args, calib, (lo, lo + result.max_disp - 1))
+    except BaseException:
+        job.remove_partial()
+        raise
+
+
+def describe_failure(exc) -> tuple:
+    """(one-line reason, is bad input) for a pair that failed."""
+    text = str(exc).strip().splitlines()
+    msg = text[0] if text else type(exc).__name__
+    if isinstance(exc, InputError):
+        return msg, True
+    if isinstance(exc, MccnnError):
+        return msg, False
+    return f"{type(exc).__name__}: {msg}", False
+
+
+# -- the batch ------------------------------------------------------------------
+
+def prepare(args):
+    """Checks shared by the one-process and the Dask batch: (jobs to run, skipped, calib)."""
+    if args.output is not None:
+        raise InputError("-o is for one pair; a batch writes into --output-dir")
+    if args.output_dir is None:
+        raise InputError("a batch needs --output-dir DIR")
+    if args.color:
+        raise InputError("in a batch, --color takes no file name (pictures go next to each output)")
+    if args.confidence or args.labels:
+        raise InputError("in a batch, --confidence and --labels take no file name (maps go next to each output)")
+    if args.resume and args.force:
+        raise InputError("--resume keeps complete outputs and --force overwrites them: give one")
+    calib = None
+    if args.calib:
+        from .depth import read_calib
+        calib = read_calib(args.calib)
+        calib.require_depth()
+    jobs = make_jobs(args)
+    todo, skipped = plan_outputs(jobs, args)
+    return todo, skipped, calib
+
+
+def run_batch(args) -> int:
+    """``mccnn-cl match`` on a batch in this process (no ``--workers``/``--scheduler``)."""
+    from .cli.commands import _load_weights, _make_matcher, _say
+    todo, skipped, calib = prepare(args)
+    summary = Summary(skipped=[j.name for j in skipped])
+    weights = _load_weights(args)
+    want = args.confidence is not None or args.labels is not None
+    matchers, ctx = {}, None
+
+    def matcher_for(max_disp):
+        nonlocal ctx
+        if max_disp not in matchers:
+            from .opencl.context import ClContext
+            if ctx is None:
+                ctx = ClContext(args.device)
+            matchers[max_disp] = _make_matcher(args, max_disp, weights, ctx=ctx, min_disparity=min_disp(args))
+        return matchers[max_disp]
+
+    from tqdm import tqdm
+    with tqdm(total=len(todo), unit="pair", desc="matching", disable=None) as bar:
+        for job in todo:
+            try:
+                result = compute_pair(job, matcher_for, default_max_disp(args, calib), want)
+                write_pair(job, result, args, calib)
+            except (KeyboardInterrupt, SystemExit):
+                raise
+            except Exception as exc:  # noqa: BLE001 - reported per pair, the batch goes on
+                reason, bad_input = describe_failure(exc)
+                summary.failed.append((job.name, reason, bad_input))
+                bar.write(f"{job.name}: failed: {reason}")
+            else:
+                summary.done.append(job.name)
+                if args.verbose:
+                    fin = np.isfinite(result.disparity)
+                    bar.write(f"{job.out}: {result.disparity.shape[1]}x{result.disparity.shape[0]}, "
+                              f"{result.max_disp} disparities, {fin.mean():.1%} valid, {result.seconds:.2f} s")
+            bar.update(1)
+    summary.report()
+    if summary.done:
+        _say(f"wrote {len(summary.done)} disparity maps to {args.output_dir}")
+    return summary.exit_status()

@@ -1,0 +1,410 @@
+"""Stereo pairs on a Dask cluster: :func:`match_pairs` and ``mccnn-cl match --workers N``.
+
+Each worker process keeps one OpenCL context and one :class:`StereoMatcher`
+per configuration (:func:`matcher_config`: cost, weights, device, memory
+limit, volume storage, hyperparameters) and disparity range, built by its
+first task and reused by every later one (volumes and built kernels kept
+warm).  A worker is pinned to one device: the ``device`` of the
+configuration when given (or ``$PYOPENCL_CTX``), else, on a ``LocalCluster``
+whose workers are named 0, 1, ..., worker i takes device i (modulo their
+number) of the preferred kind (GPUs first), so a machine with k GPUs runs k
+workers on k devices (:func:`worker_device`; ``mccnn-cl devices --workers N``
+shows the choice).
+
+A pair is one task: the worker reads the images, matches them and returns
+the maps; the client writes the outputs (:func:`mccnn_cl.batch.write_pair`,
+the same writer as the one-process batch), so a worker killed mid-task
+leaves nothing behind and its task is run again elsewhere by the scheduler.
+
+A pair whose memory plan has row tiles (:meth:`StereoMatcher.memory_plan`)
+can be split over the workers (``split_tiles``; by default when the batch has
+fewer pairs than workers): the plan is made on every worker first (a tile
+that does not fit a worker's device, or the worker's memory limit, is an
+error before any tile runs), the plan with the most tiles is used (it fits
+every worker), each tile's volume stages run as a task -- the worker reads
+the pair, computes the tile's cost volume from the tile's rows (the network
+from the image standardised as a whole, so the rows equal the whole image's
+volume rows) and returns the tile's core rows of D_SE -- and a last task
+assembles them and runs the image-sized stages.  The map equals the one
+process's tiled run bit for bit (``tests/test_distributed.py``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+
+import numpy as np
+
+from .batch import Job, PairResult, Summary, compute_pair, default_max_disp, describe_failure, write_pair
+from .errors import InputError
+
+log = logging.getLogger(__name__)
+
+# -- worker side -----------------------------------------------------------------
+
+_LOCK = threading.Lock()          # one matcher call at a time per worker process
+_CONTEXTS: dict = {}              # device spec -> ClContext
+_MATCHERS: dict = {}              # (configuration, max_disp) -> StereoMatcher
+
+
+def matcher_config(cost="cnn", weights=None, device=None, memory_limit=None, volume_dtype="float32",
+                   min_disparity=0, **hyperparameters) -> dict:
+    """A picklable description of the matcher every worker builds (and keeps):
+    ``weights`` a shipped name or a path (made absolute), ``memory_limit``
+    bytes.  Keys of the per-worker matcher cache."""
+    if isinstance(weights, str) and os.path.exists(weights):
+        weights = os.path.abspath(weights)
+    return {"cost": cost, "weights": weights, "device": device,
+            "memory_limit": None if memory_limit is None else int(memory_limit),
+            "volume_dtype": volume_dtype, "min_disparity": int(min_disparity), "hyper": dict(hyperparameters)}
+
+
+def _key(config, max_disp):
+    return json.dumps(config, sort_keys=True, default=str), int(max_disp)
+
+
+def worker_index():
+    """This worker's number on a LocalCluster (its name), else None."""
+    try:
+        from distributed import get_worker
+        name = get_worker().name
+    except (ImportError, ValueError):
+        return None
+    return name if isinstance(name, int) else None
+
+
+def worker_device(spec=None, index=None):
+    """``(DeviceInfo, reason)``: the device worker ``index`` uses (module docstring)."""
+    from .opencl.context import list_devices, select_device
+    devices = list_devices()
+    if spec is not None or os.environ.get("PYOPENCL_CTX") or index is None:
+        handle, reason = select_device(spec)
+        return next(d for d in devices if d.handle == handle), reason
+    top = devices[0]
+    same = [d for d in devices if d.type == top.type and d.platform == top.platform]
+    pick = same[index % len(same)]
+    return pick, (f"worker {index} of a local cluster: {top.type} device {index % len(same)} of "
+                  f"{len(same)} on {top.platform}")
+
+
+def _matcher(config, max_disp):
+    """This worker's kept matcher for ``config`` and ``max_disp`` (built on first use)."""
+    key = _key(config, max_disp)
+    matcher = _MATCHERS.get(key)
+    if matcher is None:
+        from .opencl.context import ClContext
+        from .pipeline import StereoMatcher
+        dev_key = json.dumps([config["device"], worker_index()])
+        ctx = _CONTEXTS.get(dev_key)
+        if ctx is None:
+            info, reason = worker_device(config["device"], worker_index())
+            log.info("worker %s: %s (%s)", worker_index(), info, reason)
+            ctx = _CONTEXTS[dev_key] = ClContext(info.handle)
+        kwargs = dict(max_disparity=int(max_disp), device=ctx, cost=config["cost"],
+                      volume_dtype=config["volume_dtype"], **config["hyper"])
+        if config.get("min_disparity"):
+            kwargs["min_disparity"] = config["min_disparity"]
+        if config["cost"] == "cnn":
+            kwargs["weights"] = config["weights"]
+        if config["memory_limit"] is not None:
+            kwargs["memory_limit"] = config["memory_limit"]
+        matcher = _MATCHERS[key] = StereoMatcher(**kwargs)
+    return matcher
+
+
+def _where(matcher):
+    return f"worker {worker_index()} ({matcher.ctx.describe()})"
+
+
+def warm(config, max_disp):
+    """Build this worker's matcher (run on every worker before the first pair)."""
+    with _LOCK:
+        return _where(_matcher(config, max_disp))
+
+
+def pair_task(config, job, max_disp, want_confidence) -> PairResult:
+    """Task: match one whole pair on this worker."""
+    with _LOCK:
+        res = compute_pair(job, lambda d: _matcher(config, d), max_disp, want_confidence)
+        res.where = _where(_matcher(config, max_disp))
+    return res
+
+
+def plan_task(config, shape, max_disp, dask_worker=None) -> dict:
+    """Run on every worker: its memory plan for images of ``shape`` (raises
+    InputError when a tile cannot fit its device or its memory limit)."""
+    from .pipeline import MAP_BUFFERS
+    m = _MATCHERS.get(_key(config, max_disp))
+    if m is None:  # normally built by warm(); client.run calls this beside a running task
+        with _LOCK:
+            m = _matcher(config, max_disp)
+    plan = m.memory_plan(shape)  # device facts only: no queue work, no lock needed
+    Hi, Wi = int(shape[0]), int(shape[1])
+    H, W = Hi - 2 * m.margin, Wi - 2 * m.margin
+    # host bytes of one tile task: images (gray, thresholds, standardised) and, for
+    # a network, the tile's volume; on a CPU device its buffers are host memory too
+    ext = max(e1 - e0 for _, _, e0, e1 in plan.tiles)
+    host = 8 * Hi * Wi * 4 + (0 if m.cost.local else max(m.max_disparity * ext * W * m.vdtype.itemsize, 0))
+    if m.ctx.device.type & m.ctx.cl.device_type.CPU:
+        host += max(plan.peak_bytes, MAP_BUFFERS * Hi * Wi * 4)
+    limit = None
+    if dask_worker is not None:
+        limit = getattr(getattr(dask_worker, "memory_manager", None), "memory_limit", None)
+    if limit and host > 0.8 * limit:
+        raise InputError(f"{Wi}x{Hi} with {m.max_disparity} disparities: a tile needs about "
+                         f"{host / 2**20:.0f} MiB of host memory on {_where(m)}, more than 80% of the "
+                         f"worker's memory limit ({limit / 2**20:.0f} MiB); lower --memory-limit (smaller "
+                         "tiles) or give the workers more memory")
+    return {"tiles": [tuple(int(v) for v in t) for t in plan.tiles], "tiled": plan.tiled,
+            "tile_budget": int(plan.tile_budget), "peak": int(plan.peak_bytes), "budget": int(plan.budget),
+            "describe": plan.describe(), "where": _where(m), "margin": m.margin, "H": H, "W": W}
+
+
+def _prepared(m, job):
+    """The pair as :meth:`StereoMatcher.compute` sees it: (I_L, I_R, J_L, J_R)."""
+    from .cli.commands import _gray
+    from .io import read_image
+    I_L, I_R = m._inputs(_gray(read_image(job.left)), _gray(read_image(job.right)))[:2]
+    S_L, S_R = m._threshold_images(I_L, I_R)
+    mg = m.margin
+    H, W = I_L.shape[0] - 2 * mg, I_L.shape[1] - 2 * mg
+    return I_L, I_R, S_L[mg:mg + H, mg:mg + W], S_R[mg:mg + H, mg:mg + W]
+
+
+def tile_task(config, job, max_disp, tile, tile_budget, want_confidence):
+    """Task: one row tile's volume stages (as :meth:`StereoMatcher._tiled_volume_stages`
+    runs them); returns the core rows of (D_SE, confidence, labels)."""
+    from .pipeline import _Recorder
+    from .costs.features import normalise
+    c0, c1, e0, e1 = tile
+    with _LOCK:
+        m = _matcher(config, max_disp)
+        I_L, I_R, J_L, J_R = _prepared(m, job)
+        ctx, mg, D = m.ctx, m.margin, m.max_disparity
+        W = J_L.shape[1]
+        rec = _Recorder(ctx, keep=False, timed=False)
+        rec.range = (0, D)  # split tiles run ranges starting at 0 (match_pairs)
+        rec.wanted = {"confidence", "labels"} if want_confidence else set()
+        rec.tile(c0 - e0, c1 - e0, 0, (c1 - c0, W))
+        m._pool.trim(m.memory_plan(I_L.shape).largest_volume)  # as compute() does
+        if m.cost.local:
+            d_cost = m.cost(I_L[e0:e1 + 2 * mg], I_R[e0:e1 + 2 * mg], D, out=m._take_volume(D, e1 - e0, W))
+        else:  # the network on the tile's rows of the whole image's standardisation
+            Ln, Rn = normalise(I_L), normalise(I_R)
+            host = m.cost.to_host(Ln[e0:e1 + 2 * mg], Rn[e0:e1 + 2 * mg], D, max_bytes=tile_budget,
+                                  normalised=True)
+            d_cost = m._take_volume(D, e1 - e0, W)
+            ctx.cl.enqueue_copy(ctx.queue, d_cost, np.ascontiguousarray(host))
+            del host
+        d_se = m._volume_stages(d_cost, J_L[e0:e1], J_R[e0:e1], rec)
+        del d_cost
+        core = ctx.from_device(d_se, (e1 - e0, W))[c0 - e0:c1 - e0].copy()
+        return core, rec.arrays.get("confidence"), rec.arrays.get("labels")
+
+
+def finish_task(config, job, max_disp, tiles, parts, want_confidence) -> PairResult:
+    """Task: the tiles' D_SE rows assembled, then the image-sized stages (as
+    :meth:`StereoMatcher._run` after its tiles)."""
+    import time
+
+    from .pipeline import _Recorder
+    t0 = time.perf_counter()
+    with _LOCK:
+        m = _matcher(config, max_disp)
+        I_L, _, J_L, _ = _prepared(m, job)
+        Hi, Wi = I_L.shape
+        H, W = J_L.shape
+        D_SE = np.empty((H, W), np.float32)
+        conf = np.empty((H, W), np.float32) if want_confidence else None
+        labels = np.empty((H, W), np.int32) if want_confidence else None
+        for (c0, c1, _, _), (core, c, lab) in zip(tiles, parts):
+            D_SE[c0:c1] = core
+            if want_confidence:
+                conf[c0:c1], labels[c0:c1] = c, lab
+        rec = _Recorder(m.ctx, keep=False, timed=False)
+        rec.range = (0, m.max_disparity)
+        disp = m._map_stages(m.ctx.to_device(D_SE), m.ctx.to_device(I_L), Hi, Wi, rec)
+        res = PairResult(disp, int(max_disp), time.perf_counter() - t0,
+                         where=f"{len(tiles)} row tiles on the workers, assembled on {_where(m)}")
+        if want_confidence:
+            res.confidence, res.labels = (np.pad(a, m.margin, mode="edge") for a in (conf, labels))
+        return res
+
+
+# -- client side -----------------------------------------------------------------
+
+def local_cluster(n_workers: int, **kwargs):
+    """A LocalCluster of ``n_workers`` processes with one thread each (no dashboard)."""
+    from distributed import LocalCluster
+    opts = dict(n_workers=int(n_workers), threads_per_worker=1, processes=True, dashboard_address=None,
+                silence_logs=logging.ERROR)
+    opts.update(kwargs)
+    import warnings
+    with warnings.catch_warnings():  # the scheduler's HTTP routes move off a busy port 8787: nothing to act on
+        warnings.filterwarnings("ignore", message="Port 8787 is already in use")
+        return LocalCluster(**opts)
+
+
+def n_workers(client) -> int:
+    return len(client.scheduler_info()["workers"])
+
+
+def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_tiles=None, progress=False):
+    """Match ``jobs`` (:class:`mccnn_cl.batch.Job`) on ``client``'s workers;
+    yields ``(job, PairResult)`` or ``(job, exception)`` as pairs complete.
+
+    ``split_tiles``: run the row tiles of a pair whose plan is tiled as tasks of
+    their own (module docstring); None: when there are fewer pairs than workers.
+    Closing the generator early (or an interrupt) cancels the pairs not done."""
+    from distributed import as_completed
+
+    from .io import read_image
+    workers = max(1, n_workers(client))
+    if config.get("min_disparity"):
+        if split_tiles:
+            raise InputError("row tiles over several workers search disparities from 0: "
+                             "--split-tiles cannot be combined with --min-disp")
+        split_tiles = False  # a range not starting at 0 runs whole pairs (StereoMatcher.compute's frame)
+    if split_tiles is None:
+        split_tiles = len(jobs) < workers
+    client.run(warm, config, max_disp)  # every worker builds its matcher now, in parallel
+    owner, futures, tile_futures = {}, [], []
+    failed_early = []
+    for job in jobs:
+        if split_tiles:
+            try:
+                shape = read_image(job.left).shape[:2]
+                plans = client.run(plan_task, config, shape, max_disp)
+            except Exception as exc:  # noqa: BLE001 - this pair fails, before any of its work
+                failed_early.append((job, exc))
+                continue
+            plan = max(plans.values(), key=lambda p: len(p["tiles"]))
+            if plan["tiled"] and len(plan["tiles"]) > 1:
+                log.info("%s: %s; %d tiles over %d workers", job.name, plan["describe"], len(plan["tiles"]), workers)
+                parts = [client.submit(tile_task, config, job, max_disp, t, plan["tile_budget"], want_confidence,
+                                       pure=False, key=f"tile-{job.name}-{i}-{os.urandom(4).hex()}")
+                         for i, t in enumerate(plan["tiles"])]
+                tile_futures += parts
+                fut = client.submit(finish_task, config, job, max_disp, plan["tiles"], parts, want_confidence,
+                                    pure=False)
+                owner[fut.key] = job
+                futures.append(fut)
+                continue
+        fut = client.submit(pair_task, config, job, max_disp, want_confidence, pure=False)
+        owner[fut.key] = job
+        futures.append(fut)
+    for job, exc in failed_early:
+        yield job, exc
+    bars = []
+    if progress:
+        from tqdm import tqdm
+        bars.append(tqdm(total=len(futures), unit="pair", desc="matching", disable=None))
+        if tile_futures:
+            bars.append(tqdm(total=len(tile_futures), unit="tile", desc="tiles", disable=None, position=1))
+    done = set()
+    try:
+        for fut in as_completed(futures + tile_futures):
+            if fut.key not in owner:
+                if len(bars) > 1:
+                    bars[1].update(1)
+                continue
+            job = owner[fut.key]
+            exc = fut.exception()
+            outcome = exc if exc is not None else fut.result()
+            done.add(fut.key)
+            if bars:
+                bars[0].update(1)
+            yield job, outcome
+            fut.release()
+    finally:
+        pending = [f for f in futures + tile_futures if f.key not in done and not f.done()]
+        if pending:
+            client.cancel(pending)
+        for b in bars:
+            b.close()
+
+
+def _single_job(args):
+    """The one pair of ``match LEFT RIGHT -o OUT --workers N`` as a :class:`Job` (checked as the one-process path)."""
+    from .cli.commands import DISPARITY_FORMATS, _check_outputs, _confidence_outputs, _side_outputs
+    if args.left is None or args.right is None or args.output is None:
+        raise InputError("match needs LEFT RIGHT and -o OUT")
+    if args.output_dir:
+        raise InputError("--output-dir is for batches (-l/-r); use -o for one pair")
+    for f in (args.left, args.right):
+        if not os.path.isfile(f):
+            raise InputError(f"file not found: {f}")
+    out = args.output
+    if os.path.splitext(out)[1].lower() not in DISPARITY_FORMATS:
+        raise InputError(f"{out}: output must end in {', '.join(DISPARITY_FORMATS)}")
+    color, depth, ply = _side_outputs(out, args)
+    if color is not None and not color.lower().endswith((".png", ".jpg", ".jpeg", ".bmp")):
+        raise InputError(f"{color}: the colour picture must be a .png/.jpg/.bmp file")
+    sides = [p for p in (color, *_confidence_outputs(out, args), depth, ply) if p is not None]
+    _check_outputs([*sides, out], args.force)
+    return Job(os.path.splitext(os.path.basename(out))[0], args.left, args.right, out, sides)
+
+
+def run(args, single: bool) -> int:
+    """``mccnn-cl match`` with ``--workers N`` (a LocalCluster) or ``--scheduler ADDRESS``."""
+    from .batch import prepare
+    from .cli.commands import _hyperparameters, _load_weights, _say
+    if args.workers is not None and args.scheduler is not None:
+        raise InputError("give --workers N (a cluster on this machine) or --scheduler ADDRESS, not both")
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers must be >= 1, got {args.workers}")
+    if single:
+        if getattr(args, "resume", False):
+            raise InputError("--resume is for batches")
+        calib = None
+        if args.calib:
+            from .depth import read_calib
+            calib = read_calib(args.calib)
+            calib.require_depth()
+        todo, skipped = [_single_job(args)], []
+    else:
+        todo, skipped, calib = prepare(args)
+    _load_weights(args)  # a bad weights file fails here, before any cluster starts
+    limit = None
+    if args.memory_limit is not None:
+        if not args.memory_limit > 0:
+            raise InputError(f"--memory-limit must be a positive number of MiB, got {args.memory_limit:g}")
+        limit = int(args.memory_limit * 2**20)
+    from .batch import min_disp
+    config = matcher_config(args.cost, args.weights, args.device, limit, args.volume_dtype,
+                            min_disparity=min_disp(args), **_hyperparameters(args.hyper))
+    max_disp = default_max_disp(args, calib)
+    want = args.confidence is not None or args.labels is not None
+    summary = Summary(skipped=[j.name for j in skipped])
+    if todo:
+        from distributed import Client
+        cluster = local_cluster(args.workers) if args.workers is not None else None
+        try:
+            with Client(cluster if cluster is not None else args.scheduler) as client:
+                _say(f"dask: {n_workers(client)} workers ({'local' if cluster else args.scheduler}), "
+                     f"{len(todo)} pair(s)" + (f", {len(skipped)} complete, skipped" if skipped else ""))
+                for job, outcome in match_pairs(client, todo, config, max_disp, want,
+                                                 split_tiles=True if args.split_tiles else None, progress=True):
+                    if isinstance(outcome, BaseException):
+                        if single:
+                            raise outcome
+                        reason, bad = describe_failure(outcome)
+                        summary.failed.append((job.name, reason, bad))
+                        _say(f"{job.name}: failed: {reason}")
+                        continue
+                    write_pair(job, outcome, args, calib)
+                    summary.done.append(job.name)
+                    if args.verbose or single:
+                        fin = np.isfinite(outcome.disparity)
+                        _say(f"{job.out}: {outcome.disparity.shape[1]}x{outcome.disparity.shape[0]}, "
+                             f"{outcome.max_disp} disparities, {fin.mean():.1%} valid, {outcome.where}")
+        finally:
+            if cluster is not None:
+                cluster.close()
+    if single:
+        return 0
+    summary.report()
+    return summary.exit_status()

@@ -1,0 +1,335 @@
+"""Batches of pairs (pairing by name, failures, --resume, interrupts) in one
+process and on a Dask cluster (a LocalCluster of 2 worker processes on PoCL),
+and a tiled pair split over the workers.
+
+Census cost, small disparity ranges and crops of the shared KITTI frames keep
+each run to seconds.  Outputs of the Dask path are compared byte for byte with
+the one-process batch's, and the tiled pair's maps bit for bit with
+:meth:`StereoMatcher.compute`'s tiled run.
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from mccnn_cl.batch import Job, Outputs, pair_globs, write_pair
+from mccnn_cl.cli import main
+from mccnn_cl.cli.commands import IMAGE_EXTENSIONS, _gray
+from mccnn_cl.errors import InputError
+from mccnn_cl.io import read_image, write_image
+
+from distributed import Client
+
+from mccnn_cl import distributed as dd
+
+FRAMES = ("000000", "000001", "e00001", "e00002", "e00003", "e00004")
+D = 24
+COMMON = ["--cost", "census", "--max-disp", str(D)]
+
+
+def frame_crop(src, side, i, rows, x0, width):
+    """Frame FRAMES[i]'s crop; with only the bundled frame 000000 (tests/data), a
+    crop of 000000 at another column instead, so that every pair differs."""
+    p = src / side / f"{FRAMES[i]}_10.png"
+    if p.exists():
+        return read_image(p)[rows, x0:x0 + width]
+    img = read_image(src / side / "000000_10.png")
+    x = [400, 20, 110, 200, 290, 380][i] if width <= 200 else [400, 300, 200, 100][i]
+    return img[rows, x:x + width]
+
+
+@pytest.fixture(scope="module")
+def kitti(shared_data, tmp_path_factory):
+    """image_2/NAME_10.png and image_3/NAME_10.png: 96 x 200 crops of six KITTI 2015 frames
+    (or, with the bundled data only, of six windows of frame 000000)."""
+    d = tmp_path_factory.mktemp("kitti")
+    src = shared_data / "kitti2015/training"
+    for side in ("image_2", "image_3"):
+        (d / side).mkdir()
+        for i, f in enumerate(FRAMES):
+            write_image(d / side / f"{f}_10.png", frame_crop(src, side, i, slice(250, 346), 400, 200))
+    return d
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A LocalCluster of 2 worker processes (1 thread each) and its client."""
+    with dd.local_cluster(2) as c, Client(c) as client:
+        yield client
+
+
+def glob_args(kitti):
+    return ["-l", str(kitti / "image_2/*.png"), "-r", str(kitti / "image_3/*.png")]
+
+
+def files(d):
+    return {p: (d / p).read_bytes() for p in sorted(os.listdir(d))}
+
+
+@pytest.fixture(scope="module")
+def reference(kitti, tmp_path_factory):
+    """The one-process batch's outputs (disparity, colour, confidence, labels) of the six pairs."""
+    out = tmp_path_factory.mktemp("reference")
+    assert main(["match", *glob_args(kitti), "--output-dir", str(out), "--color", "--confidence",
+                 "--labels", *COMMON]) == 0
+    return out
+
+
+def test_batch_on_cluster_equals_one_process(kitti, reference, cluster, tmp_path, capsys):
+    ref = files(reference)
+    assert len(ref) == 4 * len(FRAMES) and f"{FRAMES[0]}_10.pfm" in ref
+    out = tmp_path / "out"
+    rc = main(["match", *glob_args(kitti), "--output-dir", str(out), "--color", "--confidence", "--labels",
+               "--scheduler", cluster.scheduler.address, *COMMON])
+    assert rc == 0
+    assert files(out) == ref  # byte for byte
+    assert f"done {len(FRAMES)}, skipped 0" in capsys.readouterr().out
+
+
+@pytest.mark.slow  # ~15-25 s here: a fresh process starts a cluster
+def test_cli_workers_two(kitti, reference, tmp_path):
+    """The README's line, in a fresh process: a LocalCluster of 2 workers."""
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "mccnn_cl", "match", *glob_args(kitti), "--output-dir", str(out),
+                        "--workers", "2", *COMMON], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert "dask: 2 workers (local)" in p.stdout
+    for f in FRAMES:
+        assert (out / f"{f}_10.pfm").read_bytes() == (reference / f"{f}_10.pfm").read_bytes()
+
+
+def test_unpartnered_names_refused(kitti, reference, cluster, tmp_path, capsys):
+    """L = {a, b, d, e}, R = {a, c, d, f}: listed and refused before any work, in both paths."""
+    for side, names in (("l", "abde"), ("r", "acdf")):
+        (tmp_path / side).mkdir()
+        for n in names:
+            os.link(kitti / "image_2" / f"{FRAMES[0]}_10.png", tmp_path / side / f"{n}.png")
+    for extra in ([], ["--scheduler", cluster.scheduler.address]):
+        out = tmp_path / f"out{len(extra)}"
+        rc = main(["match", "-l", str(tmp_path / "l/*.png"), "-r", str(tmp_path / "r"), "--output-dir", str(out),
+                   *extra, *COMMON])
+        err = capsys.readouterr().err
+        assert rc == 2
+        assert "2 left image(s) without a right partner" in err and "2 right image(s) without a left partner" in err
+        for n in ("b.png", "e.png", "c.png", "f.png"):
+            assert n in err
+        assert not out.exists() or not os.listdir(out)
+
+
+def test_pairing_by_wildcard_text(tmp_path):
+    (tmp_path / "cam").mkdir()
+    for n in ("L0001.png", "R0001.png", "L0002.png", "R0002.png"):
+        (tmp_path / "cam" / n).write_bytes(b"")
+    pairs = pair_globs(str(tmp_path / "cam/L*.png"), str(tmp_path / "cam/R*.png"), IMAGE_EXTENSIONS)
+    assert [(n, os.path.basename(lp), os.path.basename(rp)) for n, lp, rp in pairs] == [
+        ("L0001", "L0001.png", "R0001.png"), ("L0002", "L0002.png", "R0002.png")]
+
+
+def test_folder_layout(kitti, reference, cluster, tmp_path, capsys):
+    """im0/im1 in one folder per scene: --pairs-dir and the */im0.png glob give the same outputs."""
+    root = tmp_path / "scenes"
+    for f in FRAMES[:3]:
+        (root / f"S{f}").mkdir(parents=True)
+        os.link(kitti / "image_2" / f"{f}_10.png", root / f"S{f}" / "im0.png")
+        os.link(kitti / "image_3" / f"{f}_10.png", root / f"S{f}" / "im1.png")
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["match", "--pairs-dir", str(root), "--output-dir", str(a), *COMMON]) == 0
+    assert main(["match", "-l", str(root / "*/im0.png"), "-r", str(root / "*/im1.png"), "--output-dir", str(b),
+                 "--scheduler", cluster.scheduler.address, *COMMON]) == 0
+    assert sorted(os.listdir(a)) == [f"S{f}.pfm" for f in FRAMES[:3]]
+    assert files(a) == files(b)
+    for f in FRAMES[:3]:
+        assert (a / f"S{f}.pfm").read_bytes() == (reference / f"{f}_10.pfm").read_bytes()
+    (root / "lonely").mkdir()
+    os.link(kitti / "image_2" / f"{FRAMES[0]}_10.png", root / "lonely" / "im0.png")
+    capsys.readouterr()
+    assert main(["match", "--pairs-dir", str(root), "--output-dir", str(tmp_path / "c"), *COMMON]) == 2
+    assert "lonely/im0.png" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("where", ["one process", "cluster"])
+def test_failing_pairs_reported_others_written(kitti, reference, cluster, tmp_path, capsys, where):
+    for side in ("l", "r"):
+        (tmp_path / side).mkdir()
+        for f in FRAMES[:2]:
+            os.link(kitti / ("image_2" if side == "l" else "image_3") / f"{f}_10.png", tmp_path / side / f"{f}.png")
+    (tmp_path / "l/corrupt.png").write_bytes(b"not a png")
+    os.link(kitti / f"image_3/{FRAMES[2]}_10.png", tmp_path / "r/corrupt.png")
+    write_image(tmp_path / "l/sizes.png", read_image(kitti / f"image_2/{FRAMES[3]}_10.png"))
+    write_image(tmp_path / "r/sizes.png", read_image(kitti / f"image_3/{FRAMES[3]}_10.png")[:, :150])
+    out = tmp_path / "out"
+    extra = ["--scheduler", cluster.scheduler.address] if where == "cluster" else []
+    rc = main(["match", "-l", str(tmp_path / "l"), "-r", str(tmp_path / "r"), "--output-dir", str(out),
+               *extra, *COMMON])
+    so = capsys.readouterr().out
+    assert rc == 2  # every failure is bad input
+    assert "done 2, skipped 0 (outputs complete), failed 2" in so
+    assert "failed corrupt:" in so and "corrupt.png" in so
+    assert "failed sizes:" in so and "differ" in so
+    assert sorted(os.listdir(out)) == [f"{f}.pfm" for f in FRAMES[:2]]
+    for f in FRAMES[:2]:
+        assert (out / f"{f}.pfm").read_bytes() == (reference / f"{f}_10.pfm").read_bytes()
+
+
+@pytest.mark.parametrize("where", ["one process", "cluster"])
+def test_resume_writes_only_missing(kitti, reference, cluster, tmp_path, capsys, where):
+    out = tmp_path / "out"
+    args = ["match", *glob_args(kitti), "--output-dir", str(out), "--color", "--confidence", "--labels", *COMMON]
+    assert main(args) == 0
+    # an interrupted run: pair 0 lost its disparity map (its side files remain), pair 1 everything
+    os.unlink(out / f"{FRAMES[0]}_10.pfm")
+    for p in os.listdir(out):
+        if p.startswith(FRAMES[1]):
+            os.unlink(out / p)
+    os.utime(out / f"{FRAMES[0]}_10_color.png", (1, 1))
+    before = {p: os.stat(out / p).st_mtime_ns for p in os.listdir(out)}
+    capsys.readouterr()
+    assert main(args) == 2  # without --resume: refused, nothing overwritten
+    assert "exists" in capsys.readouterr().err
+    extra = ["--scheduler", cluster.scheduler.address] if where == "cluster" else []
+    assert main(args + ["--resume"] + extra) == 0
+    assert f"done 2, skipped {len(FRAMES) - 2}" in capsys.readouterr().out
+    assert files(out) == files(reference)
+    after = {p: os.stat(out / p).st_mtime_ns for p in os.listdir(out)}
+    rewritten = {p for p in after if before.get(p) != after[p]}
+    assert rewritten == {p for p in after if p.startswith((FRAMES[0], FRAMES[1]))}
+
+
+def test_interrupt_leaves_complete_pairs_only(kitti, reference, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while a pair is written: its side files go, earlier pairs stay whole;
+    --resume then writes only the missing pairs."""
+    import mccnn_cl.cli.commands as commands
+    real, calls = commands.write_disparity, []
+
+    def interrupted(path, disp):
+        calls.append(path)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        real(path, disp)
+
+    monkeypatch.setattr(commands, "write_disparity", interrupted)
+    out = tmp_path / "out"
+    assert main(["match", *glob_args(kitti), "--output-dir", str(out), "--color", "--confidence", *COMMON]) == 130
+    first = sorted(f"{FRAMES[0]}_10{s}" for s in (".pfm", "_color.png", "_confidence.pfm"))
+    assert sorted(os.listdir(out)) == first
+    monkeypatch.setattr(commands, "write_disparity", real)
+    before = {p: os.stat(out / p).st_mtime_ns for p in first}
+    capsys.readouterr()
+    assert main(["match", *glob_args(kitti), "--output-dir", str(out), "--color", "--confidence", "--resume",
+                 *COMMON]) == 0
+    assert f"done {len(FRAMES) - 1}, skipped 1" in capsys.readouterr().out
+    assert {p: os.stat(out / p).st_mtime_ns for p in first} == before
+    ref = files(reference)
+    assert files(out) == {p: b for p, b in ref.items() if not p.endswith("_labels.png")}
+
+
+def test_killed_worker_work_redone(kitti, reference, cluster, tmp_path):
+    """SIGKILL a worker while it holds a pair: every pair still completes, outputs identical."""
+    pids = cluster.run(os.getpid)
+    jobs = [Job(f, str(kitti / f"image_2/{f}_10.png"), str(kitti / f"image_3/{f}_10.png"),
+                str(tmp_path / f"{f}_10.pfm")) for f in FRAMES]
+    config = dd.matcher_config(cost="census")
+    killed = {}
+
+    def killer():
+        deadline = time.time() + 60
+        while time.time() < deadline and not killed:
+            for addr, keys in cluster.processing().items():
+                if any("pair_task" in str(k) for k in keys) and addr in pids:
+                    killed[addr] = list(keys)
+                    os.kill(pids[addr], signal.SIGKILL)
+                    return
+            time.sleep(0.005)
+
+    t = threading.Thread(target=killer)
+    t.start()
+    results = []
+    for job, res in dd.match_pairs(cluster, jobs, config, D):
+        assert not isinstance(res, BaseException), res
+        write_pair(job, res, Outputs(), None)
+        results.append(job.name)
+    t.join()
+    assert killed, "no worker was caught holding a pair"
+    assert sorted(results) == sorted(FRAMES)
+    for f in FRAMES:
+        assert (tmp_path / f"{f}_10.pfm").read_bytes() == (reference / f"{f}_10.pfm").read_bytes()
+    cluster.wait_for_workers(2, timeout=60)  # the nanny restarts the killed worker for later tests
+
+
+def _tall_pair(shared_data, tmp_path, width=200):
+    """Four KITTI frames' 375-row crops stacked: a tall pair the planner cuts in row tiles."""
+    src = shared_data / "kitti2015/training"
+    paths = []
+    for side, name in (("image_2", "L.png"), ("image_3", "R.png")):
+        img = np.vstack([frame_crop(src, side, i, slice(0, 370), 400, width) for i in range(4)])
+        write_image(tmp_path / name, img)
+        paths.append(str(tmp_path / name))
+    return Job("tall", paths[0], paths[1], str(tmp_path / "tall.pfm"))
+
+
+def _limit_for_tiles(matcher, shape, tiles):
+    """A memory_limit (bytes) whose plan has at least ``tiles`` row tiles."""
+    whole = matcher.memory_plan(shape).peak_bytes
+    for frac in np.linspace(0.9, 0.1, 33):
+        matcher.memory_limit = int(whole * frac)
+        try:
+            if len(matcher.memory_plan(shape).tiles) >= tiles:
+                return matcher.memory_limit
+        except InputError:
+            break
+    raise AssertionError("no memory limit gives the tiles")
+
+
+def _split_equals_tiled_run(job, cluster, cost, weights, D, tiles):
+    from mccnn_cl.pipeline import StereoMatcher
+    m = StereoMatcher(cost=cost, weights=weights, max_disparity=D)
+    L, R = _gray(read_image(job.left)), _gray(read_image(job.right))
+    m.memory_limit = limit = _limit_for_tiles(m, L.shape, tiles)
+    ref = m.compute(L, R, confidence=True)
+    assert ref.plan.tiled and len(ref.plan.tiles) >= tiles
+    config = dd.matcher_config(cost=cost, weights=weights, memory_limit=limit)
+    [(got_job, res)] = list(dd.match_pairs(cluster, [job], config, D, want_confidence=True, split_tiles=True))
+    assert not isinstance(res, BaseException), res
+    for a, b in ((ref.disparity, res.disparity), (ref.confidence, res.confidence), (ref.labels, res.labels)):
+        assert a.shape == b.shape
+        np.testing.assert_array_equal(a, b)  # bit for bit (NaN where NaN)
+    return limit
+
+
+def test_huge_image_split_over_workers_equals_tiled_run(shared_data, cluster, tmp_path):
+    job = _tall_pair(shared_data, tmp_path)
+    limit = _split_equals_tiled_run(job, cluster, "census", None, 32, tiles=4)
+    # a tile that cannot fit is an error before any tile runs
+    config = dd.matcher_config(cost="census", memory_limit=limit // 8)
+    [(_, res)] = list(dd.match_pairs(cluster, [job], config, 32, split_tiles=True))
+    assert isinstance(res, InputError) and "does not fit" in str(res)
+
+
+@pytest.mark.slow
+def test_huge_image_split_network_cost(shared_data, cluster, tmp_path):
+    """The network's volume per tile from the whole image's standardisation: bit for bit too."""
+    job = _tall_pair(shared_data, tmp_path, width=260)
+    _split_equals_tiled_run(job, cluster, "cnn", "kitti-fst", 200, tiles=2)
+
+
+def test_worker_devices(monkeypatch, capsys):
+    """LocalCluster worker i takes device i of the preferred kind; --device pins every worker."""
+    import mccnn_cl.opencl.context as cl
+    gpus = [cl.DeviceInfo(0, i, "NVIDIA CUDA", "OpenCL 3.0", f"GPU {i}", "GPU", f"gpu{i}") for i in range(3)]
+    cpu = cl.DeviceInfo(1, 0, "Portable Computing Language", "OpenCL 3.0", "cpu", "CPU", "cpu")
+    monkeypatch.setattr(cl, "list_devices", lambda: [*gpus, cpu])
+    monkeypatch.delenv("PYOPENCL_CTX", raising=False)
+    assert [dd.worker_device(None, i)[0].device for i in range(5)] == ["GPU 0", "GPU 1", "GPU 2", "GPU 0", "GPU 1"]
+    assert dd.worker_device(None, None)[0].device == "GPU 0"  # not a LocalCluster worker: the default choice
+    monkeypatch.setattr(cl, "select_device", lambda spec=None: ("cpu", f"argument {spec!r}"))
+    assert [dd.worker_device("cpu", i)[0].device for i in range(2)] == ["cpu", "cpu"]
+    monkeypatch.undo()
+    assert main(["devices", "--workers", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "worker 0: " in out and "worker 1: " in out
