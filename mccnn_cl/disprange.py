@@ -51,9 +51,9 @@ AUTO_SCALE = 4
 #: Coarse window, as fractions of the image width: -W/4 .. W/2.
 AUTO_WINDOW = (0.25, 0.5)
 #: Fraction of the coarse pass's consistent pixels left out at each end.
-AUTO_TRIM = 0.002
+AUTO_TRIM = 0.0005
 #: Margin added on each side: max(AUTO_MARGIN[0] px, AUTO_MARGIN[1] x the span).
-AUTO_MARGIN = (8, 0.1)
+AUTO_MARGIN = (16, 0.2)
 
 
 def check_min_disparity(value) -> int:

@@ -411,7 +411,8 @@ class StereoMatcher:
         rec = _Recorder(self.ctx, keep=return_intermediates, timed=return_intermediates or timings)
         rec.wanted = {"confidence", "labels"} if confidence else set()
         rec.range = (M, D)
-        plan = self.memory_plan(I_L.shape, D, M)
+        own = (M, D) == (self.min_disparity, self.max_disparity)  # the matcher's own range
+        plan = self.memory_plan(I_L.shape) if own else self.memory_plan(I_L.shape, D, M)
         self._pool.trim(plan.largest_volume)  # kept volumes of another size are freed
         self.ctx.memory.reset_peak()
         # buffers alive before the call (weights, other matchers' ...), less the

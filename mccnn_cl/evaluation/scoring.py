@@ -195,23 +195,26 @@ def format_table(results, mean=None) -> str:
     name_w = max([len("pair")] + [len(r["pair"]) for r in results] + [len("mean")])
     cell = 5
     group = len(methods) * (cell + 1) - 1
-    head1 = f"{'':<{name_w}}  {'D':>4}  {'training':<8}"
-    head2 = f"{'pair':<{name_w}}  {'':>4}  {'':<8}"
+    def shown(r):  # the range searched: D levels from 0, else MIN..MAX
+        rng = r.get("disparity_range")
+        return f"{rng[0]}..{rng[1]}" if rng and (rng[0] != 0 or r.get("auto")) else str(r["max_disparity"])
+
+    dw = max([4] + [len(shown(r)) for r in results])
+    head1 = f"{'':<{name_w}}  {'D':>{dw}}  {'training':<8}"
+    head2 = f"{'pair':<{name_w}}  {'':>{dw}}  {'':<8}"
     for _, title in _COLUMNS:
         head1 += "  " + f"{title:^{group}}"
         head2 += "  " + " ".join(f"{_SHORT[m]:>{cell}}" for m in methods)
     lines = [head1, head2, "-" * len(head2)]
 
     def row(label, d, status, per_method):
-        s = f"{label:<{name_w}}  {d:>4}  {status:<8}"
+        s = f"{label:<{name_w}}  {d:>{dw}}  {status:<8}"
         for key, _ in _COLUMNS:
             s += "  " + " ".join(f"{_fmt(per_method.get(m, {}).get(key), key, cell):>{cell}}" for m in methods)
         return s
 
     for r in results:
-        rng = r.get("disparity_range")
-        shown = (f"{rng[0]}..{rng[1]}" if rng and (rng[0] != 0 or r.get("auto")) else str(r["max_disparity"]))
-        lines.append(row(r["pair"], shown, r["training"], r["methods"]))
+        lines.append(row(r["pair"], shown(r), r["training"], r["methods"]))
     if mean is not None and len(results) > 1:
         lines.append("-" * len(head2))
         lines.append(row("mean", "", "", mean))
