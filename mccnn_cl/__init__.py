@@ -9,6 +9,7 @@ __version__ = "0.1.0"
 
 from .errors import (  # noqa: F401
     MccnnError,
+    InputWarning,
     InputError,
     WeightsError,
     OpenCLError,

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -33,7 +34,7 @@ import numpy as np
 from .cl import BufferPool, ClContext
 from .errors import InputError, WeightsError
 from .imageops import to_gray  # noqa: F401 (also importable from here)
-from .validate import PATCH, check_disparity_range, check_hyperparameters, check_pair  # noqa: F401 (PATCH re-exported)
+from .validate import PATCH, check_disparity_range, check_hyperparameters, check_pair, check_settings  # noqa: F401 (PATCH re-exported)
 from .stages.costs import make_cost
 from .stages.features import normalise
 from .stages.cross import CrossArms, max_arm
@@ -280,12 +281,7 @@ class StereoMatcher:
             raise InputError("weights are for cost='cnn'; cost='census' uses no network (drop weights= or the cost)")
         # the network's own settings (Weights.stereo), then the caller's explicit overrides
         self.weights = _resolve_weights(weights) if cost == "cnn" else None
-        settings = self.weights.stereo if self.weights is not None else {}
-        bad = sorted(set(settings) - set(Hyperparameters.names()))
-        if bad:
-            raise WeightsError(f"the weights' stereo settings name unknown hyperparameter(s) {', '.join(bad)}")
-        settings.update(hyperparameters)
-        self.params = Hyperparameters(**settings)
+        self.params = check_settings(self.weights, hyperparameters, "the weights")
         self.max_disparity = check_disparity_range(max_disparity)
         self.cost_name = cost
         self.progress = bool(progress)
@@ -326,6 +322,9 @@ class StereoMatcher:
         self.bilateral = BilateralFilter(ctx)
         # cost volumes are reused between stages and calls (see release_buffers)
         self._pool = BufferPool(ctx)
+        # one compute at a time: the kept volumes, the cost's scratch and the
+        # queue are shared by every call (see compute, "Threads")
+        self._lock = threading.RLock()
 
     @property
     def cost_floor(self) -> float:
@@ -340,18 +339,19 @@ class StereoMatcher:
         page mapping; ~0.6 s per call on the KITTI pair on PoCL).  Calls of
         another size free them on their own.  The cost's kept scratch (the
         networks' conv maps) is freed too."""
-        self._pool.clear()
-        self.cost.release_buffers()
+        with self._lock:
+            self._pool.clear()
+            self.cost.release_buffers()
 
     # -- input checks ------------------------------------------------------
-    def _inputs(self, left, right):
-        I_L, I_R = to_gray(left, "left"), to_gray(right, "right")
+    def _inputs(self, left, right, bit_depth=None):
+        I_L, I_R = to_gray(left, "left", bit_depth), to_gray(right, "right", bit_depth)
         check_pair(I_L, I_R, self.max_disparity, 2 * self.margin + 1)
         return I_L, I_R
 
     # -- the method ----------------------------------------------------------
     def compute(self, left, right, return_intermediates: bool = False, timings: bool = False,
-                confidence: bool = False):
+                confidence: bool = False, bit_depth: int | None = None):
         """Disparity map (float32, the left image's size, pixels) of a rectified pair.
 
         ``return_intermediates``: return a :class:`StereoResult` with every
@@ -359,8 +359,19 @@ class StereoMatcher:
         :class:`StereoResult` with per-stage times only (no copies).
         ``confidence``: return a :class:`StereoResult` whose ``confidence``
         and ``labels`` are set (computed on the final volume C; also tiled).
+        ``bit_depth``: significant bits of integer images (e.g. 12 for 12-bit
+        data in uint16; :func:`mccnn_cl.imageops.to_gray`).
+
+        Threads: one matcher serialises its calls (a lock held for the whole
+        call): calls from several threads return the results each would get
+        alone, one after the other.  For parallel work give each thread its
+        own matcher (the device's queue is per matcher's context).
         """
-        I_L, I_R = self._inputs(left, right)
+        with self._lock:
+            return self._compute(left, right, return_intermediates, timings, confidence, bit_depth)
+
+    def _compute(self, left, right, return_intermediates, timings, confidence, bit_depth):
+        I_L, I_R = self._inputs(left, right, bit_depth)
         rec = _Recorder(self.ctx, keep=return_intermediates, timed=return_intermediates or timings)
         rec.wanted = {"confidence", "labels"} if confidence else set()
         plan = self.memory_plan(I_L.shape)
@@ -618,6 +629,7 @@ class _Recorder:
         self._tile = None if r0 is None else (r0, r1, y0, full)
 
     def __call__(self, name, buf, shape=None, dtype=np.float32):
+        self.ctx.pace()  # about two stages queued ahead at most: Ctrl-C answers within a stage's time
         if self.timed:
             self.ctx.finish()
             now = time.perf_counter()
