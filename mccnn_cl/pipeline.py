@@ -373,7 +373,7 @@ class StereoMatcher:
     def _compute(self, left, right, return_intermediates, timings, confidence, bit_depth):
         I_L, I_R = self._inputs(left, right, bit_depth)
         rec = _Recorder(self.ctx, keep=return_intermediates, timed=return_intermediates or timings)
-        rec.wanted = {"confidence", "labels"} if confidence else set()
+        rec.wanted = {"confidence", "labels"} if confidence else {"labels"}  # labels: check_swapped
         plan = self.memory_plan(I_L.shape)
         self._pool.trim(plan.largest_volume)  # kept volumes of another size are freed
         self.ctx.memory.reset_peak()
@@ -381,6 +381,8 @@ class StereoMatcher:
         # kept volumes this call reuses (they count in its peak)
         base = self.ctx.memory.live - self._pool.free_bytes
         out = self._run(I_L, I_R, rec, plan)
+        labels = rec.arrays["labels"] if (confidence or return_intermediates) else rec.arrays.pop("labels")
+        check_swapped(labels, out)
         if not (return_intermediates or timings or confidence):
             return out
         res = StereoResult(out, rec.arrays, rec.times, self.margin, rec.plan, self.ctx.memory.peak - base)
@@ -601,6 +603,40 @@ class StereoMatcher:
             band_budget = max(row, budget - maps - scratch)
             peak = max(peak, min(band_budget, row * H) + scratch + maps)
         return MemoryPlan(row * H, nvol, peak, budget, tiles, overlap, host, band_budget, True)
+
+
+#: Thresholds of :func:`check_swapped`, measured on real pairs of
+#: ../shared/data in both orders (docs/method.md, "Swapped pairs"): with the
+#: correct order the left-right check labels at most 9 % of the pixels
+#: mismatch and at most 33 % of the map lies below 1.5 px; swapped, either
+#: over 20 % mismatch (large disparities) or over 5 % mismatch with more than
+#: half of the map below 1.5 px (small disparities: the minima pile up at d = 0,
+#: the nearest candidate to the true negative disparity).
+SWAP_MISMATCH = 0.2
+SWAP_MISMATCH_NEAR = 0.04
+SWAP_NEAR_ZERO = 0.5
+
+
+def check_swapped(labels, disparity) -> bool:
+    """Warn (:class:`~mccnn_cl.errors.InputWarning`, naming the likely cause)
+    when the left-right labels (1 = mismatch) and the disparity map look like a
+    swapped pair: its true disparities are negative, outside the searched
+    0 .. D-1, so the two references disagree on many pixels and the minima
+    gather at the range's near end.  Returns whether it warned."""
+    labels, disparity = np.asarray(labels), np.asarray(disparity)
+    if not labels.size or not disparity.size:
+        return False
+    mismatch = float(np.mean(labels == 1))
+    near = float(np.mean(disparity < 1.5))
+    if mismatch > SWAP_MISMATCH or (mismatch > SWAP_MISMATCH_NEAR and near > SWAP_NEAR_ZERO):
+        import warnings
+
+        from .errors import InputWarning
+        warnings.warn(f"the left-right check failed on {mismatch:.0%} of the pixels and {near:.0%} of the map is "
+                      "below 1.5 px: are the left and right images swapped? (else: the pair is not rectified, "
+                      "or the disparity range is too small)", InputWarning, stacklevel=4)
+        return True
+    return False
 
 
 class _Recorder:
