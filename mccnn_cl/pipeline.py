@@ -607,7 +607,7 @@ class StereoMatcher:
 
 #: Thresholds of :func:`check_swapped`, measured on real pairs of
 #: ../shared/data in both orders (docs/method.md, "Swapped pairs"): with the
-#: correct order the left-right check labels at most 9 % of the pixels
+#: correct order the left-right check labels at most 10.3 % of the pixels
 #: mismatch and at most 33 % of the map lies below 1.5 px; swapped, either
 #: over 20 % mismatch (large disparities) or over 5 % mismatch with more than
 #: half of the map below 1.5 px (small disparities: the minima pile up at d = 0,
