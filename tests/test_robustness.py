@@ -329,3 +329,50 @@ def test_stale_temporary_files_are_removed_at_the_next_write(tmp_path):
     write_ply(tmp_path / "other.ply", np.zeros((3, 3), np.float32))
     left = sorted(os.listdir(tmp_path))
     assert left == sorted(["other.ply", mine.name]), left
+
+
+# -- 12: the docs' examples run as written ------------------------------------------------
+
+def doc_error_examples():
+    """(command, expected stderr line) of docs/cli.md's error examples (the block under "Exit status")."""
+    text = (Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
+    lines = text.splitlines()
+    out = []
+    for i, line in enumerate(lines[:-1]):
+        if line.startswith("$ mccnn-cl ") and lines[i + 1].startswith("mccnn-cl: error:"):
+            out.append((line[2:].split("  #")[0].strip(), lines[i + 1]))
+    return out
+
+
+def test_docs_error_examples_run_as_written(tmp_path, shared_data):
+    """Each documented error example, run on the Middlebury scenes it names
+    (../shared/data/middlebury), prints the documented line (a trailing "..."
+    stands for the machine-dependent rest) and exits 2 -- or, for --device gpu
+    on a machine with a GPU, runs."""
+    import shlex
+    from mccnn_cl.cl import list_devices
+    examples = doc_error_examples()
+    assert len(examples) >= 5, examples
+    for scene in ("Cones", "Tsukuba"):
+        os.symlink(shared_data / "middlebury" / scene, tmp_path / scene)
+    (tmp_path / "cones.pfm").write_bytes(b"")
+    has_gpu = any(d.type == "GPU" for d in list_devices())
+    for cmd, want in examples:
+        if "--device gpu" in cmd and has_gpu:
+            continue
+        args = shlex.split(cmd)[1:] + ["--cost", "census"] * ("--weights" not in cmd)
+        p = subprocess.run([sys.executable, "-m", "mccnn_cl", *args], capture_output=True, text=True,
+                           timeout=180, cwd=tmp_path)
+        got = p.stderr.strip()
+        assert p.returncode == 2 or "--device" in cmd, (cmd, p.returncode, got)
+        if want.endswith("..."):
+            assert got.startswith(want[:-3].rstrip(" (")), (cmd, got, want)
+        else:
+            assert got == want, (cmd, got, want)
+
+
+def test_docs_device_pocl_spec_runs():
+    """docs/cli.md names --device "pocl": it selects PoCL here (``devices --device pocl``)."""
+    rc, out, err = cli("devices", "--device", "pocl")
+    assert rc == 0, err
+    assert "would use:" in out and "Portable Computing Language" in out.split("would use:")[1], out
