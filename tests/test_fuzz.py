@@ -49,6 +49,8 @@ if PROFILE not in ("short", "long"):
 #: examples per test (the short profile's metadata and --set tests are cheap: more of them)
 CHEAP = {"short": 150, "long": 3000}[PROFILE]
 MATCH = {"short": 10, "long": 300}[PROFILE]
+if os.environ.get("MCCNN_FUZZ_EXAMPLES"):  # a shorter (or longer) long run: examples per test
+    CHEAP = MATCH = int(os.environ["MCCNN_FUZZ_EXAMPLES"])
 
 #: small random networks, one per architecture (kernels compiled once per session)
 NETS = {
