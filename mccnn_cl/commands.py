@@ -180,6 +180,17 @@ def write_disparity(path, disp) -> None:
     if ext == ".pfm":
         write_pfm(path, np.where(np.isfinite(d), d, np.float32(np.inf)))
     elif ext == ".png":
+        # the range fits the PNG (checked before the run), but subpixel
+        # enhancement may step a little past its ends: such pixels become
+        # invalid (0), said in one line, never clipped to the edge silently
+        from .io import KITTI_MAX_DISPARITY
+        with np.errstate(invalid="ignore"):
+            out = np.isfinite(d) & ((d < 0) | (d > KITTI_MAX_DISPARITY))
+        if out.any():
+            print(f"mccnn-cl: warning: {path}: {int(out.sum())} pixels outside 0..{KITTI_MAX_DISPARITY:.3f} px "
+                  f"(subpixel steps past the range's ends, {float(d[out].min()):g}..{float(d[out].max()):g}) "
+                  "written as invalid (0): a KITTI PNG cannot hold them (.pfm and .npy do)", file=sys.stderr)
+            d = np.where(out, np.float32(np.nan), d)
         write_kitti_disparity(path, d)
     elif ext == ".npy":
         def write(tmp):

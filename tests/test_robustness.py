@@ -376,3 +376,15 @@ def test_docs_device_pocl_spec_runs():
     rc, out, err = cli("devices", "--device", "pocl")
     assert rc == 0, err
     assert "would use:" in out and "Portable Computing Language" in out.split("would use:")[1], out
+
+
+def test_cli_png_writer_says_which_pixels_it_cannot_hold(tmp_path, capsys):
+    """Subpixel steps a little past the range's ends: invalid (0) in the PNG, with one line on stderr."""
+    from mccnn_cl.commands import write_disparity
+    from mccnn_cl.io import read_kitti_disparity
+    d = np.array([[-0.3, 5.25, 256.2, np.nan]], np.float32)
+    write_disparity(str(tmp_path / "d.png"), d)
+    err = capsys.readouterr().err
+    assert "2 pixels outside" in err and "written as invalid" in err and len(err.strip().splitlines()) == 1
+    back, valid = read_kitti_disparity(tmp_path / "d.png")
+    assert valid.tolist() == [[False, True, False, False]] and back[0, 1] == 5.25
