@@ -9,6 +9,7 @@ from ._version import __version__  # noqa: F401
 
 from .errors import (  # noqa: F401
     MccnnError,
+    InputWarning,
     InputError,
     WeightsError,
     OpenCLError,

@@ -283,7 +283,10 @@ def plan_outputs(jobs, args):
     without ``--resume``/``--force`` are refused before any work."""
     from .cli.commands import _check_outputs
     if not os.path.isdir(args.output_dir):
-        os.makedirs(args.output_dir, exist_ok=True)
+        try:
+            os.makedirs(args.output_dir, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"--output-dir {args.output_dir}: cannot create it ({exc.strerror or exc})") from exc
     todo, skipped = [], []
     for job in jobs:
         for p in job.outputs:
@@ -376,6 +379,8 @@ def prepare(args):
         raise InputError("-o is for one pair; a batch writes into --output-dir")
     if args.output_dir is None:
         raise InputError("a batch needs --output-dir DIR")
+    if os.path.exists(args.output_dir) and not os.path.isdir(args.output_dir):
+        raise InputError(f"--output-dir {args.output_dir} is a file, not a folder")
     if args.color:
         raise InputError("in a batch, --color takes no file name (pictures go next to each output)")
     if args.confidence or args.labels:

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,21 +61,12 @@ class Calibration:
 
 
 def atomic_write(path, write_fn) -> None:
-    """Call ``write_fn(tmp)`` on a temporary file in ``path``'s directory, then ``os.replace`` it."""
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=directory)
-    os.close(fd)
-    try:
-        write_fn(tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give new files the usual mode
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Call ``write_fn(tmp_path)`` then rename the temporary file onto ``path``
+    (:func:`mccnn_cl.atomic.atomic_write`: recognisable temporary names, stale
+    ones of crashed processes removed)."""
+    from .atomic import atomic_write as write
+
+    write(path, write_fn)
 
 
 def _numbers(text, path, key, count):

@@ -33,3 +33,8 @@ NO_PLATFORM_HELP = (
     "intel-opencl-rt intel-cmplr-lib-rt`; then check with `mccnn-cl devices`. "
     "ICD files are read from /etc/OpenCL/vendors (or $OCL_ICD_VENDORS)."
 )
+
+
+class InputWarning(UserWarning):
+    """Input that runs but is likely not what the caller meant (a swapped pair,
+    12-bit data in a 16-bit image, ...); the message names the likely cause."""

@@ -35,13 +35,47 @@ def luminance(img, name: str = "image") -> np.ndarray:
     return a
 
 
-def to_gray(img, name: str = "image") -> np.ndarray:
+#: A uint16 image whose largest pixel is below this holds at most 12
+#: significant bits: likely a 10/12-bit sensor's data (see :func:`to_gray`).
+LOW_BITS_BELOW = 4096
+
+
+def to_gray(img, name: str = "image", bit_depth: int | None = None) -> np.ndarray:
     """Gray float32 in [0, 1] (module docstring); ``name`` goes into the error messages.
     Float pixels are checked before the colour conversion, integer ones converted
-    in their own type (cv2 rounds) and then scaled."""
+    in their own type (cv2 rounds) and then scaled.
+
+    ``bit_depth``: significant bits of an integer image (e.g. 12 for a 12-bit
+    sensor's data stored as uint16): pixels are divided by 2**bit_depth - 1
+    instead of the type's maximum (a pixel above that is an InputError).
+    Without it a uint16 image whose pixels all stay below 4096 gets an
+    :class:`~mccnn_cl.errors.InputWarning`: scaled by 65535 it would fill
+    [0, 1/16] only, and the [0, 1]-scale thresholds (cbca_tau, sgm_tau_so,
+    blur_tau) would then compare the wrong contrast."""
     a = np.asarray(img)
-    if a.dtype in _UNIT_SCALE:
+    if a.size == 0:
+        raise InputError(f"{name} image is empty (shape {a.shape})")
+    if bit_depth is not None:
+        if a.dtype not in _UNIT_SCALE:
+            raise InputError(f"{name} image: bit_depth is for uint8/uint16 images, not {a.dtype}")
+        bits = 8 * a.dtype.itemsize
+        if isinstance(bit_depth, (bool, np.bool_)) or not isinstance(bit_depth, (int, np.integer)) \
+                or not 1 <= bit_depth <= bits:
+            raise InputError(f"bit_depth must be an integer in 1..{bits} for a {a.dtype} image, not {bit_depth!r}")
+        top = int(a.max())
+        if top > 2 ** int(bit_depth) - 1:
+            raise InputError(f"{name} image has a pixel of {top}, more than {bit_depth} bits hold "
+                             f"({2 ** int(bit_depth) - 1})")
+        scale = float(2 ** int(bit_depth) - 1)
+    elif a.dtype in _UNIT_SCALE:
         scale = _UNIT_SCALE[a.dtype]
+        if a.dtype == np.uint16 and int(a.max()) < LOW_BITS_BELOW:
+            import warnings
+
+            from .errors import InputWarning
+            warnings.warn(f"{name} image is uint16 but its largest pixel is {int(a.max())} (< 4096): if it "
+                          "holds 12-bit (or fewer) data, pass bit_depth=12 (or the sensor's bits); scaled by "
+                          "65535 it uses 1/16 of [0, 1] or less", InputWarning, stacklevel=3)
     elif a.dtype.kind == "f":
         a = a.astype(np.float32)
         if not np.isfinite(a).all():

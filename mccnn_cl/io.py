@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 
 import cv2
 import numpy as np
@@ -31,22 +30,12 @@ def _check_exists(path) -> str:
 
 
 def _atomic_write(path, write_fn) -> None:
-    """Call ``write_fn(tmp_path)`` then rename the temporary file onto ``path``."""
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    suffix = os.path.splitext(path)[1]  # cv2 picks the encoder from the extension
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=directory)
-    os.close(fd)
-    try:
-        write_fn(tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual mode
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Call ``write_fn(tmp_path)`` then rename the temporary file onto ``path``
+    (:func:`mccnn_cl.atomic.atomic_write`: recognisable temporary names, stale
+    ones of crashed processes removed)."""
+    from .atomic import atomic_write as write
+
+    write(path, write_fn)
 
 
 # -- PFM ------------------------------------------------------------------
@@ -123,11 +112,22 @@ def read_kitti_disparity(path):
     return disp, valid
 
 
+#: Largest disparity the format holds: value / 256 with value <= 65535.
+KITTI_MAX_DISPARITY = 65535 / 256
+
+
 def write_kitti_disparity(path, disp) -> None:
-    """Write disparities as a KITTI 16-bit PNG (round(d*256); NaN/inf/≤0 → 0 = invalid), atomically."""
+    """Write disparities as a KITTI 16-bit PNG (round(d*256); NaN/inf/0 → 0 = invalid), atomically.
+
+    The format holds disparities in [0, 65535/256 = 255.996]: a finite value
+    outside that range is an InputError (write .pfm or .npy), never clipped."""
     d = np.asarray(disp, dtype=np.float64)
     if d.ndim != 2 or d.size == 0:
         raise InputError(f"write_kitti_disparity: expected an (H, W) array, got shape {d.shape}")
+    fin = d[np.isfinite(d)]
+    if fin.size and (fin.min() < 0 or fin.max() > KITTI_MAX_DISPARITY):
+        raise InputError(f"{os.fspath(path)}: a KITTI 16-bit PNG holds disparities 0..{KITTI_MAX_DISPARITY:.3f}, "
+                         f"the map has {fin.min():g}..{fin.max():g}; write .pfm or .npy instead")
     ok = np.isfinite(d) & (d > 0)
     raw = np.zeros(d.shape, np.uint16)
     raw[ok] = np.clip(np.round(d[ok] * 256.0), 1, 65535).astype(np.uint16)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -33,7 +34,7 @@ import numpy as np
 from .opencl.context import BufferPool, ClContext
 from .errors import InputError, WeightsError
 from .imageops import to_gray  # noqa: F401 (also importable from here)
-from .validate import PATCH, check_disparity_range, check_hyperparameters, check_pair  # noqa: F401 (PATCH re-exported)
+from .validate import PATCH, check_disparity_range, check_hyperparameters, check_pair, check_settings  # noqa: F401 (PATCH re-exported)
 from .costs.registry import make_cost
 from .costs.features import normalise
 from .stages.cross import CrossArms, max_arm
@@ -296,12 +297,7 @@ class StereoMatcher:
             raise InputError("weights are for cost='cnn'; cost='census' uses no network (drop weights= or the cost)")
         # the network's own settings (Weights.stereo), then the caller's explicit overrides
         self.weights = _resolve_weights(weights) if cost == "cnn" else None
-        settings = self.weights.stereo if self.weights is not None else {}
-        bad = sorted(set(settings) - set(Hyperparameters.names()))
-        if bad:
-            raise WeightsError(f"the weights' stereo settings name unknown hyperparameter(s) {', '.join(bad)}")
-        settings.update(hyperparameters)
-        self.params = Hyperparameters(**settings)
+        self.params = check_settings(self.weights, hyperparameters, "the weights")
         self.auto_range = isinstance(max_disparity, str) and max_disparity == "auto"
         self.max_disparity = None if self.auto_range else check_disparity_range(max_disparity)
         self.min_disparity = check_min_disparity(min_disparity)
@@ -348,6 +344,9 @@ class StereoMatcher:
         self._coarse = None  # the automatic range's census matcher, made on first use
         # cost volumes are reused between stages and calls (see release_buffers)
         self._pool = BufferPool(ctx)
+        # one compute at a time: the kept volumes, the cost's scratch and the
+        # queue are shared by every call (see compute, "Threads")
+        self._lock = threading.RLock()
 
     @property
     def cost_floor(self) -> float:
@@ -362,13 +361,14 @@ class StereoMatcher:
         page mapping; ~0.6 s per call on the KITTI pair on PoCL).  Calls of
         another size free them on their own.  The cost's kept scratch (the
         networks' conv maps) is freed too."""
-        self._pool.clear()
-        self.cost.release_buffers()
+        with self._lock:
+            self._pool.clear()
+            self.cost.release_buffers()
 
     # -- input checks ------------------------------------------------------
-    def _inputs(self, left, right, disparity_range=None):
+    def _inputs(self, left, right, disparity_range=None, bit_depth=None):
         """Gray images, M, D and the automatic range's report (None unless auto)."""
-        I_L, I_R = to_gray(left, "left"), to_gray(right, "right")
+        I_L, I_R = to_gray(left, "left", bit_depth), to_gray(right, "right", bit_depth)
         auto = None
         if disparity_range is None and self.auto_range:
             check_pair(I_L, I_R, 1, 2 * self.margin + 1)
@@ -396,7 +396,7 @@ class StereoMatcher:
 
     # -- the method ----------------------------------------------------------
     def compute(self, left, right, return_intermediates: bool = False, timings: bool = False,
-                confidence: bool = False, disparity_range=None):
+                confidence: bool = False, disparity_range=None, bit_depth: int | None = None):
         """Disparity map (float32, the left image's size, pixels) of a rectified pair.
 
         ``return_intermediates``: return a :class:`StereoResult` with every
@@ -406,10 +406,22 @@ class StereoMatcher:
         and ``labels`` are set (computed on the final volume C; also tiled).
         ``disparity_range``: ``(min, max)`` (inclusive) for this call instead
         of the matcher's range (e.g. one from :meth:`choose_range`).
+        ``bit_depth``: significant bits of integer images (e.g. 12 for 12-bit
+        data in uint16; :func:`mccnn_cl.imageops.to_gray`).
+
+        Threads: one matcher serialises its calls (a lock held for the whole
+        call): calls from several threads return the results each would get
+        alone, one after the other.  For parallel work give each thread its
+        own matcher (the device's queue is per matcher's context).
         """
-        I_L, I_R, M, D, auto = self._inputs(left, right, disparity_range)
+        with self._lock:
+            return self._compute(left, right, return_intermediates, timings, confidence, disparity_range,
+                                 bit_depth)
+
+    def _compute(self, left, right, return_intermediates, timings, confidence, disparity_range, bit_depth):
+        I_L, I_R, M, D, auto = self._inputs(left, right, disparity_range, bit_depth)
         rec = _Recorder(self.ctx, keep=return_intermediates, timed=return_intermediates or timings)
-        rec.wanted = {"confidence", "labels"} if confidence else set()
+        rec.wanted = {"confidence", "labels"} if confidence else {"labels"}  # labels: check_swapped
         rec.range = (M, D)
         own = (M, D) == (self.min_disparity, self.max_disparity)  # the matcher's own range
         plan = self.memory_plan(I_L.shape) if own else self.memory_plan(I_L.shape, D, M)
@@ -419,6 +431,8 @@ class StereoMatcher:
         # kept volumes this call reuses (they count in its peak)
         base = self.ctx.memory.live - self._pool.free_bytes
         out = self._run(I_L, I_R, rec, plan)
+        labels = rec.arrays["labels"] if (confidence or return_intermediates) else rec.arrays.pop("labels")
+        check_swapped(labels, out, M)
         if not (return_intermediates or timings or confidence):
             return out
         res = StereoResult(out, rec.arrays, rec.times, self.margin, rec.plan, self.ctx.memory.peak - base,
@@ -674,6 +688,41 @@ class StereoMatcher:
         return MemoryPlan(row * H, nvol, peak, budget, tiles, overlap, host, band_budget, True)
 
 
+#: Thresholds of :func:`check_swapped`, measured on real pairs of
+#: ../shared/data in both orders (docs/method.md, "Swapped pairs"): with the
+#: correct order the left-right check labels at most 10.3 % of the pixels
+#: mismatch and at most 33 % of the map lies below 1.5 px; swapped, either
+#: over 20 % mismatch (large disparities) or over 5 % mismatch with more than
+#: half of the map below 1.5 px (small disparities: the minima pile up at d = 0,
+#: the nearest candidate to the true negative disparity).
+SWAP_MISMATCH = 0.2
+SWAP_MISMATCH_NEAR = 0.04
+SWAP_NEAR_ZERO = 0.5
+
+
+def check_swapped(labels, disparity, low: int = 0) -> bool:
+    """Warn (:class:`~mccnn_cl.errors.InputWarning`, naming the likely cause)
+    when the left-right labels (1 = mismatch) and the disparity map look like a
+    swapped pair: its true disparities are negative, outside the searched
+    0 .. D-1, so the two references disagree on many pixels and the minima
+    gather at the range's near end (``low``, the range's first disparity).
+    Returns whether it warned."""
+    labels, disparity = np.asarray(labels), np.asarray(disparity)
+    if not labels.size or not disparity.size:
+        return False
+    mismatch = float(np.mean(labels == 1))
+    near = float(np.mean(disparity < low + 1.5))
+    if mismatch > SWAP_MISMATCH or (mismatch > SWAP_MISMATCH_NEAR and near > SWAP_NEAR_ZERO):
+        import warnings
+
+        from .errors import InputWarning
+        warnings.warn(f"the left-right check failed on {mismatch:.0%} of the pixels and {near:.0%} of the map is "
+                      f"below {low + 1.5:g} px: are the left and right images swapped? (else: the pair is not rectified, "
+                      "or the disparity range is too small)", InputWarning, stacklevel=4)
+        return True
+    return False
+
+
 class _Recorder:
     """Per-stage bookkeeping of :meth:`StereoMatcher._run`: when timed, waits for
     the queue after each stage and adds the wall time since the previous stage
@@ -703,6 +752,7 @@ class _Recorder:
         self._tile = None if r0 is None else (r0, r1, y0, full)
 
     def __call__(self, name, buf, shape=None, dtype=np.float32):
+        self.ctx.pace()  # about two stages queued ahead at most: Ctrl-C answers within a stage's time
         if self.timed:
             self.ctx.finish()
             now = time.perf_counter()

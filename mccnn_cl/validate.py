@@ -115,6 +115,35 @@ HYPERPARAMETER_RANGES = {
 }
 
 
+#: Upper bounds, name -> (largest value, why).  Each comes from what the
+#: kernels can hold: arms are stored as bytes (``stages.cross.ARM_LIMIT``), the
+#: median window sorts in a fixed private array (``stages.refine.MEDIAN_MAX_SIZE``),
+#: integer kernel arguments are 32-bit, and every float reaches the kernels
+#: as a float32 that penalties, divisors and thresholds combine with cost
+#: sums: :data:`FLOAT_MAX` (and :data:`DIVISOR_MIN` for the divisors) keeps
+#: P / (q1 q2 v) and the path sums finite in float32.
+FLOAT_MAX = 1e6
+DIVISOR_MIN = 1e-6
+INT32_MAX = 2 ** 31 - 1
+
+
+def hyperparameter_maxima() -> dict:
+    """name -> (largest accepted value, the kernel bound it comes from); see :data:`FLOAT_MAX`."""
+    from .stages.cross import ARM_LIMIT
+    from .stages.refine import MEDIAN_MAX_SIZE
+
+    out = {name: (FLOAT_MAX, "float32 kernel arithmetic") if not integer else (INT32_MAX, "32-bit kernel argument")
+           for name, (integer, _, _) in HYPERPARAMETER_RANGES.items()}
+    out["cbca_eta"] = (ARM_LIMIT + 1, f"cross arms are stored as bytes (arms <= {ARM_LIMIT})")
+    out["median_size"] = (MEDIAN_MAX_SIZE, f"the median kernel sorts a fixed {MEDIAN_MAX_SIZE}x{MEDIAN_MAX_SIZE} "
+                                           "private array")
+    return out
+
+
+#: Divisors and widths that must stay away from 0 in float32 (:data:`DIVISOR_MIN`).
+POSITIVE_FLOATS = ("sgm_q1", "sgm_q2", "sgm_v", "blur_sigma")
+
+
 def check_number(name: str, value, integer: bool, low, inclusive: bool) -> None:
     """One field against its range: a real number (an integer when ``integer``), finite, >= / > ``low``."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
@@ -128,11 +157,47 @@ def check_number(name: str, value, integer: bool, low, inclusive: bool) -> None:
 
 
 def check_hyperparameters(params) -> None:
-    """Every numeric field of a Hyperparameters in its range (:data:`HYPERPARAMETER_RANGES`)."""
+    """Every numeric field of a Hyperparameters in its range (:data:`HYPERPARAMETER_RANGES`,
+    :func:`hyperparameter_maxima`): the one check behind ``Hyperparameters`` (the
+    API), ``--set`` (the command line) and a weights file's ``stereo`` settings."""
+    maxima = hyperparameter_maxima()
     for name, (integer, low, inclusive) in HYPERPARAMETER_RANGES.items():
         value = getattr(params, name)
         if name == "blur_radius" and value is None:
             continue
         check_number(name, value, integer, low, inclusive)
+        high, why = maxima[name]
+        if value > high:
+            raise InputError(f"{name} must be <= {high:g} ({why}), not {value}")
+        if name in POSITIVE_FLOATS and value < DIVISOR_MIN:
+            raise InputError(f"{name} must be >= {DIVISOR_MIN:g} (a float32 divisor), not {value}")
     if int(params.median_size) % 2 == 0:
         raise InputError(f"median_size must be a positive odd number, not {params.median_size}")
+
+
+def check_settings(weights=None, overrides=None, source: str = "weights"):
+    """The Hyperparameters a matcher would run with: a weights file's ``stereo``
+    settings (each name known and in range, else :class:`~mccnn_cl.errors.WeightsError`
+    naming ``source``), then ``overrides`` (``--set`` / keyword arguments; an
+    unknown name is a ``TypeError``, a bad value an InputError).  The one place
+    the API, the command line (before any OpenCL work) and weights files share."""
+    from .errors import WeightsError
+    from .pipeline import Hyperparameters
+
+    names = set(Hyperparameters.names())
+    settings = weights.stereo if weights is not None else {}
+    if weights is not None:
+        bad = sorted(set(settings) - names)
+        if bad:
+            raise WeightsError(f"{source}: the stereo settings name unknown hyperparameter(s) {', '.join(bad)}")
+        try:
+            Hyperparameters(**settings)
+        except InputError as exc:
+            raise WeightsError(f"{source}: stereo settings: {exc}") from exc
+    overrides = dict(overrides or {})
+    unknown = sorted(set(overrides) - names)
+    if unknown:
+        raise TypeError(f"unknown hyperparameter(s) {', '.join(unknown)}; valid names: "
+                        + ", ".join(Hyperparameters.names()))
+    settings.update(overrides)
+    return Hyperparameters(**settings)

@@ -194,11 +194,12 @@ class Weights:
             arrays[f"conv{i}.weight"], arrays[f"conv{i}.bias"] = w, b
         for i, (w, b) in enumerate(self.fc):
             arrays[f"fc{i}.weight"], arrays[f"fc{i}.bias"] = w, b
-        path = os.fspath(path)
-        tmp = path + ".tmp"
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(tmp, path)
+        from .atomic import atomic_write
+
+        def write(tmp):
+            with open(tmp, "wb") as f:
+                np.savez(f, **arrays)
+        atomic_write(path, write)
 
     @classmethod
     def load(cls, path=None) -> "Weights":
@@ -222,8 +223,7 @@ class Weights:
             meta = json.loads(str(files["__meta__"]))
         except ValueError as exc:
             raise WeightsError(f"{path}: corrupt metadata ({exc})") from exc
-        if meta.get("format") != FORMAT:
-            raise WeightsError(f"{path}: format {meta.get('format')!r}, expected {FORMAT!r}")
+        _check_meta(meta, path)
         if int(meta.get("version", -1)) > VERSION:
             raise WeightsError(f"{path}: format version {meta.get('version')} is newer than this "
                                f"mccnn_cl understands ({VERSION}); upgrade mccnn_cl")
@@ -240,8 +240,10 @@ class Weights:
         except KeyError as exc:
             raise WeightsError(f"{path}: missing array {exc}") from exc
         w = cls(conv=conv, fc=fc, meta=meta, architecture=arch).validate(path)
-        if w.conv_layers() != meta["conv_layers"] or w.fc_layers() != meta["fc_layers"]:
+        if w.conv_layers() != meta["conv_layers"] or w.fc_layers() != meta.get("fc_layers", []):
             raise WeightsError(f"{path}: arrays disagree with the metadata's layer sizes")
+        from .validate import check_settings
+        check_settings(w, source=path)  # the stereo settings: known names, in range
         return w
 
     @classmethod
@@ -275,6 +277,41 @@ class Weights:
             fin = out
         return cls(conv=conv, fc=fc, meta={"training": {"note": f"random, seed {seed}"}},
                    architecture=architecture).validate()
+
+
+def _check_meta(meta, path) -> None:
+    """The metadata's types, so that a malformed file is one WeightsError (never
+    a TypeError from deeper down): an object; ``format``; ``version`` an
+    integer; ``architecture`` a string; ``conv_layers`` a list of [maps, kernel]
+    integer pairs; ``fc_layers`` a list of integers; ``stereo`` an object;
+    ``patch_size`` / ``input_channels`` integers when present."""
+    def is_int(v):
+        return isinstance(v, int) and not isinstance(v, bool)
+
+    if not isinstance(meta, dict):
+        raise WeightsError(f"{path}: corrupt metadata (a JSON {type(meta).__name__}, expected an object)")
+    if meta.get("format") != FORMAT:
+        raise WeightsError(f"{path}: format {meta.get('format')!r}, expected {FORMAT!r}")
+    problems = []
+    if "version" in meta and not is_int(meta["version"]):
+        problems.append(f"version {meta['version']!r} is not an integer")
+    if "architecture" in meta and not isinstance(meta["architecture"], str):
+        problems.append(f"architecture {meta['architecture']!r} is not a name")
+    conv = meta.get("conv_layers")
+    if not (isinstance(conv, list) and all(isinstance(c, list) and len(c) == 2 and all(map(is_int, c))
+                                           for c in conv)):
+        problems.append(f"conv_layers {conv!r} is not a list of [maps, kernel] integer pairs")
+    fc = meta.get("fc_layers", [])
+    if not (isinstance(fc, list) and all(map(is_int, fc))):
+        problems.append(f"fc_layers {fc!r} is not a list of integers")
+    if not isinstance(meta.get("stereo", {}), dict):
+        problems.append("stereo is not an object of hyperparameters")
+    for key in ("patch_size", "input_channels"):
+        if key in meta and not is_int(meta[key]):
+            problems.append(f"{key} {meta[key]!r} is not an integer")
+    if problems:
+        text = "; ".join(problems)
+        raise WeightsError(f"{path}: malformed metadata: {text[:300]}")
 
 
 def default_weights_path() -> str:

@@ -13,9 +13,9 @@ if [ ! -e /etc/OpenCL/vendors/pocl.icd ] || ! command -v oclgrind >/dev/null; th
 fi
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
-if ! .venv/bin/python -c "import mccnn_cl, mccnn_cl.kernels, mccnn_cl.train, torch, pytest, wheel, dask, distributed" 2>/dev/null; then
+if ! .venv/bin/python -c "import mccnn_cl, mccnn_cl.kernels, mccnn_cl.train, torch, pytest, wheel, dask, distributed, hypothesis" 2>/dev/null; then
     echo "setup: installing the package into .venv" >&2
     .venv/bin/pip install -q "torch==2.13.0" 2>&1 | grep -v "^WARNING: Location" || true
     .venv/bin/pip install -q -e ".[train,dev]" 2>&1 | grep -v -E "^WARNING: Location|^ +|^$|!!" || true
 fi
-.venv/bin/python -c "import mccnn_cl, torch, pytest, pyopencl, dask, distributed"  # fail loudly if set-up is incomplete
+.venv/bin/python -c "import mccnn_cl, torch, pytest, pyopencl, dask, distributed, hypothesis"  # fail loudly if set-up is incomplete

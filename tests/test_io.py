@@ -58,7 +58,7 @@ def test_kitti_png_round_trip(tmp_path):
     d = np.round(rng.uniform(0.5, 200, (37, 53)) * 256) / 256
     d[0, :5] = 0
     d[1, 1] = np.nan
-    d[2, 2] = -3
+    d[2, 2] = np.inf  # invalid; a negative value is refused (tests/test_robustness.py)
     write_kitti_disparity(tmp_path / "d.png", d)
     back, valid = read_kitti_disparity(tmp_path / "d.png")
     assert back.dtype == np.float32 and valid.dtype == bool

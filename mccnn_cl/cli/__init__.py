@@ -222,6 +222,7 @@ def main(argv=None) -> int:
         # PyOpenCL reports as a CompilerWarning per program: noise on a terminal.
         # --verbose keeps them; build *failures* are errors either way.
         warnings.filterwarnings("ignore", message="Non-empty compiler output encountered")
+    _one_line_warnings()
     try:
         return int(_implementation(args)(args) or 0)
     except KeyboardInterrupt:
@@ -233,6 +234,24 @@ def main(argv=None) -> int:
         return _fail(exc, 1, verbose)
     except Exception as exc:  # noqa: BLE001 - the command line reports everything in one line
         return _fail(exc, 1, verbose, with_type=True)
+
+
+def _one_line_warnings():
+    """InputWarnings (a swapped pair, 12-bit data, ...) as one line on stderr,
+    ``mccnn-cl: warning: ...``, each once; other warnings as Python shows them."""
+    from ..errors import InputWarning
+
+    shown = warnings.showwarning
+    if getattr(shown, "mccnn_one_line", False):
+        return
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, InputWarning):
+            print(f"mccnn-cl: warning: {message}", file=sys.stderr)
+        else:
+            shown(message, category, filename, lineno, file, line)
+    show.mccnn_one_line = True
+    warnings.showwarning = show
 
 
 def _implementation(args):

@@ -48,13 +48,38 @@ def _load_weights(args):
         if getattr(args, "weights", None) is not None:
             raise InputError(f"--weights is for --cost cnn; --cost {args.cost} uses no network "
                              f"(drop --weights {args.weights} or the --cost option)")
+        _check_settings(args, None)
         return None
     from ..models import resolve
     from ..weights import default_weights_path
     if args.weights is None and not os.path.exists(default_weights_path()):
         raise WeightsError(f"the shipped weights are not installed ({default_weights_path()}); "
                            "pass --weights FILE or use --cost census")
-    return resolve(args.weights)  # .npz, .t7/.pt (converted), or a shipped model's name
+    weights = resolve(args.weights)  # .npz, .t7/.pt (converted), or a shipped model's name
+    _check_settings(args, weights)
+    return weights
+
+
+def _check_settings(args, weights):
+    """--set values, the weights' settings and --memory-limit, before any OpenCL work
+    (:func:`mccnn_cl.validate.check_settings`: the checks StereoMatcher makes)."""
+    from ..validate import check_settings
+    _memory_limit(args)
+    try:
+        check_settings(weights, _hyperparameters(getattr(args, "hyper", []) or []),
+                       getattr(args, "weights", None) or "the shipped weights")
+    except TypeError as exc:  # unknown hyperparameter name
+        raise InputError(f"--set: {exc}") from exc
+
+
+def _memory_limit(args):
+    """--memory-limit in bytes (None: the default); a positive finite number of MiB."""
+    limit = getattr(args, "memory_limit", None)
+    if limit is None:
+        return None
+    if not (math.isfinite(limit) and limit > 0):
+        raise InputError(f"--memory-limit must be a positive number of MiB, got {limit:g}")
+    return int(limit * 2**20)
 
 
 def _make_matcher(args, max_disparity, weights, progress=False, ctx=None, min_disparity=0):
@@ -68,11 +93,9 @@ def _make_matcher(args, max_disparity, weights, progress=False, ctx=None, min_di
     if args.cost == "cnn":
         kwargs["weights"] = weights
     kwargs["volume_dtype"] = getattr(args, "volume_dtype", "float32")
-    limit = getattr(args, "memory_limit", None)
+    limit = _memory_limit(args)
     if limit is not None:
-        if not limit > 0:
-            raise InputError(f"--memory-limit must be a positive number of MiB, got {limit:g}")
-        kwargs["memory_limit"] = int(limit * 2**20)
+        kwargs["memory_limit"] = limit
     hyper = _hyperparameters(getattr(args, "hyper", []))
     try:
         return StereoMatcher(**kwargs, **hyper)
@@ -131,17 +154,46 @@ def _range_text(lo, hi, auto=None) -> str:
     return text
 
 
-def _check_outputs(paths, force):
+def _check_outputs(paths, force, inputs=(), taken=None):
+    """Before any work: every output's folder exists and takes files, no output
+    is an existing file (unless ``force``) or a folder, none is one of the
+    ``inputs`` (even with ``force``), and no two outputs are the same file
+    (``taken``: real path -> what claimed it, shared across a batch's pairs)."""
+    from ..atomic import check_writable
+    taken = {} if taken is None else taken
+    ins = {os.path.realpath(f): f for f in inputs if f}
     for p in paths:
         if p is None:
             continue
         d = os.path.dirname(os.path.abspath(p))
         if not os.path.isdir(d):
             raise InputError(f"output folder does not exist: {d}")
-        if os.path.exists(p) and not force:
-            raise InputError(f"{p} exists; pass --force to overwrite it")
+        real = os.path.realpath(p)
+        if real in ins:
+            raise InputError(f"output {p} is the input image {ins[real]}; choose another name")
+        if real in taken:
+            raise InputError(f"two outputs are the same file: {taken[real]} and {p}; give them different names")
+        taken[real] = p
         if os.path.isdir(p):
             raise InputError(f"{p} is a folder, not a file")
+        if os.path.exists(p) and not force:
+            raise InputError(f"{p} exists; pass --force to overwrite it")
+        check_writable(d)
+
+
+#: Largest disparity a KITTI 16-bit PNG holds (value / 256, value <= 65535).
+PNG_MAX_DISPARITY = 65535 / 256
+
+
+def _check_png_range(out, max_disp, min_disp=0):
+    """A .png output holds disparities in [0, 65535/256] only: refuse a range
+    that can leave it, before any work (the writer refuses such values too)."""
+    if os.path.splitext(out)[1].lower() != ".png":
+        return
+    if max_disp - 1 + min_disp > PNG_MAX_DISPARITY or min_disp < 0:
+        raise InputError(f"{out}: a KITTI 16-bit PNG holds disparities 0..{PNG_MAX_DISPARITY:.3f}, but the range "
+                         f"reaches {min_disp}..{min_disp + max_disp - 1} (--max-disp {max_disp}); "
+                         "write .pfm or .npy instead")
 
 
 def write_disparity(path, disp) -> None:
@@ -153,6 +205,17 @@ def write_disparity(path, disp) -> None:
     if ext == ".pfm":
         write_pfm(path, np.where(np.isfinite(d), d, np.float32(np.inf)))
     elif ext == ".png":
+        # the range fits the PNG (checked before the run), but subpixel
+        # enhancement may step a little past its ends: such pixels become
+        # invalid (0), said in one line, never clipped to the edge silently
+        from ..io import KITTI_MAX_DISPARITY
+        with np.errstate(invalid="ignore"):
+            out = np.isfinite(d) & ((d < 0) | (d > KITTI_MAX_DISPARITY))
+        if out.any():
+            print(f"mccnn-cl: warning: {path}: {int(out.sum())} pixels outside 0..{KITTI_MAX_DISPARITY:.3f} px "
+                  f"(subpixel steps past the range's ends, {float(d[out].min()):g}..{float(d[out].max()):g}) "
+                  "written as invalid (0): a KITTI PNG cannot hold them (.pfm and .npy do)", file=sys.stderr)
+            d = np.where(out, np.float32(np.nan), d)
         write_kitti_disparity(path, d)
     elif ext == ".npy":
         def write(tmp):
@@ -196,7 +259,7 @@ def _side_outputs(out, args):
     if args.color is not None:
         color = args.color if args.color else stem + "_color.png"
     depth = ply = None
-    if args.calib:
+    if args.calib and not getattr(args, "no_depth", False):
         depth = stem + ("_depth.pfm" if out.lower().endswith(".pfm") else "_depth.npy")
         ply = stem + ".ply"
     return color, depth, ply
@@ -270,7 +333,10 @@ def cmd_match(args):
     if args.calib:
         from ..depth import read_calib
         calib = read_calib(args.calib)
-        calib.require_depth()
+        if not calib.has_depth:  # Middlebury 2001-2006: only width, height, ndisp
+            args.no_depth = True
+            print(f"mccnn-cl: note: {args.calib} has no focal length/baseline: it gives the disparity range "
+                  f"(ndisp={calib.ndisp}); no depth or point cloud is written", file=sys.stderr)
     if single:
         if args.left is None or args.right is None or args.output is None:
             raise InputError("match needs LEFT RIGHT and -o OUT")
@@ -279,19 +345,22 @@ def cmd_match(args):
         if getattr(args, "resume", False):
             raise InputError("--resume is for batches (-l/-r or --pairs-dir)")
         jobs = [(args.left, args.right, args.output)]
+    taken, inputs = {}, [f for job in jobs for f in job[:2]]
     for lp, rp, out in jobs:
         for f in (lp, rp):
             if not os.path.isfile(f):
                 raise InputError(f"file not found: {f}")
         if os.path.splitext(out)[1].lower() not in DISPARITY_FORMATS:
             raise InputError(f"{out}: output must end in {', '.join(DISPARITY_FORMATS)}")
-        if out.lower().endswith(".png") and request != "auto" and request[0] < 0:
-            raise InputError(f"{out}: a KITTI 16-bit PNG cannot store negative disparities (the range starts "
-                             f"at {request[0]}); write .pfm or .npy")
+        if request != "auto":
+            lo, levels = request
+            if levels is None:
+                levels = calib.ndisp if (calib is not None and calib.ndisp) else 228
+            _check_png_range(out, levels, lo or 0)
         color, depth, ply = _side_outputs(out, args)
         if color is not None and not color.lower().endswith((".png", ".jpg", ".jpeg", ".bmp")):
             raise InputError(f"{color}: the colour picture must be a .png/.jpg/.bmp file")
-        _check_outputs([out, color, depth, ply, *_confidence_outputs(out, args)], args.force)
+        _check_outputs([out, color, depth, ply, *_confidence_outputs(out, args)], args.force, inputs, taken)
 
     weights = _load_weights(args)
     from ..opencl.context import ClContext
@@ -386,7 +455,7 @@ def _save_outputs(out, disp, left_img, args, calib, disparity_range):
         vmax = min(float(fin.max()), hi) if fin.size else hi
         vmin = 0 if lo >= 0 else (max(float(fin.min()), lo) if fin.size else lo)
         write_image(color, colorize_with_legend(disp, vmin, max(vmax, vmin + 1.0)))
-    if calib is not None:
+    if calib is not None and calib.has_depth:
         from ..depth import disparity_to_depth, point_cloud, write_ply
         _write_depth(depth_path, disparity_to_depth(disp, calib))
         pts, rgb = point_cloud(disp, calib, left_img)

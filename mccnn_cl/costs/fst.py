@@ -188,7 +188,7 @@ class FstCost(ConvNetCost):
             vh, vy0 = (h, y0) if host is None else (hb, 0)
             self.launch_volume(d_l, d_r, d_cost, vh, w, vy0, D, hb)
             if progress is not None or host is not None:
-                q.finish()
+                self.ctx.finish()
             d_l.release()
             d_r.release()
             if host is not None:

@@ -301,10 +301,13 @@ class PaperCost(ConvNetCost):
                                d_a, d_b, self._d_wh, self._d_bh, self._d_w8, self._d_b8, d_cost,
                                i32(vh), i32(w), i32(vy0), i32(hb), i32(d0))
                 done += nd
+                # at most about two chunks queued ahead (~1 s each on a CPU):
+                # Ctrl-C is answered within seconds (ClContext.pace)
+                self.ctx.pace()
                 if progress is not None:
-                    q.finish()
+                    self.ctx.finish()
                     progress(done // len(bands), D)
-            q.finish()
+            self.ctx.finish()
             d_a.release()
             d_b.release()
             if host is not None:

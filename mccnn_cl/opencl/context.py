@@ -12,7 +12,9 @@ and declared quirks, and the rules that pick kernel variants) is
 Device selection (:func:`select_device`):
 
 * an explicit ``device`` argument wins: a ``pyopencl.Device``, ``"cpu"``,
-  ``"gpu"``, ``"PLATFORM[:DEVICE]"`` substrings (case-insensitive), or
+  ``"gpu"``, ``"PLATFORM[:DEVICE]"`` substrings (case-insensitive; PLATFORM of the
+  platform's name or version string, so ``"pocl"`` finds PoCL; DEVICE of the
+  device's name, or its type: ``"pocl:cpu"``), or
   ``"P:D"`` indices as in ``PYOPENCL_CTX``;
 * else ``$PYOPENCL_CTX`` is honoured (same syntax);
 * else a GPU is preferred, then an accelerator, then a CPU.  Ties are broken
@@ -26,6 +28,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+import time
 import weakref
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -224,8 +227,12 @@ def select_device(spec=None):
         raise NoOpenCLDeviceError(f"no OpenCL device at index {spec!r}; found: " + "; ".join(
             f"{d.platform_index}:{d.device_index} {d}" for d in devices))
     pname, _, dname = spec.partition(":")
+    # the platform part matches its name or version string (PoCL's name is
+    # "Portable Computing Language", its version "OpenCL 3.0 PoCL 3.1 ..."),
+    # the device part its name or type ("pocl:cpu")
     hits = [d for d in devices
-            if pname.lower() in d.platform.lower() and dname.lower() in d.device.lower()]
+            if pname.lower() in f"{d.platform} {d.platform_version}".lower()
+            and (dname.lower() in d.device.lower() or dname.lower() == d.type.lower())]
     if not hits:
         raise NoOpenCLDeviceError(f"no OpenCL device matches {spec!r}; found: " + "; ".join(map(str, devices)))
     return hits[0].handle, f"{reason} {spec!r} (name match)"
@@ -365,8 +372,10 @@ class ClContext:
         return buf
 
     def from_device(self, buf, shape, dtype=np.float32) -> np.ndarray:
-        """Blocking copy of a device buffer into a new host array."""
+        """Blocking copy of a device buffer into a new host array (the queue's
+        earlier work is waited for interruptibly first, :meth:`wait`)."""
         out = np.empty(shape, dtype=dtype)
+        self.wait()
         self.cl.enqueue_copy(self.queue, out, buf)
         return out
 
@@ -376,7 +385,37 @@ class ClContext:
         self.cl.enqueue_fill_buffer(self.queue, buf, pattern, 0, int(nbytes))
 
     def finish(self) -> None:
-        self.queue.finish()
+        """Wait for everything queued; Python handles signals meanwhile (Ctrl-C
+        raises KeyboardInterrupt within milliseconds, see :meth:`wait`)."""
+        self.wait()
+
+    def wait(self, event=None) -> None:
+        """Wait for ``event`` (default: a marker after everything queued) by
+        polling its status with short sleeps instead of one blocking call, so
+        the main thread handles signals (Ctrl-C) while a long computation
+        runs.  An error status raises as ``event.wait()`` does."""
+        cl = self.cl
+        if event is None:
+            event = cl.enqueue_marker(self.queue)
+        self.queue.flush()
+        done = cl.command_execution_status.COMPLETE
+        delay = 0.0002
+        while event.command_execution_status > done:
+            time.sleep(delay)
+            delay = min(2 * delay, 0.02)
+        event.wait()
+
+    def pace(self) -> None:
+        """Bound the work queued ahead of the host to about two steps: mark the
+        queue and wait (interruptibly, :meth:`wait`) for the previous mark.
+        Long computations call this between launches (network chunks, stages),
+        so an interrupted run leaves at most two steps to drain before the
+        process can exit, and the device still always has the next step queued."""
+        marker = self.cl.enqueue_marker(self.queue)
+        self.queue.flush()
+        previous, self._paced = getattr(self, "_paced", None), marker
+        if previous is not None:
+            self.wait(previous)
 
     def close(self) -> None:
         self._exit.close()

@@ -90,6 +90,14 @@ def median_network(count: int) -> list:
 #: Largest median window side served by the vector kernel (its network is
 #: checked exhaustively for 3 x 3 and 5 x 5); larger windows use the sorting kernel.
 MEDIAN_VECTOR_MAX = 5
+#: Largest median window side: the sorting kernel keeps MEDIAN_SIZE^2 floats
+#: per work-item in a private array (4 KiB at 31 x 31).
+MEDIAN_MAX_SIZE = 31
+#: Work-group width of the sorting kernel.  CPU runtimes (PoCL) may lay a
+#: whole work-group's private arrays on one thread's stack; the runtime's own
+#: choice (up to 4096 work-items: 256 x 256 images) overflowed it and killed
+#: the process (SIGSEGV) from 23 x 23 on.  16 work-items x 4 KiB stays small.
+MEDIAN_GROUP = 16
 
 
 class MedianFilter:
@@ -99,8 +107,8 @@ class MedianFilter:
     insertion sort; both give the same values."""
 
     def __init__(self, ctx, size: int = 5, vector: bool | None = None):
-        if size < 1 or size % 2 == 0:
-            raise ValueError(f"median size must be a positive odd number, not {size}")
+        if size < 1 or size % 2 == 0 or size > MEDIAN_MAX_SIZE:
+            raise ValueError(f"median size must be a positive odd number <= {MEDIAN_MAX_SIZE}, not {size}")
         self.ctx = ctx
         self.size = int(size)
         self.vector = self.size <= MEDIAN_VECTOR_MAX if vector is None else bool(vector)
@@ -115,8 +123,11 @@ class MedianFilter:
     def __call__(self, d_disp, H, W, out=None):
         if out is None:
             out = self.ctx.empty(H * W * _F32, "median-filtered disparity")
-        grid = (-(-W // 16), H) if self.vector else (W, H)
-        launch(self.ctx, "median filter", self.kernel, grid, d_disp, out, np.int32(H), np.int32(W))
+        if self.vector:
+            launch(self.ctx, "median filter", self.kernel, (-(-W // 16), H), d_disp, out, np.int32(H), np.int32(W))
+        else:  # a small explicit work-group: see MEDIAN_GROUP
+            launch(self.ctx, "median filter", self.kernel, (-(-W // MEDIAN_GROUP) * MEDIAN_GROUP, H),
+                   d_disp, out, np.int32(H), np.int32(W), local_size=(MEDIAN_GROUP, 1))
         return out
 
 
@@ -134,6 +145,9 @@ class BilateralFilter:
 
     def __call__(self, d_disp, d_guide, H, W, sigma, tau, radius=None, out=None):
         radius = bilateral_radius(sigma) if radius is None else int(radius)
+        # taps beyond the map never count (the window is clipped to it): a
+        # radius past max(H, W) gives the same sums, with a bounded tap buffer
+        radius = min(radius, max(int(H), int(W)))
         key = (float(sigma), radius)
         if key not in self._taps:
             self._taps[key] = self.ctx.to_device(gaussian_taps(sigma, radius))
