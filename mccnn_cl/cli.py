@@ -189,6 +189,9 @@ def main(argv=None) -> int:
     verbose = bool(getattr(args, "verbose", False))
     if verbose:
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+        from . import cl
+
+        cl.COMPILER_OUTPUT = True  # the compiler's "N warnings generated." lines
     else:
         # Some runtimes (Intel's CPU runtime) always return a build log, which
         # PyOpenCL reports as a CompilerWarning per program: noise on a terminal.

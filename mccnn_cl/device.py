@@ -80,6 +80,7 @@ RULES = {
     "network_gemm_tile":       {c: dict(TM=64, TN=64, TK=16, RM=4, RN=4) for c in (CPU, LLVMPIPE, GPU)},
     "fst_workgroup":           {CPU: False, LLVMPIPE: False, GPU: True},
     "fst_volume_tile":         {c: dict(TX=64, TD=64, TK=16, RX=4, RD=4) for c in (CPU, LLVMPIPE, GPU)},
+    "launch_local":            {CPU: (64, 2, 2), LLVMPIPE: (64, 2, 2), GPU: None},
 }
 
 #: Declared facts per class: (loop_limit or None, slow_compiler).
@@ -126,6 +127,17 @@ class DeviceProfile:
         return cls(device.name.strip(), device.platform.name.strip(), kind, int(device.max_compute_units),
                    int(device.global_mem_size), int(device.local_mem_size), int(device.max_mem_alloc_size),
                    int(device.max_work_group_size), width, loop_limit, slow)
+
+    @property
+    def launch_local(self):
+        """Work-group sizes per dimension of the launches whose stage leaves
+        them open (:func:`mccnn_cl.cl.launch_sizes`), or None: the runtime's."""
+        import os
+
+        env = os.environ.get("MCCNN_LAUNCH_LOCAL")  # experiments: "none" or "32,4,4"
+        if env:
+            return None if env == "none" else tuple(int(v) for v in env.split(","))
+        return self.rule("launch_local")
 
     def rule(self, option: str):
         """This device's value of one :data:`RULES` row."""

@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..cl import round_up
+from ..cl import launch_sizes, round_up
 from ..weights import FST, Weights
 from ..validate import check_cost_inputs
 from .features import (check_tile, fit_tile, normalise, setup_network_cost, shrinker, volume_on_device,
@@ -116,7 +116,8 @@ class FstCost:
         i32, t = np.int32, self.volume_tile
         args = (d_l, d_r, d_cost, i32(h), i32(w), i32(y0), i32(D), i32(self._wp(w)))
         if t is None:
-            self._vol(self.ctx.queue, (-(-w // self._vol_px), hb), None, *args)
+            # rows of the band are not guarded (the kernel has no band height)
+            self._vol(self.ctx.queue, *launch_sizes(self.ctx, (-(-w // self._vol_px), hb), guarded=(1, 0)), *args)
             return
         wx, wd = t["TX"] // t["RX"], t["TD"] // t["RD"]
         self._vol(self.ctx.queue, (-(-w // t["TX"]) * wx, -(-D // t["TD"]) * wd, hb), (wx, wd, 1), *args)
@@ -168,7 +169,8 @@ class FstCost:
         d_feat = self.stack.run_image(band)
         wp = self._wp(w)
         d_out = self.ctx.empty(hb * self.nk * wp * 4, "fst planar features")
-        self._norm(self.ctx.queue, (wp, hb), None, d_feat, d_out, np.int32(w), np.int32(wp))
+        self._norm(self.ctx.queue, *launch_sizes(self.ctx, (wp, hb), guarded=(1, 0)), d_feat, d_out, np.int32(w),
+                   np.int32(wp))
         self.stack.give(d_feat)
         return d_out
 
