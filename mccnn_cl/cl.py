@@ -36,6 +36,7 @@ from importlib import resources
 
 import numpy as np
 
+from . import binaries
 from .device import DeviceProfile, type_name
 from .errors import NO_PLATFORM_HELP, InputError, NoOpenCLDeviceError, OpenCLError
 
@@ -313,8 +314,12 @@ class ClContext:
         props = cl.command_queue_properties.PROFILING_ENABLE if profiling else 0
         self.queue = cl.CommandQueue(self.context, properties=props)
         self._programs: dict = {}
-        #: programs built (in this context, from source or from the runtime's cache)
+        #: programs built from source (the runtime may have served them from its
+        #: own cache) and made from a binary stored by :mod:`mccnn_cl.binaries`
         self.builds = 0
+        self.binary_loads = 0
+        #: store the binary of every program built from source (mccnn_cl.binaries)
+        self.save_binaries = False
         self._kernels: dict = {}
         self.memory = MemoryTracker()
         self._buffer = _tracked_buffer_class(cl)
@@ -370,15 +375,36 @@ class ClContext:
         except OSError as exc:
             raise OpenCLError(f"kernel source {filename} not found in {self.kernel_dir}") from exc
         options = ["-I", self.kernel_dir] + [f"-D{k}={v}" for k, v in key[1]]
-        try:
-            prg = _build_quietly(lambda: self.cl.Program(self.context, src).build(options=options))
-        except self.cl.RuntimeError as exc:
-            raise OpenCLError(
-                f"building {filename} with {' '.join(options[2:])} failed on {self.describe()}:\n{exc}"
-            ) from exc
+        prg = self._from_binary(src, options)
+        if prg is None:
+            try:
+                prg = _build_quietly(lambda: self.cl.Program(self.context, src).build(options=options))
+            except self.cl.RuntimeError as exc:
+                raise OpenCLError(
+                    f"building {filename} with {' '.join(options[2:])} failed on {self.describe()}:\n{exc}"
+                ) from exc
+            if self.save_binaries and binaries.enabled():
+                binaries.store(binaries.key(self.device, self.kernel_dir, src, options), prg.binaries[0])
+            self.builds += 1
+        else:
+            self.binary_loads += 1
         self._programs[key] = prg
-        self.builds += 1
         return prg
+
+    def _from_binary(self, src, options):
+        """The program made from its stored binary (:mod:`mccnn_cl.binaries`), or None."""
+        if not binaries.enabled():
+            return None
+        k = binaries.key(self.device, self.kernel_dir, src, options)
+        blob = binaries.load(k)
+        if blob is None:
+            return None
+        try:
+            return _build_quietly(lambda: self.cl.Program(self.context, [self.device], [blob]).build(options=options))
+        except self.cl.Error as exc:
+            log.warning("a stored kernel binary was refused (%s); building from source", str(exc).splitlines()[0])
+            binaries.discard(k)
+            return None
 
     def kernel(self, filename: str, name: str, **defines):
         """One kernel object from a cached program (fetched once, reused)."""

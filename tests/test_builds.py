@@ -95,3 +95,42 @@ def test_build_output_is_filtered(capfd, monkeypatch):
     assert clmod._build_quietly(build) == 7
     err = capfd.readouterr().err
     assert "kept line" in err and "generated" not in err
+
+
+def _arms(ctx, img):
+    from mccnn_cl.stages.cross import CrossArms, arms_from_device
+
+    H, W = img.shape
+    return arms_from_device(ctx, CrossArms(ctx)(ctx.to_device(img), H, W), H, W)
+
+
+def test_stored_binaries(ctx, monkeypatch, tmp_path, caplog):
+    """A program whose binary was saved is made from it in a new context (no
+    source build) and computes the same bits; a corrupt binary is discarded
+    with a warning and the program built from source."""
+    import os
+
+    from mccnn_cl import binaries
+    from mccnn_cl.cl import ClContext
+
+    monkeypatch.setenv("MCCNN_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("MCCNN_BINARY_CACHE", raising=False)
+    img = np.random.default_rng(3).random((37, 53)).astype(np.float32)
+    expected = _arms(ctx, img)
+    saver = ClContext(ctx.device)
+    saver.save_binaries = True
+    saver.program("cross.cl")
+    files = [os.path.join(d, f) for d, _, fs in os.walk(tmp_path / "binaries") for f in fs]
+    assert len(files) == 1 and not os.path.basename(files[0]).startswith(".tmp")
+    loader = ClContext(ctx.device)
+    np.testing.assert_array_equal(_arms(loader, img), expected)
+    assert (loader.builds, loader.binary_loads) == (0, 1)
+    with open(files[0], "wb") as f:
+        f.write(b"not a binary")
+    other = ClContext(ctx.device)
+    with caplog.at_level("WARNING", logger="mccnn_cl.cl"):
+        np.testing.assert_array_equal(_arms(other, img), expected)
+    assert (other.builds, other.binary_loads) == (1, 0)
+    assert "refused" in caplog.text and not os.path.exists(files[0])
+    monkeypatch.setenv("MCCNN_BINARY_CACHE", "off")
+    assert not binaries.enabled()
