@@ -310,6 +310,9 @@ class ClContext:
         self.device = dev
         #: what the stages need to know about the device (mccnn_cl.device)
         self.profile = DeviceProfile.of(dev, cl)
+        from . import tune  # the choices measured on this device (MCCNN_TUNE=off: none)
+
+        self.profile.tuned.update(tune.load(dev))
         self.context = cl.Context([dev])
         props = cl.command_queue_properties.PROFILING_ENABLE if profiling else 0
         self.queue = cl.CommandQueue(self.context, properties=props)

@@ -40,6 +40,7 @@ COMMANDS = {
     "bench": ("mccnn_cl.bench", "run"),
     "demo": ("mccnn_cl.demo_cmd", "run"),
     "adapt": ("mccnn_cl.adapt_cmd", "run"),
+    "tune": ("mccnn_cl.tune_cmd", "run"),
 }
 
 
@@ -131,6 +132,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("devices", parents=[verbose], help="list OpenCL devices and the one that would be used")
     d.add_argument("--device", metavar="SPEC", default=None, help="show which device SPEC selects")
+
+    t = sub.add_parser("tune", parents=[verbose], help="choose kernels by measurement on this device",
+                       description="Measure the candidate kernel shapes of each tunable choice on the device, "
+                                   "keep the fastest correct one in the per-device cache (~/.cache/mccnn_cl/tune), "
+                                   "and store the kernel binaries of the default method (faster first calls). "
+                                   "MCCNN_TUNE=off ignores the cache.")
+    t.add_argument("--device", metavar="SPEC", default=None, help="OpenCL device (as for match)")
+    t.add_argument("--no-binaries", action="store_true", help="do not store kernel binaries")
 
     b = sub.add_parser("bench", parents=[verbose], help="per-stage runtime on a KITTI-size pair",
                        description="Time each stage of the pipeline (best of --repeat runs after a "

@@ -437,4 +437,7 @@ def cmd_devices(args):
     name = next((str(d) for d in devices if d.handle == chosen), chosen.name.strip())
     _say(f"would use: {name}")
     _say(f"because:   {reason}")
+    from .tune_cmd import describe_choices
+    for line in describe_choices(chosen):
+        _say(line)
     return 0

@@ -24,7 +24,7 @@ kind of device a new column.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 CPU, LLVMPIPE, GPU = "cpu", "llvmpipe", "gpu"
 CLASSES = (CPU, LLVMPIPE, GPU)
@@ -118,6 +118,9 @@ class DeviceProfile:
     vector_width: int       # float vector width (max of preferred and native)
     loop_limit: int | None  # declared: loop iterations per work-item, None = no limit
     slow_compiler: bool     # declared: some kernels take minutes to build
+    #: RULES rows chosen by measurement on this device (mccnn_cl.tune), which
+    #: :meth:`rule` returns instead of the column's value
+    tuned: dict = field(default_factory=dict, compare=False)
 
     @classmethod
     def of(cls, device, cl) -> "DeviceProfile":
@@ -137,11 +140,19 @@ class DeviceProfile:
         env = os.environ.get("MCCNN_LAUNCH_LOCAL")  # experiments: "none" or "32,4,4"
         if env:
             return None if env == "none" else tuple(int(v) for v in env.split(","))
-        return self.rule("launch_local")
+        value = self.rule("launch_local")
+        return tuple(value) if value else None
 
     def rule(self, option: str):
-        """This device's value of one :data:`RULES` row."""
+        """This device's value of one :data:`RULES` row: the tuned one
+        (:mod:`mccnn_cl.tune`) when there is one, else the column's."""
+        if option in self.tuned:
+            return self.tuned[option]
         return RULES[option][self.kind]
+
+    def rule_source(self, option: str) -> str:
+        """"tuned" or "rules": where :meth:`rule`'s value of ``option`` comes from."""
+        return "tuned" if option in self.tuned else "rules"
 
     @property
     def is_cpu(self) -> bool:

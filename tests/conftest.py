@@ -28,6 +28,10 @@ import pytest
 
 from mccnn_cl.cl import ClContext
 
+# The suite checks the rules table's choices: a tuning cache of the machine
+# (mccnn-cl tune) is not applied unless a run asks for it (MCCNN_TUNE=on).
+os.environ.setdefault("MCCNN_TUNE", "off")
+
 REPO = Path(__file__).resolve().parents[1]
 
 # Value written into output buffers before a launch: no kernel ever writes it
