@@ -29,6 +29,7 @@ import re
 import sys
 import tempfile
 import threading
+import time
 import weakref
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -321,6 +322,8 @@ class ClContext:
         #: own cache) and made from a binary stored by :mod:`mccnn_cl.binaries`
         self.builds = 0
         self.binary_loads = 0
+        #: seconds spent making programs (builds and binary loads)
+        self.build_seconds = 0.0
         #: store the binary of every program built from source (mccnn_cl.binaries)
         self.save_binaries = False
         self._kernels: dict = {}
@@ -378,6 +381,15 @@ class ClContext:
         except OSError as exc:
             raise OpenCLError(f"kernel source {filename} not found in {self.kernel_dir}") from exc
         options = ["-I", self.kernel_dir] + [f"-D{k}={v}" for k, v in key[1]]
+        t0 = time.perf_counter()
+        try:
+            prg = self._make_program(filename, src, options)
+        finally:
+            self.build_seconds += time.perf_counter() - t0
+        self._programs[key] = prg
+        return prg
+
+    def _make_program(self, filename, src, options):
         prg = self._from_binary(src, options)
         if prg is None:
             try:
@@ -391,7 +403,6 @@ class ClContext:
             self.builds += 1
         else:
             self.binary_loads += 1
-        self._programs[key] = prg
         return prg
 
     def _from_binary(self, src, options):
