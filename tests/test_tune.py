@@ -154,3 +154,30 @@ def test_real_candidates_agree(ctx, cache):
         assert any(s is not None for _, s in results), name
         assert all(s is not None for _, s in results), f"{name}: a candidate disagreed with the rules: {results}"
     assert set(choices) <= set().union(*(c for o in opts for c in o.candidates))
+
+
+def test_devices_lines_name_the_source(cache, ctx):
+    from mccnn_cl.tune_cmd import describe_choices
+
+    lines = describe_choices(ctx.device)
+    assert "not tuned" in lines[0] and all("(rules)" in ln for ln in lines[1:])
+    tune.store(ctx.device, {"sgm_cols": 48}, {})
+    lines = describe_choices(ctx.device)
+    assert "tuned on this device" in lines[0]
+    assert any("sgm_cols" in ln and "48" in ln and "(tuned)" in ln for ln in lines)
+    assert any("cbca_fused" in ln and "(rules)" in ln for ln in lines)
+
+
+@pytest.mark.slow
+def test_tune_command(cache):
+    """`mccnn-cl tune` end to end: choices written, then listed by `devices`."""
+    import subprocess
+    import sys
+
+    env = dict(os.environ, MCCNN_CACHE_DIR=str(cache), MCCNN_TUNE="on")
+    p = subprocess.run([sys.executable, "-m", "mccnn_cl", "tune", "--no-binaries"], env=env,
+                       capture_output=True, text=True, timeout=900)
+    assert p.returncode == 0, p.stderr
+    assert "written to" in p.stdout and "wrong/failed" not in p.stdout
+    d = subprocess.run([sys.executable, "-m", "mccnn_cl", "devices"], env=env, capture_output=True, text=True)
+    assert "tuned on this device" in d.stdout
