@@ -226,11 +226,13 @@ def _same(a, b, exact) -> bool:
     return bool(np.allclose(a, b, rtol=1e-5, atol=1e-5, equal_nan=True))
 
 
-def choose(ctx, opts, progress=None) -> tuple:
+def choose(ctx, opts, progress=None, rounds=1) -> tuple:
     """Measure every candidate of every option (rules first: the reference
-    output); returns ``(choices, measured)``: the RULES rows of the fastest
-    correct candidate per option, and every candidate's seconds (None: wrong
-    output or failed)."""
+    output), ``rounds`` times in turn (candidate 1, 2, ..., 1, 2, ...: a
+    change of the machine's load falls on all of them), the best time kept;
+    returns ``(choices, measured)``: the RULES rows of the fastest correct
+    candidate per option, and every candidate's seconds (None: wrong output
+    in any round, or failed)."""
     profile = ctx.profile
     choices, measured = {}, {}
     for opt in opts:
@@ -239,46 +241,50 @@ def choose(ctx, opts, progress=None) -> tuple:
             profile.tuned.clear()
             profile.tuned.update({k: v for k, v in choices.items()})
             _, reference = opt.run(ctx)
-            results = []
-            for cand in opt.candidates:
-                profile.tuned.clear()
-                profile.tuned.update(choices)
-                profile.tuned.update(cand)
-                try:
-                    sec, output = opt.run(ctx)
-                    ok = _same(output, reference, opt.exact)
-                except Exception as exc:  # noqa: BLE001 - a candidate that fails is not chosen
-                    log.info("tuning %s: candidate %s failed: %s", opt.name, cand, exc)
-                    sec, ok = None, False
-                results.append((cand, sec if ok else None))
-                if progress is not None:
-                    progress()
+            best = [float("inf")] * len(opt.candidates)
+            for _ in range(max(1, int(rounds))):
+                for j, cand in enumerate(opt.candidates):
+                    if best[j] is None:
+                        continue
+                    profile.tuned.clear()
+                    profile.tuned.update(choices)
+                    profile.tuned.update(cand)
+                    try:
+                        sec, output = opt.run(ctx)
+                        ok = _same(output, reference, opt.exact)
+                    except Exception as exc:  # noqa: BLE001 - a candidate that fails is not chosen
+                        log.info("tuning %s: candidate %s failed: %s", opt.name, cand, exc)
+                        sec, ok = None, False
+                    best[j] = min(best[j], sec) if ok else None
+                    if progress is not None:
+                        progress()
+            results = list(zip(opt.candidates, best))
         finally:
             profile.tuned.clear()
             profile.tuned.update(saved)
         measured[opt.name] = [[c, s] for c, s in results]
         good = [(s, i) for i, (c, s) in enumerate(results) if s is not None]
         if good:
-            best, i = min(good)
+            fastest, i = min(good)
             rules = [j for j, (c, s) in enumerate(results) if s is not None
                      and all(_rules_value(profile, k) == v for k, v in c.items())]
-            if rules and results[rules[0]][1] <= best * (1 + MARGIN):
+            if rules and results[rules[0]][1] <= fastest * (1 + MARGIN):
                 i = rules[0]  # the rules' own candidate unless another is clearly faster
             choices.update(results[i][0])
     return choices, measured
 
 
-def tune(ctx, progress: bool = False, size=SIZE, repeat=3) -> tuple:
+def tune(ctx, progress: bool = False, size=SIZE, rounds=3) -> tuple:
     """Tune ``ctx``'s device, store the choices, apply them to ``ctx.profile``;
     returns ``(choices, measured, path)``."""
-    opts = options(ctx, size, repeat)
+    opts = options(ctx, size, repeat=1)
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=sum(len(o.candidates) for o in opts), desc="tuning", unit="candidate")
+        bar = tqdm(total=rounds * sum(len(o.candidates) for o in opts), desc="tuning", unit="run")
     try:
-        choices, measured = choose(ctx, opts, None if bar is None else (lambda: bar.update(1)))
+        choices, measured = choose(ctx, opts, None if bar is None else (lambda: bar.update(1)), rounds)
     finally:
         if bar is not None:
             bar.close()

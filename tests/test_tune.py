@@ -181,3 +181,23 @@ def test_tune_command(cache):
     assert "written to" in p.stdout and "wrong/failed" not in p.stdout
     d = subprocess.run([sys.executable, "-m", "mccnn_cl", "devices"], env=env, capture_output=True, text=True)
     assert "tuned on this device" in d.stdout
+
+
+def test_wrong_in_any_round_never_chosen(ctx):
+    """A candidate right in the first round and wrong in a later one is not chosen."""
+    calls = {"n": 0}
+
+    def run(c):
+        cols = c.profile.rule("sgm_cols")
+        if cols == 32:
+            calls["n"] += 1
+            return 0.001, np.ones(3) * (calls["n"] >= 2)  # right once, then wrong
+        return 0.5, np.zeros(3)
+
+    opt = tune.Option("sgm_cols", [{"sgm_cols": 32}, {"sgm_cols": 64}], run)
+    ctx.profile.tuned["sgm_cols"] = 999  # the reference run uses neither candidate
+    try:
+        choices, measured = tune.choose(ctx, [opt], rounds=3)
+    finally:
+        ctx.profile.tuned.pop("sgm_cols")
+    assert choices == {"sgm_cols": 64} and measured["sgm_cols"][0][1] is None
