@@ -17,9 +17,9 @@ steps on the CPU device (rehearsal; the network benches then at a quarter
 of KITTI per side, since a CPU takes minutes for the full size); its time
 budgets were set on a 2-core AVX-512 EPYC and scale with the machine's speed
 measured at the start (:func:`speed_scale`: numpy's GEMM rate against that
-machine's, at most MAX_SCALE times).  Before the tests, ``mccnn-cl tune``
-chooses the kernels on the device and stores their binaries (the benches
-use its choices).
+machine's, at most MAX_SCALE times).  Before the tests, ``mccnn-cl tune
+--no-binaries`` chooses the kernels on the device (the benches use its
+choices; the tests run the rules table, MCCNN_TUNE=off in their conftest).
 """
 
 from __future__ import annotations
@@ -111,7 +111,8 @@ def speed_scale(rate=None) -> tuple:
 
 def run_tune(spec, limit, env, say):
     """``mccnn-cl tune`` on the device: a row (title, status, seconds, note, output)."""
-    rc, out, sec = _run([sys.executable, "-m", "mccnn_cl", "tune", "--device", spec], limit, env)
+    # no binaries: the benches time after a warm-up, and the tests build other configurations
+    rc, out, sec = _run([sys.executable, "-m", "mccnn_cl", "tune", "--device", spec, "--no-binaries"], limit, env)
     status = "timed out" if rc is None else ("ok" if rc == 0 else f"FAILED (exit {rc})")
     say(f"gpu_check: mccnn-cl tune: {status} ({sec:.0f} s)")
     keep = [ln for ln in out.splitlines() if "tuning:" not in ln]  # the progress bar's redraws
