@@ -135,11 +135,6 @@ class DeviceProfile:
     def launch_local(self):
         """Work-group sizes per dimension of the launches whose stage leaves
         them open (:func:`mccnn_cl.cl.launch_sizes`), or None: the runtime's."""
-        import os
-
-        env = os.environ.get("MCCNN_LAUNCH_LOCAL")  # experiments: "none" or "32,4,4"
-        if env:
-            return None if env == "none" else tuple(int(v) for v in env.split(","))
         value = self.rule("launch_local")
         return tuple(value) if value else None
 

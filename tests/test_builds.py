@@ -65,7 +65,6 @@ def test_fixed_launch_sizes_bit_identical(ctx, monkeypatch):
     outs = []
     for local in ((64, 2, 2), None):
         monkeypatch.setitem(device.RULES, "launch_local", {c: local for c in device.CLASSES})
-        monkeypatch.delenv("MCCNN_LAUNCH_LOCAL", raising=False)
         m = StereoMatcher(cost="census", max_disparity=24, device=ctx)
         res = m.compute(left, right, return_intermediates=True)
         outs.append(res)
