@@ -36,6 +36,10 @@ import pytest
 
 from mccnn_cl.opencl.context import ClContext
 
+# The suite checks the rules table's choices: a tuning cache of the machine
+# (mccnn-cl tune) is not applied unless a run asks for it (MCCNN_TUNE=on).
+os.environ.setdefault("MCCNN_TUNE", "off")
+
 REPO = Path(__file__).resolve().parents[1]
 #: the real crops bundled with the tests (tests/data/README.md)
 BUNDLED_DATA = REPO / "tests" / "data"

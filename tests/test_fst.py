@@ -135,14 +135,12 @@ def test_interface_and_errors(ctx):
         cost(img[:4], img[:4], 3)  # smaller than the 5 x 5 patch
 
 
-@pytest.mark.parametrize("variant", [0, 1, 2])
 @pytest.mark.parametrize("size", [(37 + 8, 53 + 8, 16), (12, 80, 70), (10, 40, 45)],
                          ids=["37x53-D16", "D70-w72", "D>W"])
-def test_volume_forms(ctx, monkeypatch, variant, size):
-    """Every form of the volume kernel (fst.VARIANT: unaligned loads, shuffles,
-    shuffle-sharing pairs) against the reference; widths that end inside a
-    16- and a 32-pixel block, D not a multiple of 8 or 16."""
-    monkeypatch.setattr(fst_stage, "VARIANT", variant)
+def test_volume_forms(ctx, size):
+    """The CPU form of the volume kernel (fst_volume_pairs) against the
+    reference; widths that end inside a 16- and a 32-pixel block, D not a
+    multiple of 8 or 16."""
     H, W, D = size
     w = Weights.random([[16, 3]] * 4, architecture="mccnn-fst", seed=W)
     left, right = random_pair(np.random.default_rng(H), H, W)

@@ -85,3 +85,15 @@ def test_pack_data_copies_the_files_the_check_reads(tmp_path, shared_data):
     for rel in gpucheck.DATA_FILES:
         assert (tmp_path / "data" / rel).read_bytes() == (shared_data / rel).read_bytes()
     assert gpucheck.find_data(tmp_path / "data") == (tmp_path / "data").resolve()
+
+
+def test_speed_scale():
+    """--cpu budgets scale with the measured speed: 1 at or above the reference
+    machine's rate, its ratio below, at most MAX_SCALE."""
+    ref = gpucheck.CPU_REFERENCE_GFLOPS * 1e9
+    assert gpucheck.speed_scale(ref * 2)[0] == 1.0
+    assert gpucheck.speed_scale(ref)[0] == 1.0
+    assert abs(gpucheck.speed_scale(ref / 1.5)[0] - 1.5) < 1e-9
+    assert gpucheck.speed_scale(ref / 100)[0] == gpucheck.MAX_SCALE
+    scale, gflops = gpucheck.speed_scale()
+    assert 1.0 <= scale <= gpucheck.MAX_SCALE and gflops > 0

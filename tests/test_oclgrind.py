@@ -141,19 +141,11 @@ def case_fst(ctx, rng, chk):
     from mccnn_cl.costs.fst import FstCost
     from mccnn_cl.weights import Weights
 
-    import mccnn_cl.costs.fst as fst_module
-
     w = Weights.random(conv_layers=[[6, 3], [5, 3]], architecture="mccnn-fst", seed=4)  # patch 5
     # the CPU-shaped kernels whatever the device's default (case fst_wg has the GPU-shaped ones):
     cost = FstCost(ctx, w, local_tiles=False, workgroup=False)  # pairs of 16-pixel vectors
-    saved = fst_module.VARIANT
-    fst_module.VARIANT = 1   # and the one-vector form (fst_volume)
-    try:
-        single = FstCost(ctx, w, local_tiles=False, workgroup=False)
-    finally:
-        fst_module.VARIANT = saved
     # 2nd: D >= W (cropped W = 9), 3rd: cropped width 35 (a partial 16-pixel block)
-    for cost, (h, wd, D) in ((cost, (9, 21, 7)), (cost, (8, 13, 11)), (cost, (7, 39, 20)), (single, (7, 39, 20))):
+    for cost, (h, wd, D) in ((cost, (9, 21, 7)), (cost, (8, 13, 11)), (cost, (7, 39, 20))):
         left, right = _images(rng, h, wd)
         H, W = h - 2 * w.margin, wd - 2 * w.margin
         out = _poisoned(ctx, D * H * W * 4)

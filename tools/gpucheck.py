@@ -14,7 +14,12 @@ each with the baselines the bench measures in the same run.  With no GPU
 OpenCL device it prints one line naming the likely cause (e.g. NVIDIA's
 ICD missing from a CUDA-only image) and exits 0.  ``--cpu`` runs the same
 steps on the CPU device (rehearsal; the network benches then at a quarter
-of KITTI per side, since a CPU takes minutes for the full size).
+of KITTI per side, since a CPU takes minutes for the full size); its time
+budgets were set on a 2-core AVX-512 EPYC and scale with the machine's speed
+measured at the start (:func:`speed_scale`: numpy's GEMM rate against that
+machine's, at most MAX_SCALE times).  Before the tests, ``mccnn-cl tune
+--no-binaries`` chooses the kernels on the device (the benches use its
+choices; the tests run the rules table, MCCNN_TUNE=off in their conftest).
 """
 
 from __future__ import annotations
@@ -65,6 +70,14 @@ BENCH_LIMIT_S = 100.0
 CPU_TOTAL_BUDGET_S = 570.0
 CPU_TEST_BUDGET_S = 470.0
 CPU_GROUP_LIMIT_S = 180.0
+#: ``mccnn-cl tune`` before the tests (its own limit, within the whole check's)
+TUNE_LIMIT_S = 150.0
+#: numpy's float32 GEMM rate (GFLOP/s) on the machine the --cpu budgets were set
+#: on (2-core AMD EPYC, AVX-512, PoCL pthread-skylake-avx512, idle: ~200,
+#: BENCHMARKS.md); a slower or loaded machine gets budgets scaled by the ratio,
+#: at most MAX_SCALE times
+CPU_REFERENCE_GFLOPS = 200.0
+MAX_SCALE = 4.0
 #: The shared data files the chosen tests and the bench read (``--pack-data``).
 DATA_FILES = ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png",
               "middlebury/Cones/im0.png", "middlebury/Cones/im1.png")
@@ -79,6 +92,27 @@ def _run(cmd, limit, env=None):
     except subprocess.TimeoutExpired as exc:
         out = (exc.stdout or b"") + (exc.stderr or b"")
         return None, out.decode(errors="replace") if isinstance(out, bytes) else out, time.perf_counter() - t0
+
+
+def speed_scale(rate=None) -> tuple:
+    """(factor the --cpu budgets are multiplied by, numpy GEMM GFLOP/s measured):
+    CPU_REFERENCE_GFLOPS / the rate, between 1 and MAX_SCALE."""
+    if rate is None:
+        from .bench import numpy_gemm_rate
+
+        rate = numpy_gemm_rate(n=32768, repeat=5)
+    gflops = rate / 1e9
+    return min(MAX_SCALE, max(1.0, CPU_REFERENCE_GFLOPS / max(gflops, 1e-3))), gflops
+
+
+def run_tune(spec, limit, env, say):
+    """``mccnn-cl tune`` on the device: a row (title, status, seconds, note, output)."""
+    # no binaries: the benches time after a warm-up, and the tests build other configurations
+    rc, out, sec = _run([sys.executable, "-m", "mccnn_cl", "tune", "--device", spec, "--no-binaries"], limit, env)
+    status = "timed out" if rc is None else ("ok" if rc == 0 else f"FAILED (exit {rc})")
+    say(f"gpu_check: mccnn-cl tune: {status} ({sec:.0f} s)")
+    keep = [ln for ln in out.splitlines() if "tuning:" not in ln]  # the progress bar's redraws
+    return ("mccnn-cl tune", status, sec, "", "\n".join(keep).strip())
 
 
 def devices():
@@ -216,7 +250,7 @@ def bench_plan(cpu: bool, data: Path | None, tmp: Path):
     return plan
 
 
-def run_benches(spec, plan, repeat, env, say, t_end):
+def run_benches(spec, plan, repeat, env, say, t_end, limit=BENCH_LIMIT_S):
     rows = []
     for title, args, note in plan:
         left = t_end - time.perf_counter()
@@ -226,7 +260,7 @@ def run_benches(spec, plan, repeat, env, say, t_end):
             rows.append((title, "skipped", 0.0, note, ""))
             continue
         cmd = [sys.executable, "-m", "mccnn_cl", "bench", "--device", spec, "--repeat", str(repeat), *args]
-        rc, out, sec = _run(cmd, min(BENCH_LIMIT_S, left), env)
+        rc, out, sec = _run(cmd, min(limit, left), env)
         status = "timed out" if rc is None else ("ok" if rc == 0 else f"FAILED (exit {rc})")
         say(f"gpu_check: bench {title}: {status} ({sec:.0f} s)")
         rows.append((title, status, sec, note, out.strip()))
@@ -246,7 +280,7 @@ def report(path, args, spec, target, devs, test_rows, bench_rows, seconds, env_n
     for t, s, _, _, fails in test_rows:
         if fails:
             lines += ["", f"### {t}: failures", "", "```", fails[-6000:], "```"]
-    lines += ["", "## `mccnn-cl bench` (with the baselines it measures in the same run)", ""]
+    lines += ["", "## `mccnn-cl tune`, then `mccnn-cl bench` (with the baselines it measures in the same run)", ""]
     for t, s, sec, note, out in bench_rows:
         lines += [f"### {t}: {s} ({sec:.0f} s)" + (f" - {note}" if note else ""), ""]
         if out:
@@ -311,12 +345,20 @@ def main(argv=None) -> int:
         say("gpu_check: no shared data found: the tests that read real images will fail (see --pack-data)")
     test_budget, total_budget, group_limit = ((CPU_TEST_BUDGET_S, CPU_TOTAL_BUDGET_S, CPU_GROUP_LIMIT_S) if args.cpu
                                               else (TEST_BUDGET_S, TOTAL_BUDGET_S, GROUP_LIMIT_S))
-    test_rows = run_tests(spec, test_budget, env, say, group_limit)
+    scale, note = 1.0, ""
+    if args.cpu:
+        scale, gflops = speed_scale()
+        note = (f"numpy GEMM {gflops:.0f} GFLOP/s against {CPU_REFERENCE_GFLOPS:.0f} on the machine the budgets "
+                f"were set on: budgets x {scale:.2f}")
+        say(f"gpu_check: speed: {note}")
+    tune_row = run_tune(spec, TUNE_LIMIT_S * scale, env, say)
+    test_rows = run_tests(spec, test_budget * scale, env, say, group_limit * scale)
     with tempfile.TemporaryDirectory(prefix="gpu-check-") as tmp:
         bench_rows = run_benches(spec, bench_plan(args.cpu, data, Path(tmp)), 1 if args.cpu else 3, env, say,
-                                 t0 + total_budget)
+                                 t0 + tune_row[2] + total_budget * scale, BENCH_LIMIT_S * scale)
     seconds = time.perf_counter() - t0
-    report(args.out, args, spec, info, devs, test_rows, bench_rows, seconds, args.env_note or "environment as found")
+    env_note = (args.env_note or "environment as found") + (f"; {note}" if note else "")
+    report(args.out, args, spec, info, devs, test_rows, [tune_row] + bench_rows, seconds, env_note)
     bad = [t for t, s, sec, why, _ in test_rows + bench_rows
            if s not in ("passed", "ok", "skipped") and not (s == "not run" and why.startswith("needs"))]
     say(f"gpu_check: report written to {args.out} ({seconds:.0f} s); "

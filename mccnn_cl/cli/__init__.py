@@ -40,6 +40,7 @@ COMMANDS = {
     "bench": ("mccnn_cl.cli.bench", "run"),
     "demo": ("mccnn_cl.cli.demo", "run"),
     "adapt": ("mccnn_cl.cli.adapt", "run"),
+    "tune": ("mccnn_cl.cli.tune", "run"),
 }
 
 
@@ -160,6 +161,14 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--workers", type=int, default=None, metavar="N",
                    help="also show the device each of N local Dask workers would use (match --workers N)")
 
+    t = sub.add_parser("tune", parents=[verbose], help="choose kernels by measurement on this device",
+                       description="Measure the candidate kernel shapes of each tunable choice on the device, "
+                                   "keep the fastest correct one in the per-device cache (~/.cache/mccnn_cl/tune), "
+                                   "and store the kernel binaries of the default method (faster first calls). "
+                                   "MCCNN_TUNE=off ignores the cache.")
+    t.add_argument("--device", metavar="SPEC", default=None, help="OpenCL device (as for match)")
+    t.add_argument("--no-binaries", action="store_true", help="do not store kernel binaries")
+
     b = sub.add_parser("bench", parents=[verbose], help="per-stage runtime on a KITTI-size pair",
                        description="Time each stage of the pipeline (best of --repeat runs after a "
                                    "warm-up) beside OpenCV SGBM on the same pair.")
@@ -217,6 +226,9 @@ def main(argv=None) -> int:
     verbose = bool(getattr(args, "verbose", False))
     if verbose:
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+        from . import cl
+
+        cl.COMPILER_OUTPUT = True  # the compiler's "N warnings generated." lines
     else:
         # Some runtimes (Intel's CPU runtime) always return a build log, which
         # PyOpenCL reports as a CompilerWarning per program: noise on a terminal.

@@ -43,8 +43,13 @@ def run(args) -> int:
     say(f"bench: {what}, {max_disp} disparities, cost {args.cost}"
         + (f" ({weights.num_parameters():,} weights)" if weights is not None else ""))
     say(f"device: {matcher.ctx.describe()}")
+    ctx = matcher.ctx
     if not args.no_warmup:
+        t0 = time.perf_counter()
         matcher.compute(left, right)  # warm-up: lazy kernel builds, first allocations
+        t_warm = time.perf_counter() - t0
+        say(f"set-up: kernels {ctx.build_seconds:.2f} s ({ctx.builds} builds, {ctx.binary_loads} stored "
+            f"binaries); first call {t_warm:.2f} s, builds included (not in the times below)")
     runs = []
     for _ in range(args.repeat):
         t0 = time.perf_counter()

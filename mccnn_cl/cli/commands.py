@@ -562,6 +562,9 @@ def cmd_devices(args):
     name = next((str(d) for d in devices if d.handle == chosen), chosen.name.strip())
     _say(f"would use: {name}")
     _say(f"because:   {reason}")
+    from .tune import describe_choices
+    for line in describe_choices(chosen):
+        _say(line)
     workers = getattr(args, "workers", None)
     if workers is not None:
         _positive("--workers", workers)

@@ -46,7 +46,7 @@ from collections import namedtuple
 
 import numpy as np
 
-from ..opencl.context import BufferPool, round_up
+from ..opencl.context import BufferPool, launch_sizes, round_up
 from ..errors import InputError, OpenCLError, WeightsError
 from ..validate import check_cost_inputs
 from ..imageops import standardise as normalise  # noqa: F401 (one standardisation: training's too)
@@ -134,6 +134,11 @@ def default_tiles(ctx) -> dict:
     return ctx.profile.network_tiles()
 
 
+#: pixel groups per work-group of the register-tile conv kernel where the device
+#: takes fixed work-group sizes (:func:`mccnn_cl.cl.launch_sizes`)
+CONV_ROWS_LOCAL = 8
+
+
 class ConvStack:
     """The tied conv layers on the device: ``ConvStack(ctx, weights, rn, conv_rm)``.
 
@@ -214,7 +219,11 @@ class ConvStack:
     def launch(self, conv: ConvKernel, d_in, w_in, d_w, d_b, d_out, w_out, m_total, npad):
         kern, tile = conv
         if tile is None:
-            gsize, lsize = (npad // self.rn, math.ceil(m_total / self.conv_rm)), None
+            # a work-group spans every channel group (a fixed count per layer)
+            gsize, lsize = launch_sizes(self.ctx, (npad // self.rn, math.ceil(m_total / self.conv_rm)))
+            if lsize is not None:
+                lsize = (npad // self.rn, CONV_ROWS_LOCAL)
+                gsize = (lsize[0], round_up(gsize[1], CONV_ROWS_LOCAL))
         else:
             wn, wm = tile["TN"] // tile["RN"], tile["TM"] // tile["RM"]
             lsize = (wn, wm)

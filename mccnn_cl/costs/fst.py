@@ -16,9 +16,9 @@ alike.
 Two volume kernels, bit for bit the same costs (each is 0, one fma per map
 in increasing order, negated):
 
-* ``fst_volume_pairs`` (``kernels/fst.cl``, the CPU form, :data:`VARIANT`):
-  a work-item per 32 pixels of a row walking every disparity, its right
-  vectors made by shuffles of aligned loads;
+* ``fst_volume_pairs`` (``kernels/fst.cl``, the CPU form): a work-item per
+  32 pixels of a row walking every disparity, its right vectors made by
+  shuffles of aligned loads;
 * ``fst_volume_wg`` (``kernels/fst_wg.cl``, the "workgroup" path; the
   default on the profile's ``gpu`` column, rule ``fst_workgroup``): a
   work-group per (tile of TX columns, chunk of TD disparities, row) stages
@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..opencl.context import round_up
+from ..opencl.context import launch_sizes, round_up
 from ..weights import FST, Weights
 from ..validate import check_cost_inputs
 from .features import ConvNetCost, check_tile, fit_tile, normalise, shrinker
@@ -54,14 +54,10 @@ FST_CL = "fst.cl"
 FST_WG_CL = "fst_wg.cl"
 #: bytes of one band's feature buffers (both images)
 BAND_BYTES = 256 << 20
-#: the volume kernel's form (kernels/fst.cl), KITTI volume on PoCL, same process:
-#: 0 one unaligned load per shifted right vector (96 ms), 1 the 16 shifted
-#: vectors of a block from two aligned loads by constant shuffles (63-68 ms),
-#: 2 (default) as 1 for pairs of 16-pixel vectors sharing their shuffles
-#: (61 ms vs 68).  PADL: zero columns left of x = 0.
-VARIANT = 2
+#: zero columns left of x = 0 in the planar features (kernels/fst.cl)
 PADL = 32
-_FORMS = {0: ("fst_volume", 8, 16), 1: ("fst_volume", 16, 16), 2: ("fst_volume_pairs", 8, 32)}
+#: pixels of a row per fst_volume_pairs work-item
+_VOL_PX = 32
 
 
 class FstCost(ConvNetCost):
@@ -85,14 +81,14 @@ class FstCost(ConvNetCost):
                  local_tiles=None, workgroup=None):
         super().__init__(ctx, weights, tiles, half, local_tiles)
         self.nk = weights.feature_maps
-        name, rd, self._vol_px = _FORMS[VARIANT]  # kernel, disparities per block, pixels per work-item
-        defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL, RD=rd, VARIANT=VARIANT)
+        self._vol_px = _VOL_PX
+        defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL)
         self._norm = ctx.kernel(FST_CL, "fst_normalise", **defs)
         wg = ctx.profile.local_tile("fst_workgroup", "fst_volume_tile", workgroup)
         self.volume_tile = None
         if wg is None:
-            self.volume_path = "pairs" if VARIANT == 2 else "single"
-            self._vol = ctx.kernel(FST_CL, name, VOL_HALF=int(half), **defs)
+            self.volume_path = "pairs"
+            self._vol = ctx.kernel(FST_CL, "fst_volume_pairs", VOL_HALF=int(half), **defs)
         else:
             self.volume_path = "workgroup"
             self._vol, self.volume_tile = self._volume_wg(*wg)
@@ -116,7 +112,8 @@ class FstCost(ConvNetCost):
         i32, t = np.int32, self.volume_tile
         args = (d_l, d_r, d_cost, i32(h), i32(w), i32(y0), i32(D), i32(self._wp(w)))
         if t is None:
-            self._vol(self.ctx.queue, (-(-w // self._vol_px), hb), None, *args)
+            # rows of the band are not guarded (the kernel has no band height)
+            self._vol(self.ctx.queue, *launch_sizes(self.ctx, (-(-w // self._vol_px), hb), guarded=(1, 0)), *args)
             return
         wx, wd = t["TX"] // t["RX"], t["TD"] // t["RD"]
         self._vol(self.ctx.queue, (-(-w // t["TX"]) * wx, -(-D // t["TD"]) * wd, hb), (wx, wd, 1), *args)
@@ -168,7 +165,8 @@ class FstCost(ConvNetCost):
         d_feat = self.stack.run_image(band)
         wp = self._wp(w)
         d_out = self.ctx.empty(hb * self.nk * wp * 4, "fst planar features")
-        self._norm(self.ctx.queue, (wp, hb), None, d_feat, d_out, np.int32(w), np.int32(wp))
+        self._norm(self.ctx.queue, *launch_sizes(self.ctx, (wp, hb), guarded=(1, 0)), d_feat, d_out, np.int32(w),
+                   np.int32(wp))
         self.stack.give(d_feat)
         return d_out
 

@@ -45,7 +45,7 @@ import math
 
 import numpy as np
 
-from ..opencl.context import round_up
+from ..opencl.context import launch_sizes, round_up
 from ..errors import InputError
 from ..weights import ACRT, PAPER, Weights
 from .features import ConvNetCost, normalise  # noqa: F401 (normalise re-exported)
@@ -272,7 +272,7 @@ class PaperCost(ConvNetCost):
         P = self.patch
         i32 = np.int32
         if host is None:  # NaN into every invalid cell (x < d) of the volume, once
-            self._mark(q, (w, h, D), None, d_cost, i32(h), i32(w), i32(0))
+            self._mark(q, *launch_sizes(self.ctx, (w, h, D), guarded=(1, 1, 0)), d_cost, i32(h), i32(w), i32(0))
         if normalised:
             Ln, Rn = L, R
         elif stats is None:
@@ -286,7 +286,7 @@ class PaperCost(ConvNetCost):
             # the volume the head writes into: whole (rows y0 ..), or this band alone
             vh, vy0 = (h, y0) if host is None else (hb, 0)
             if host is not None:
-                self._mark(q, (w, hb, D), None, d_cost, i32(hb), i32(w), i32(0))
+                self._mark(q, *launch_sizes(self.ctx, (w, hb, D), guarded=(1, 1, 0)), d_cost, i32(hb), i32(w), i32(0))
             d_a = self._half(Ln[y0:y0 + hb + P - 1], left=True)
             d_b = self._half(Rn[y0:y0 + hb + P - 1], left=False)
             per_chunk = max(1, min(D, CHUNK_CELLS // max(1, hb * w)))

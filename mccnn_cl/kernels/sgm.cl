@@ -39,6 +39,7 @@
  * and divides by 4.
  */
 #include "common.h"
+#include "sgm_recurrence.h"
 
 #ifndef MAX_DISP
 #error "sgm.cl needs -D MAX_DISP=<upper bound of the disparity levels D>"
@@ -84,20 +85,6 @@
 
 #define SGM_G (SGM_COLS / VW) /* groups of VW columns per work-item of sgm_columns */
 
-/* fmin (OpenCL: y if y < x, else x; the other argument if one is NaN) with
- * one comparison instead of a NaN test and a comparison, where one argument
- * is known never to be NaN; the same value as fmin in every such case, ties
- * included.  fmin_a: a is never NaN; fmin_b: b is never NaN. */
-static inline __attribute__((always_inline)) float16 fmin_a(const float16 a, const float16 b)
-{
-    return select(a, b, b < a);
-}
-
-static inline __attribute__((always_inline)) float16 fmin_b(const float16 a, const float16 b)
-{
-    return select(a, b, !(a <= b));
-}
-
 /* Vertical penalties of the columns x0 .. x0 + n - 1 (n <= 16; none when
  * n = 0) of row y, whose predecessor on the path is row py: P1 and P2 for a
  * small (*p1a, *p2a) and a large (*p1b, *p2b) D2, given the lanes' D1 =
@@ -109,12 +96,10 @@ static inline __attribute__((always_inline)) void vertical_penalties(
 {
     int16 big_l = (int16)(0);
     if (n > 0)
-        big_l = isless(fabs(load16_partial(img_l, y * W + x0, n, 0.0f) - load16_partial(img_l, py * W + x0, n, 0.0f)),
-                       (float16)(tau_so)) == (int16)(0);
-    *p1a = select((float16)(p1_small), (float16)(p1_one), big_l); /* D2 small */
-    *p1b = select((float16)(p1_one), (float16)(p1_both), big_l);  /* D2 large */
-    *p2a = select((float16)(p2_small), (float16)(p2_one), big_l);
-    *p2b = select((float16)(p2_one), (float16)(p2_both), big_l);
+        big_l = SGM_LARGE16(load16_partial(img_l, y * W + x0, n, 0.0f) - load16_partial(img_l, py * W + x0, n, 0.0f),
+                            tau_so);
+    SGM_BY_D1_16(p1_small, p1_one, p1_both, big_l, *p1a, *p1b);
+    SGM_BY_D1_16(p2_small, p2_one, p2_both, big_l, *p2a, *p2b);
 }
 
 /* Vertical D2 flags (sgm_columns, sgm_paired): bigr[t] = D2 large (-1) or
@@ -193,14 +178,9 @@ static inline __attribute__((always_inline)) void col_row(
                 val = c; /* first pixel of the path */
             } else {
                 const int16 big_r = vload16(0, bigr + MAX_DISP + g * VW - d);
-                const float16 p1 = select(p1a[g], p1b[g], big_r);
-                const float16 p2 = select(p2a[g], p2b[g], big_r);
                 const float16 pn = vload16(0, sp + ws + g * VW); /* C_r(p - r, d + 1) */
-                /* m and newm are never NaN (minima from +INFINITY through fmin, which
-                 * drops NaN), so neither are m + P2 nor fmin_b(., m + P2): fmin_a/b
-                 * are fmin there; C_r(p - r, .) may be NaN (a NaN cost) */
-                const float16 best = fmin_a(fmin_b(pd[g], m[g] + p2), fmin(pm1[g], pn) + p1);
-                val = c - m[g] + best;
+                val = sgm_step16(c, m[g], pm1[g], pd[g], pn, SGM_BY_D2_16(p1a[g], p1b[g], big_r),
+                                 SGM_BY_D2_16(p2a[g], p2b[g], big_r));
                 pm1[g] = pd[g];
                 pd[g] = pn;
             }
@@ -445,9 +425,10 @@ static inline __attribute__((always_inline)) void row_chunk(
         const int nvec = dmax / VW + 1;
         const int first = x == (dir > 0 ? 0 : W - 1); /* first pixel of the path: C_r = C */
         const int px = x - dir;
-        const int big_l = first ? 0 : !(fabs(il[x] - il[px]) < tau_so);
-        const float p1_a = big_l ? p1_one : p1_small, p1_b = big_l ? p1_both : p1_one;
-        const float p2_a = big_l ? p2_one : p2_small, p2_b = big_l ? p2_both : p2_one;
+        const int big_l = first ? 0 : SGM_LARGE(il[x] - il[px], tau_so);
+        float p1_a, p1_b, p2_a, p2_b;
+        SGM_BY_D1(p1_small, p1_one, p1_both, big_l, p1_a, p1_b);
+        SGM_BY_D1(p2_small, p2_one, p2_both, big_l, p2_a, p2_b);
         const float mm = *m;
         float *pv = *prev, *cv = *cur;
         float16 newm = (float16)(INFINITY);
@@ -461,13 +442,11 @@ static inline __attribute__((always_inline)) void row_chunk(
             } else {
                 /* D2 large at pd = x - d, lanes d0 .. d0 + 15 */
                 const int16 big_r = vload16(0, big_r_rev + rt - (x - d0 - base));
-                const float16 p1 = select((float16)(p1_a), (float16)(p1_b), big_r);
-                const float16 p2 = select((float16)(p2_a), (float16)(p2_b), big_r);
                 const float16 pm = vload16(0, pv + d0);     /* d - 1 */
                 const float16 pd = vload16(0, pv + d0 + 1); /* d */
                 const float16 pn = vload16(0, pv + d0 + 2); /* d + 1 */
-                const float16 best = fmin_a(fmin_b(pd, (float16)(mm) + p2), fmin(pm, pn) + p1);
-                val = c - (float16)(mm) + best;
+                val = sgm_step16(c, (float16)(mm), pm, pd, pn, SGM_BY_D2_16((float16)(p1_a), (float16)(p1_b), big_r),
+                                 SGM_BY_D2_16((float16)(p2_a), (float16)(p2_b), big_r));
             }
             if (v == nvec - 1) /* only the last vector has lanes d > dmax */
                 val = select((float16)(INFINITY), val, (int16)(d0) + lane <= (int16)(dmax));
@@ -786,11 +765,9 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
                                 val = r[i];
                             } else {
                                 const int16 big_r = vload16(0, bigv + MAX_DISP + gx * VW - d);
-                                const float16 p1 = select(p1a, p1b, big_r);
-                                const float16 p2 = select(p2a, p2b, big_r);
                                 const float16 pn = vload16(0, sg + (d + 1) * VW); /* C_r(p - r, d + 1) */
-                                const float16 best = fmin_a(fmin_b(pd, mv + p2), fmin(pm1, pn) + p1);
-                                val = r[i] - mv + best;
+                                val = sgm_step16(r[i], mv, pm1, pd, pn, SGM_BY_D2_16(p1a, p1b, big_r),
+                                                 SGM_BY_D2_16(p2a, p2b, big_r));
                                 pm1 = pd;
                                 pd = pn;
                             }

@@ -25,6 +25,7 @@
  * Volumes are vol_t (float, or half with VOL_HALF=1, see common.h).
  */
 #include "common.h"
+#include "sgm_recurrence.h"
 
 __kernel void sgm_wg_path(__global const vol_t *cost,  /* D x H x W cost volume (NaN invalid) */
                           __global const float *img_l, /* H x W left image, gray in [0, 1] */
@@ -76,7 +77,10 @@ __kernel void sgm_wg_path(__global const vol_t *cost,  /* D x H x W cost volume 
         float d1 = 0.0f;
         if (i > 0)
             d1 = fabs(img_l[y * W + x] - img_l[py * W + px]);
-        const int big_l = !isless(d1, tau_so);
+        const int big_l = SGM_LARGE(d1, tau_so);
+        float p1_a, p1_b, p2_a, p2_b;
+        SGM_BY_D1(p1_small, p1_one, p1_both, big_l, p1_a, p1_b);
+        SGM_BY_D1(p2_small, p2_one, p2_both, big_l, p2_a, p2_b);
         float own_min = INFINITY;
         for (int d = lid; d < D; d += L) {
             const size_t idx = VIDX(d, y, x, H, W);
@@ -91,13 +95,10 @@ __kernel void sgm_wg_path(__global const vol_t *cost,  /* D x H x W cost volume 
                     if (xrp < 0 || xrp >= W)
                         big_r = outside_large;
                     else
-                        big_r = !isless(fabs(img_r[y * W + xr] - img_r[py * W + xrp]), tau_so);
-                    const int big = big_l + big_r;
-                    const float p1 = big == 0 ? p1_small : big == 1 ? p1_one : p1_both;
-                    const float p2 = big == 0 ? p2_small : big == 1 ? p2_one : p2_both;
-                    /* prev[d + 1] is C_r(p - r, d); m is never NaN (a minimum through fmin) */
-                    const float best = fmin(fmin(prev[d + 1], m + p2), fmin(prev[d], prev[d + 2]) + p1);
-                    val = c - m + best;
+                        big_r = SGM_LARGE(img_r[y * W + xr] - img_r[py * W + xrp], tau_so);
+                    /* prev[d + 1] is C_r(p - r, d) */
+                    val = sgm_step(c, m, prev[d], prev[d + 1], prev[d + 2], SGM_BY_D2(p1_a, p1_b, big_r),
+                                   SGM_BY_D2(p2_a, p2_b, big_r));
                 }
                 own_min = fmin(own_min, val);
                 if (mode == 0) {

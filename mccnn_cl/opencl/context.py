@@ -28,6 +28,9 @@ from __future__ import annotations
 import logging
 import os
 import re
+import sys
+import tempfile
+import threading
 import time
 import weakref
 from contextlib import ExitStack
@@ -36,6 +39,7 @@ from importlib import resources
 
 import numpy as np
 
+from . import binaries
 from .device import DeviceProfile, type_name
 from ..errors import NO_PLATFORM_HELP, InputError, NoOpenCLDeviceError, OpenCLError
 
@@ -243,6 +247,48 @@ def kernel_source_dir():
     return resources.as_file(resources.files("mccnn_cl.kernels"))
 
 
+#: Show the OpenCL compiler's own summary lines ("N warnings generated."),
+#: which PoCL's clang writes straight to the process's stderr during a build;
+#: set by ``mccnn-cl --verbose`` (or MCCNN_COMPILER_OUTPUT=1).  The build log
+#: itself goes through PyOpenCL's CompilerWarning.
+COMPILER_OUTPUT = os.environ.get("MCCNN_COMPILER_OUTPUT", "") not in ("", "0")
+_SUMMARY = re.compile(r"^\d+ (warning|error)s? generated\.\s*$")
+_BUILD_LOCK = threading.Lock()
+
+
+def _filter_compiler_output(text: str) -> str:
+    """``text`` less the compiler's summary lines (unless :data:`COMPILER_OUTPUT`)."""
+    if COMPILER_OUTPUT:
+        return text
+    return "".join(line for line in text.splitlines(keepends=True) if not _SUMMARY.match(line))
+
+
+def _build_quietly(build):
+    """Run ``build()`` with file descriptor 2 captured; what it wrote goes back
+    to stderr less the compiler's summary lines.  Builds are serialised (the
+    descriptor is the process's)."""
+    with _BUILD_LOCK:
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError):
+            return build()
+        try:
+            with tempfile.TemporaryFile() as tmp:
+                os.dup2(tmp.fileno(), 2)
+                try:
+                    return build()
+                finally:
+                    os.dup2(saved, 2)
+                    tmp.seek(0)
+                    rest = _filter_compiler_output(tmp.read().decode("utf-8", "replace"))
+                    if rest:
+                        sys.stderr.write(rest)
+                        sys.stderr.flush()
+        finally:
+            os.close(saved)
+
+
 def _format_define(value) -> str:
     if isinstance(value, bool):
         return "1" if value else "0"
@@ -271,10 +317,21 @@ class ClContext:
         self.device = dev
         #: what the stages need to know about the device (mccnn_cl.opencl.device)
         self.profile = DeviceProfile.of(dev, cl)
+        from . import tune  # the choices measured on this device (MCCNN_TUNE=off: none)
+
+        self.profile.tuned.update(tune.load(dev))
         self.context = cl.Context([dev])
         props = cl.command_queue_properties.PROFILING_ENABLE if profiling else 0
         self.queue = cl.CommandQueue(self.context, properties=props)
         self._programs: dict = {}
+        #: programs built from source (the runtime may have served them from its
+        #: own cache) and made from a binary stored by :mod:`mccnn_cl.opencl.binaries`
+        self.builds = 0
+        self.binary_loads = 0
+        #: seconds spent making programs (builds and binary loads)
+        self.build_seconds = 0.0
+        #: store the binary of every program built from source (mccnn_cl.opencl.binaries)
+        self.save_binaries = False
         self._kernels: dict = {}
         self.memory = MemoryTracker()
         self._buffer = _tracked_buffer_class(cl)
@@ -330,14 +387,44 @@ class ClContext:
         except OSError as exc:
             raise OpenCLError(f"kernel source {filename} not found in {self.kernel_dir}") from exc
         options = ["-I", self.kernel_dir] + [f"-D{k}={v}" for k, v in key[1]]
+        t0 = time.perf_counter()
         try:
-            prg = self.cl.Program(self.context, src).build(options=options)
-        except self.cl.RuntimeError as exc:
-            raise OpenCLError(
-                f"building {filename} with {' '.join(options[2:])} failed on {self.describe()}:\n{exc}"
-            ) from exc
+            prg = self._make_program(filename, src, options)
+        finally:
+            self.build_seconds += time.perf_counter() - t0
         self._programs[key] = prg
         return prg
+
+    def _make_program(self, filename, src, options):
+        prg = self._from_binary(src, options)
+        if prg is None:
+            try:
+                prg = _build_quietly(lambda: self.cl.Program(self.context, src).build(options=options))
+            except self.cl.RuntimeError as exc:
+                raise OpenCLError(
+                    f"building {filename} with {' '.join(options[2:])} failed on {self.describe()}:\n{exc}"
+                ) from exc
+            if self.save_binaries and binaries.enabled():
+                binaries.store(binaries.key(self.device, self.kernel_dir, src, options), prg.binaries[0])
+            self.builds += 1
+        else:
+            self.binary_loads += 1
+        return prg
+
+    def _from_binary(self, src, options):
+        """The program made from its stored binary (:mod:`mccnn_cl.opencl.binaries`), or None."""
+        if not binaries.enabled():
+            return None
+        k = binaries.key(self.device, self.kernel_dir, src, options)
+        blob = binaries.load(k)
+        if blob is None:
+            return None
+        try:
+            return _build_quietly(lambda: self.cl.Program(self.context, [self.device], [blob]).build(options=options))
+        except self.cl.Error as exc:
+            log.warning("a stored kernel binary was refused (%s); building from source", str(exc).splitlines()[0])
+            binaries.discard(k)
+            return None
 
     def kernel(self, filename: str, name: str, **defines):
         """One kernel object from a cached program (fetched once, reused)."""
@@ -421,16 +508,38 @@ class ClContext:
         self._exit.close()
 
 
-def launch(ctx, stage: str, kernel, global_size, *args, local_size=None) -> None:
+def launch_sizes(ctx, global_size, local_size=None, guarded=None):
+    """``(global, local)`` of a launch whose work-group size was not chosen by
+    the stage (``local_size`` None): the profile's ``launch_local`` sizes
+    (:data:`mccnn_cl.device.RULES`), the global size rounded up to them, on
+    devices that compile a kernel anew for every work-group size (PoCL: left
+    to the runtime, the work-group size follows the image size, and each new
+    image size cost a compile of every such kernel at its first launch); the
+    runtime's choice (None) elsewhere.  ``guarded``: per dimension, whether
+    the kernel returns for work-items beyond the sizes it is given (default:
+    every dimension); an unguarded dimension gets work-groups of 1."""
+    glob = tuple(int(g) for g in global_size)
+    if local_size is not None:
+        return glob, tuple(int(n) for n in local_size)
+    fixed = ctx.profile.launch_local
+    if not fixed:
+        return glob, None
+    guarded = (True,) * len(glob) if guarded is None else tuple(guarded)
+    local = tuple(int(fixed[i]) if guarded[i] else 1 for i in range(len(glob)))
+    return tuple(round_up(g, n) for g, n in zip(glob, local)), local
+
+
+def launch(ctx, stage: str, kernel, global_size, *args, local_size=None, guarded=None) -> None:
     """Set ``kernel``'s arguments and enqueue it on ``ctx``'s queue over
-    ``global_size`` (work-group ``local_size``, or the runtime's choice when
-    None); an OpenCL error is raised as :class:`OpenCLError` naming ``stage``."""
+    ``global_size`` (work-group ``local_size``, or :func:`launch_sizes`'
+    choice when None); an OpenCL error is raised as :class:`OpenCLError`
+    naming ``stage``."""
     from ..errors import OpenCLError
 
+    glob, local = launch_sizes(ctx, global_size, local_size, guarded)
     try:
         kernel.set_args(*args)
-        ctx.cl.enqueue_nd_range_kernel(ctx.queue, kernel, tuple(int(g) for g in global_size),
-                                       None if local_size is None else tuple(int(n) for n in local_size))
+        ctx.cl.enqueue_nd_range_kernel(ctx.queue, kernel, glob, local)
     except ctx.cl.Error as exc:
         raise OpenCLError(f"{stage}: OpenCL error {exc}") from exc
 

@@ -24,7 +24,7 @@ kind of device a new column.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 CPU, LLVMPIPE, GPU = "cpu", "llvmpipe", "gpu"
 CLASSES = (CPU, LLVMPIPE, GPU)
@@ -80,6 +80,7 @@ RULES = {
     "network_gemm_tile":       {c: dict(TM=64, TN=64, TK=16, RM=4, RN=4) for c in (CPU, LLVMPIPE, GPU)},
     "fst_workgroup":           {CPU: False, LLVMPIPE: False, GPU: True},
     "fst_volume_tile":         {c: dict(TX=64, TD=64, TK=16, RX=4, RD=4) for c in (CPU, LLVMPIPE, GPU)},
+    "launch_local":            {CPU: (64, 2, 2), LLVMPIPE: (64, 2, 2), GPU: None},
 }
 
 #: Declared facts per class: (loop_limit or None, slow_compiler).
@@ -117,6 +118,9 @@ class DeviceProfile:
     vector_width: int       # float vector width (max of preferred and native)
     loop_limit: int | None  # declared: loop iterations per work-item, None = no limit
     slow_compiler: bool     # declared: some kernels take minutes to build
+    #: RULES rows chosen by measurement on this device (mccnn_cl.tune), which
+    #: :meth:`rule` returns instead of the column's value
+    tuned: dict = field(default_factory=dict, compare=False)
 
     @classmethod
     def of(cls, device, cl) -> "DeviceProfile":
@@ -127,9 +131,23 @@ class DeviceProfile:
                    int(device.global_mem_size), int(device.local_mem_size), int(device.max_mem_alloc_size),
                    int(device.max_work_group_size), width, loop_limit, slow)
 
+    @property
+    def launch_local(self):
+        """Work-group sizes per dimension of the launches whose stage leaves
+        them open (:func:`mccnn_cl.cl.launch_sizes`), or None: the runtime's."""
+        value = self.rule("launch_local")
+        return tuple(value) if value else None
+
     def rule(self, option: str):
-        """This device's value of one :data:`RULES` row."""
+        """This device's value of one :data:`RULES` row: the tuned one
+        (:mod:`mccnn_cl.tune`) when there is one, else the column's."""
+        if option in self.tuned:
+            return self.tuned[option]
         return RULES[option][self.kind]
+
+    def rule_source(self, option: str) -> str:
+        """"tuned" or "rules": where :meth:`rule`'s value of ``option`` comes from."""
+        return "tuned" if option in self.tuned else "rules"
 
     @property
     def is_cpu(self) -> bool:

@@ -85,8 +85,14 @@ def penalty_table(pi1=1.0, pi2=32.0, q1=4.0, q2=10.0, v=2.0, vertical=False, var
 
 
 def _max_disp(D) -> int:
-    """MAX_DISP compiled for D levels (D rounded up to a multiple of 32)."""
-    return -(-int(D) // _DISP_ROUND) * _DISP_ROUND
+    """MAX_DISP compiled for D levels: D rounded up to a power of two, at least
+    32, so that the kernels are built for seven disparity counts at most (32 ..
+    MAX_LEVELS) and a new D rarely needs a build.  MAX_DISP sizes private
+    arrays only; the loops run over D."""
+    n = _DISP_ROUND
+    while n < int(D):
+        n *= 2
+    return n
 
 
 #: Columns per chunk of the paired sweeps (SGM_PAIR_CW in sgm.cl).

@@ -1,0 +1,62 @@
+"""``mccnn-cl tune``: kernel choices by measurement (:mod:`mccnn_cl.opencl.tune`), then
+the kernel binaries of the default method stored (:mod:`mccnn_cl.opencl.binaries`)."""
+
+from __future__ import annotations
+
+import time
+
+
+def describe_choices(device) -> list:
+    """Lines naming each tunable choice's value on ``device`` and where it comes from."""
+    from ..opencl import tune
+    from ..opencl.context import _cl
+    from ..opencl.device import DeviceProfile
+
+    profile = DeviceProfile.of(device, _cl())
+    tuned = tune.load(device)
+    if not tune.enabled():
+        head = "kernel choices: the rules table (MCCNN_TUNE=off)"
+    elif tuned:
+        head = f"kernel choices: tuned on this device ({tune.cache_path(device)}), the rest from the rules table"
+    else:
+        head = "kernel choices: the rules table (not tuned: run `mccnn-cl tune`)"
+    profile.tuned.update(tuned)
+    lines = [head]
+    for name in ("sgm_cols", "sgm_paired_max_units", "cbca_fused", "cbca_multi", "launch_local"):
+        lines.append(f"  {name:22s} {profile.rule(name)!s:14s} ({profile.rule_source(name)})")
+    return lines
+
+
+def run(args) -> int:
+    from ..opencl import tune
+    from ..opencl.context import ClContext
+
+    ctx = ClContext(args.device)
+    print(f"tuning {ctx.describe()}")
+    t0 = time.perf_counter()
+    choices, measured, path = tune.tune(ctx, progress=True)
+    for name, results in measured.items():
+        parts = []
+        for cand, sec in results:
+            label = ",".join(f"{v}" for v in cand.values())
+            parts.append(f"{label}: " + ("wrong/failed" if sec is None else f"{sec * 1e3:.1f} ms"))
+        print(f"  {name:13s} " + "; ".join(parts))
+    print(f"choices {choices}\nwritten to {path} ({time.perf_counter() - t0:.0f} s)")
+    if not args.no_binaries:
+        from ..opencl import binaries
+
+        if binaries.enabled():
+            t1 = time.perf_counter()
+            ctx.save_binaries = True
+            from ..pipeline import StereoMatcher
+
+            import numpy as np
+
+            rng = np.random.default_rng(0)
+            left = rng.random((40, 320), dtype=np.float32)
+            right = np.roll(left, -3, axis=1)
+            for cost in ("cnn", "census"):  # a small pair: the kernels built lazily too
+                StereoMatcher(cost=cost, device=ctx).compute(left, right)
+            print(f"kernel binaries of the default method stored under {binaries.cache_root()} "
+                  f"({time.perf_counter() - t1:.0f} s)")
+    return 0

@@ -1,0 +1,135 @@
+"""No kernel builds for a new image size or disparity count after a warm-up;
+launch sizes that do not follow the image size; the compiler's summary lines
+kept off the terminal unless asked for."""
+
+import numpy as np
+import pytest
+
+import mccnn_cl.opencl.context as clmod
+import mccnn_cl.opencl.device as device
+from mccnn_cl import StereoMatcher
+from mccnn_cl.opencl.context import launch_sizes
+from mccnn_cl.stages.sgm import MAX_LEVELS, _max_disp
+
+from helpers import random_pair as _random_pair
+
+
+def random_pair(rng, H, W):
+    left, right = _random_pair(rng, H, W)
+    return left, np.clip(right, 0, 1)
+
+
+def test_second_size_and_disparity_count_build_nothing(ctx):
+    """After one pair, pairs of other sizes and disparity counts (in the same
+    power-of-two bucket of D) build no program."""
+    rng = np.random.default_rng(11)
+    m = StereoMatcher(cost="census", max_disparity=70, device=ctx)
+    m.compute(*random_pair(rng, 61, 143))
+    before = ctx.builds
+    for (H, W, D) in ((57, 157, 100), (70, 135, 128), (49, 121, 90)):
+        m.max_disparity = D
+        out = m.compute(*random_pair(rng, H, W))
+        assert out.shape == (H, W) and np.isfinite(out).all()
+    assert ctx.builds == before, "a new image size or D built a program"
+
+
+def test_max_disp_buckets():
+    """SGM's compiled MAX_DISP: a power of two >= D, at least 32; seven values in all."""
+    assert [_max_disp(d) for d in (1, 32, 33, 64, 65, 228, 256, 257, MAX_LEVELS)] == \
+        [32, 32, 64, 64, 128, 256, 256, 512, MAX_LEVELS]
+    assert len({_max_disp(d) for d in range(1, MAX_LEVELS + 1)}) == 7
+
+
+def test_launch_local_sizes_do_not_follow_the_image(ctx):
+    """Where the profile fixes work-group sizes (PoCL compiles a kernel per
+    work-group size), launches of any size share them; the global size is
+    rounded up to them; unguarded dimensions get 1; a stage's own choice wins."""
+    fixed = ctx.profile.launch_local
+    if not fixed:
+        assert launch_sizes(ctx, (100, 7)) == ((100, 7), None)
+        return
+    locals_ = {launch_sizes(ctx, (w, h))[1] for w, h in ((225, 188), (1242, 375), (17, 3))}
+    assert locals_ == {tuple(fixed[:2])}
+    g, l = launch_sizes(ctx, (1242, 375, 228))
+    assert all(gi % li == 0 and gi >= n for gi, li, n in zip(g, l, (1242, 375, 228)))
+    assert launch_sizes(ctx, (99, 5), guarded=(1, 0))[1] == (fixed[0], 1)
+    assert launch_sizes(ctx, (99, 5), guarded=(1, 0))[0][1] == 5
+    assert launch_sizes(ctx, (99, 5), local_size=(3, 1)) == ((99, 5), (3, 1))
+
+
+def test_fixed_launch_sizes_bit_identical(ctx, monkeypatch):
+    """The whole census method with the fixed work-group sizes and with the
+    runtime's own choice: the same bits."""
+    rng = np.random.default_rng(5)
+    left, right = random_pair(rng, 53, 91)
+    outs = []
+    for local in ((64, 2, 2), None):
+        monkeypatch.setitem(device.RULES, "launch_local", {c: local for c in device.CLASSES})
+        m = StereoMatcher(cost="census", max_disparity=24, device=ctx)
+        res = m.compute(left, right, return_intermediates=True)
+        outs.append(res)
+    for name in ("C_CNN", "C_SGM", "D_L", "D_R", "D_INT", "D_SE", "D_BF"):
+        a, b = outs[0].intermediates[name], outs[1].intermediates[name]
+        np.testing.assert_array_equal(a, b, err_msg=name)
+
+
+@pytest.mark.parametrize("verbose", [False, True])
+def test_compiler_summary_lines(monkeypatch, verbose):
+    monkeypatch.setattr(clmod, "COMPILER_OUTPUT", verbose)
+    text = "2 warnings generated.\nsomething else\n1 error generated.\n"
+    got = clmod._filter_compiler_output(text)
+    assert got == (text if verbose else "something else\n")
+
+
+def test_build_output_is_filtered(capfd, monkeypatch):
+    """What a build writes to file descriptor 2 comes back less the summary lines."""
+    import os
+
+    monkeypatch.setattr(clmod, "COMPILER_OUTPUT", False)
+
+    def build():
+        os.write(2, b"3 warnings generated.\nkept line\n")
+        return 7
+
+    assert clmod._build_quietly(build) == 7
+    err = capfd.readouterr().err
+    assert "kept line" in err and "generated" not in err
+
+
+def _arms(ctx, img):
+    from mccnn_cl.stages.cross import CrossArms, arms_from_device
+
+    H, W = img.shape
+    return arms_from_device(ctx, CrossArms(ctx)(ctx.to_device(img), H, W), H, W)
+
+
+def test_stored_binaries(ctx, monkeypatch, tmp_path, caplog):
+    """A program whose binary was saved is made from it in a new context (no
+    source build) and computes the same bits; a corrupt binary is discarded
+    with a warning and the program built from source."""
+    import os
+
+    from mccnn_cl.opencl import binaries
+    from mccnn_cl.opencl.context import ClContext
+
+    monkeypatch.setenv("MCCNN_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("MCCNN_BINARY_CACHE", raising=False)
+    img = np.random.default_rng(3).random((37, 53)).astype(np.float32)
+    expected = _arms(ctx, img)
+    saver = ClContext(ctx.device)
+    saver.save_binaries = True
+    saver.program("cross.cl")
+    files = [os.path.join(d, f) for d, _, fs in os.walk(tmp_path / "binaries") for f in fs]
+    assert len(files) == 1 and not os.path.basename(files[0]).startswith(".tmp")
+    loader = ClContext(ctx.device)
+    np.testing.assert_array_equal(_arms(loader, img), expected)
+    assert (loader.builds, loader.binary_loads) == (0, 1)
+    with open(files[0], "wb") as f:
+        f.write(b"not a binary")
+    other = ClContext(ctx.device)
+    with caplog.at_level("WARNING", logger="mccnn_cl.opencl.context"):
+        np.testing.assert_array_equal(_arms(other, img), expected)
+    assert (other.builds, other.binary_loads) == (1, 0)
+    assert "refused" in caplog.text and not os.path.exists(files[0])
+    monkeypatch.setenv("MCCNN_BINARY_CACHE", "off")
+    assert not binaries.enabled()

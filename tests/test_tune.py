@@ -1,0 +1,203 @@
+"""The tuner (mccnn_cl.tune): its per-device cache and its choices."""
+
+import json
+import multiprocessing
+import os
+import warnings
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from mccnn_cl import tune
+from mccnn_cl.opencl.context import ClContext
+
+
+def fake_device(driver="1.0"):
+    return SimpleNamespace(platform=SimpleNamespace(name="Plat", version="OpenCL 3.0 Plat 9"), name="Dev",
+                           driver_version=driver)
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("MCCNN_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("MCCNN_TUNE", raising=False)
+    monkeypatch.setattr(tune, "_WARNED", set())
+    return tmp_path
+
+
+def test_store_and_load(cache):
+    dev = fake_device()
+    path = tune.store(dev, {"sgm_cols": 64, "launch_local": [16, 4, 4]}, {})
+    assert path.startswith(str(cache)) and os.path.exists(path)
+    assert tune.load(dev) == {"sgm_cols": 64, "launch_local": [16, 4, 4]}
+    assert [f for f in os.listdir(os.path.dirname(path)) if f.startswith(".tmp")] == []
+
+
+def test_off_disables(cache, monkeypatch):
+    dev = fake_device()
+    tune.store(dev, {"sgm_cols": 64}, {})
+    monkeypatch.setenv("MCCNN_TUNE", "off")
+    assert tune.load(dev) == {}
+
+
+def test_corrupt_cache_warns_once_and_is_rewritten(cache):
+    dev = fake_device()
+    path = tune.store(dev, {"sgm_cols": 64}, {})
+    with open(path, "w") as f:
+        f.write("{ half a file")
+    with pytest.warns(RuntimeWarning, match="ignoring the tuning cache"):
+        assert tune.load(dev) == {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert tune.load(dev) == {}  # one warning per file and process
+    tune.store(dev, {"sgm_cols": 32}, {})
+    assert tune.load(dev) == {"sgm_cols": 32}
+
+
+def test_changed_driver_version_is_not_used(cache):
+    """A new driver (or package version) keys another file; a file whose
+    recorded identity is another device's is ignored with a warning."""
+    old, new = fake_device("1.0"), fake_device("2.0")
+    tune.store(old, {"sgm_cols": 64}, {})
+    assert tune.cache_path(old) != tune.cache_path(new)
+    assert tune.load(new) == {}
+    os.makedirs(os.path.dirname(tune.cache_path(new)), exist_ok=True)
+    os.replace(tune.cache_path(old), tune.cache_path(new))  # a foreign file under the new name
+    with pytest.warns(RuntimeWarning, match="another device, driver"):
+        assert tune.load(new) == {}
+
+
+def test_unknown_rows_dropped(cache):
+    dev = fake_device()
+    tune.store(dev, {"sgm_cols": 64, "no_such_rule": 1}, {})
+    assert tune.load(dev) == {"sgm_cols": 64}
+
+
+def _writer(root, n, value):
+    os.environ["MCCNN_CACHE_DIR"] = root
+    for i in range(n):
+        tune.store(fake_device(), {"sgm_cols": value, "launch_local": [value, i, 1]}, {"pad": "x" * 20000})
+
+
+def test_two_processes_at_once(cache):
+    """Two processes writing the same cache file while a third reads: every
+    read sees one whole file (written to a temporary name, then renamed)."""
+    ctx_mp = multiprocessing.get_context("spawn")
+    procs = [ctx_mp.Process(target=_writer, args=(str(cache), 60, v)) for v in (32, 64)]
+    for p in procs:
+        p.start()
+    seen = set()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a torn file would warn
+        while any(p.is_alive() for p in procs):
+            got = tune.load(fake_device())
+            if got:
+                seen.add(got["sgm_cols"])
+                assert got["launch_local"][0] == got["sgm_cols"]
+    for p in procs:
+        p.join()
+        assert p.exitcode == 0
+    final = json.load(open(tune.cache_path(fake_device())))
+    assert final["choices"]["sgm_cols"] in (32, 64)
+    assert [f for f in os.listdir(os.path.dirname(tune.cache_path(fake_device()))) if f.startswith(".tmp")] == []
+
+
+def test_wrong_candidate_never_chosen(ctx):
+    """The fastest candidate gives another output: the slower correct one is chosen;
+    a candidate that raises is not chosen either; the profile is left as it was."""
+    before = dict(ctx.profile.tuned)
+    truth = np.arange(12, dtype=np.float32)
+
+    def run(c):
+        cols = c.profile.rule("sgm_cols")
+        if cols == 16:
+            raise RuntimeError("does not build")
+        if cols == 32:
+            return 0.001, truth + 1  # fastest, wrong
+        return {64: 0.5, 128: 0.2}[cols], truth.copy()
+
+    opt = tune.Option("sgm_cols", [{"sgm_cols": c} for c in (16, 32, 64, 128)], run)
+    choices, measured = tune.choose(ctx, [opt])
+    assert choices == {"sgm_cols": 128}
+    assert [s for _, s in measured["sgm_cols"]] == [None, None, 0.5, 0.2]
+    assert ctx.profile.tuned == before
+
+
+def test_rules_candidate_kept_unless_clearly_faster(ctx, monkeypatch):
+    rules = tune._rules_value(ctx.profile, "sgm_cols")
+    other = 32 if rules != 32 else 64
+    times = {rules: 1.0, other: 0.97}
+    opt = tune.Option("sgm_cols", [{"sgm_cols": c} for c in (rules, other)],
+                      lambda c: (times[c.profile.rule("sgm_cols")], np.zeros(3)))
+    assert tune.choose(ctx, [opt])[0] == {"sgm_cols": rules}
+    times[other] = 0.5
+    assert tune.choose(ctx, [opt])[0] == {"sgm_cols": other}
+
+
+def test_context_applies_stored_choices(cache, ctx, monkeypatch):
+    tune.store(ctx.device, {"sgm_cols": 48}, {})
+    fresh = ClContext(ctx.device)
+    assert fresh.profile.rule("sgm_cols") == 48 and fresh.profile.rule_source("sgm_cols") == "tuned"
+    assert fresh.profile.rule_source("cbca_fused") == "rules"
+    monkeypatch.setenv("MCCNN_TUNE", "off")
+    assert ClContext(ctx.device).profile.rule("sgm_cols") != 48 or tune._rules_value(ctx.profile, "sgm_cols") == 48
+
+
+@pytest.mark.slow
+def test_real_candidates_agree(ctx, cache):
+    """Every real option at a small size: the candidates that ran agree with
+    the rules (none is wrong here), and the choice is one of them."""
+    opts = tune.options(ctx, size=(24, 96, 32), repeat=1)
+    choices, measured = tune.choose(ctx, opts)
+    for name, results in measured.items():
+        assert any(s is not None for _, s in results), name
+        assert all(s is not None for _, s in results), f"{name}: a candidate disagreed with the rules: {results}"
+    assert set(choices) <= set().union(*(c for o in opts for c in o.candidates))
+
+
+def test_devices_lines_name_the_source(cache, ctx):
+    from mccnn_cl.cli.tune import describe_choices
+
+    lines = describe_choices(ctx.device)
+    assert "not tuned" in lines[0] and all("(rules)" in ln for ln in lines[1:])
+    tune.store(ctx.device, {"sgm_cols": 48}, {})
+    lines = describe_choices(ctx.device)
+    assert "tuned on this device" in lines[0]
+    assert any("sgm_cols" in ln and "48" in ln and "(tuned)" in ln for ln in lines)
+    assert any("cbca_fused" in ln and "(rules)" in ln for ln in lines)
+
+
+@pytest.mark.slow
+def test_tune_command(cache):
+    """`mccnn-cl tune` end to end: choices written, then listed by `devices`."""
+    import subprocess
+    import sys
+
+    env = dict(os.environ, MCCNN_CACHE_DIR=str(cache), MCCNN_TUNE="on")
+    p = subprocess.run([sys.executable, "-m", "mccnn_cl", "tune", "--no-binaries"], env=env,
+                       capture_output=True, text=True, timeout=900)
+    assert p.returncode == 0, p.stderr
+    assert "written to" in p.stdout and "wrong/failed" not in p.stdout
+    d = subprocess.run([sys.executable, "-m", "mccnn_cl", "devices"], env=env, capture_output=True, text=True)
+    assert "tuned on this device" in d.stdout
+
+
+def test_wrong_in_any_round_never_chosen(ctx):
+    """A candidate right in the first round and wrong in a later one is not chosen."""
+    calls = {"n": 0}
+
+    def run(c):
+        cols = c.profile.rule("sgm_cols")
+        if cols == 32:
+            calls["n"] += 1
+            return 0.001, np.ones(3) * (calls["n"] >= 2)  # right once, then wrong
+        return 0.5, np.zeros(3)
+
+    opt = tune.Option("sgm_cols", [{"sgm_cols": 32}, {"sgm_cols": 64}], run)
+    ctx.profile.tuned["sgm_cols"] = 999  # the reference run uses neither candidate
+    try:
+        choices, measured = tune.choose(ctx, [opt], rounds=3)
+    finally:
+        ctx.profile.tuned.pop("sgm_cols")
+    assert choices == {"sgm_cols": 64} and measured["sgm_cols"][0][1] is None

@@ -1,0 +1,147 @@
+"""Tuning on / off, A/B in one process, on a KITTI 2015 pair; the stages'
+ratios to their floors measured in the same run; a never-seen size and D
+after a warm-up; the first call of a fresh ``mccnn-cl match`` process.
+
+    .venv/bin/python bench/tune_ab.py [--data ../shared/data] [--repeat 3]
+
+Tuning "on" applies the device's stored choices (run ``mccnn-cl tune``
+first); "off" the rules table.  Each configuration gets its own matcher;
+the runs alternate (on, off, on, off ...) and the best time per stage is kept.
+Prints markdown tables (BENCHMARKS.md, "Tuning, builds and first calls").
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mccnn_cl import StereoMatcher, tune
+from mccnn_cl.benchmark import copy_bandwidth, group_timings, numpy_gemm_rate
+from mccnn_cl.opencl.context import ClContext
+from mccnn_cl.opencl.device import RULES
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def floors(m, shape, vol, copy_bw, gemm):
+    """Per group: the floor in seconds (bench.rate_table's definitions)."""
+    p = m.params
+    nref = 2 if p.right_reference == "aggregated" else 1
+    rounds = int(p.cbca_iterations > 0) + nref * int(p.cbca_iterations_after > 0)
+    out = {"CBCA": rounds * 2 * vol / copy_bw, "SGM": nref * 2 * vol / copy_bw,
+           "rest": ((2 * vol if nref == 2 else 0) + 2 * vol) / copy_bw}
+    if m.cost_name == "cnn":
+        out["cost"] = m.cost.flops(shape[0], shape[1], m.max_disparity)["total"] / gemm
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--data", default=str(REPO.parent / "shared" / "data"))
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--costs", default="cnn,census")
+    args = ap.parse_args()
+    k = Path(args.data) / "kitti2015" / "training"
+    lp, rp = k / "image_2" / "000000_10.png", k / "image_3" / "000000_10.png"
+    L, R = cv2.imread(str(lp), 0), cv2.imread(str(rp), 0)
+    D = 228
+    ctx = ClContext()
+    stored = tune.load(ctx.device)
+    print(f"device: {ctx.describe()}")
+    print(f"stored choices: {stored or 'none (run mccnn-cl tune)'}")
+    copy_bw, gemm = copy_bandwidth(ctx), numpy_gemm_rate()
+    print(f"in-run baselines: copy {copy_bw / 1e9:.1f} GB/s, numpy GEMM {gemm / 1e9:.0f} GFLOP/s")
+    for cost in args.costs.split(","):
+        matchers = {}
+        for mode in ("on", "off"):
+            ctx.profile.tuned.clear()
+            if mode == "on":
+                ctx.profile.tuned.update(stored)
+            m = StereoMatcher(cost=cost, max_disparity=D, device=ctx)
+            m.compute(L, R)  # warm-up: builds, first touch
+            matchers[mode] = m
+        best = {"on": {}, "off": {}}
+        for _ in range(args.repeat):
+            for mode, m in matchers.items():
+                ctx.profile.tuned.clear()
+                if mode == "on":
+                    ctx.profile.tuned.update(stored)
+                t = time.perf_counter()
+                res = m.compute(L, R, timings=True)
+                total = time.perf_counter() - t
+                g = group_timings(res.timings)
+                g["total"] = total
+                for name, sec in g.items():
+                    best[mode][name] = min(best[mode].get(name, 9e9), sec)
+            # volumes of one matcher are freed before the other runs (memory)
+        m = matchers["on"]
+        h, w = L.shape[0] - 2 * m.margin, L.shape[1] - 2 * m.margin
+        vol = D * h * w * 4
+        fl = floors(m, L.shape, vol, copy_bw, gemm)
+        fl["total"] = sum(fl.values())
+        print(f"\n{cost}: best of {args.repeat}, KITTI 2015 000000 (1242x375), D {D}")
+        print("| stage | floor | tuning on | ratio | tuning off | ratio |")
+        print("|---|---|---|---|---|---|")
+        for name in ("cost", "CBCA", "SGM", "rest", "total"):
+            if name not in fl or fl[name] == 0:
+                if best["on"].get(name, 0) > 0.001:
+                    print(f"| {name} | - | {best['on'][name]:.3f} s | - | {best['off'][name]:.3f} s | - |")
+                continue
+            on, off = best["on"][name], best["off"][name]
+            print(f"| {name} | {fl[name]:.3f} s | {on:.3f} s | {on / fl[name]:.2f}x | {off:.3f} s | "
+                  f"{off / fl[name]:.2f}x |")
+        for mm in matchers.values():
+            mm.release_buffers()
+        matchers.clear()
+
+    # a size and D never seen, after the warm-up above (tuning as stored)
+    ctx.profile.tuned.clear()
+    ctx.profile.tuned.update(stored)
+    m = StereoMatcher(max_disparity=D, device=ctx)
+    m.compute(L, R)
+    b0 = ctx.builds + ctx.binary_loads
+    m.max_disparity = 201
+    Ln, Rn = L[10:351, 30:1131], R[10:351, 30:1131]
+    t = time.perf_counter()
+    m.compute(Ln, Rn)
+    first = time.perf_counter() - t
+    reps = []
+    for _ in range(2):
+        t = time.perf_counter()
+        m.compute(Ln, Rn)
+        reps.append(time.perf_counter() - t)
+    print(f"\nnew size 1101x341, D 201 after a KITTI warm-up (fst): first call {first:.2f} s, repeated "
+          f"{min(reps):.2f} s, ratio {first / min(reps):.2f} (target <= 1.2 + 0.3 s / repeated: "
+          f"{first <= 1.2 * min(reps) + 0.3}); programs made for it: {ctx.builds + ctx.binary_loads - b0}")
+    steady = min(reps)
+    m.max_disparity = D
+    m.compute(L, R)
+    t = time.perf_counter()
+    m.compute(L, R)
+    steady = time.perf_counter() - t
+    m.release_buffers()
+
+    # a fresh `mccnn-cl match` process on the KITTI pair, against this process's steady call
+    with tempfile.TemporaryDirectory() as tmp:
+        out = os.path.join(tmp, "d.pfm")
+        cmd = [sys.executable, "-m", "mccnn_cl", "match", str(lp), str(rp), "-o", out, "--max-disp", str(D)]
+        t = time.perf_counter()
+        subprocess.run(cmd, check=True, capture_output=True)
+        wall = time.perf_counter() - t
+    t = time.perf_counter()
+    m.compute(L, R)
+    steady = min(steady, time.perf_counter() - t)
+    print(f"mccnn-cl match, one KITTI pair, fresh process: {wall:.2f} s wall; steady compute here "
+          f"{steady:.2f} s; ratio {wall / steady:.2f} (target <= 1.3)")
+
+
+if __name__ == "__main__":
+    main()
