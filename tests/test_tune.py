@@ -1,4 +1,4 @@
-"""The tuner (mccnn_cl.tune): its per-device cache and its choices."""
+"""The tuner (mccnn_cl.opencl.tune): its per-device cache and its choices."""
 
 import json
 import multiprocessing
@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mccnn_cl import tune
+from mccnn_cl.opencl import tune
 from mccnn_cl.opencl.context import ClContext
 
 
