@@ -15,6 +15,7 @@ one line and exit status 2.
 
 from __future__ import annotations
 
+import argparse
 import glob
 import json
 import math
@@ -353,7 +354,8 @@ def _save_outputs(out, disp, left_img, args, calib, max_disp):
 
 def cmd_evaluate(args):
     from .datasets import discover
-    from .evaluate import default_max_disparity, evaluate_pair, format_table, mean_metrics, training_status
+    from .evaluate import (default_max_disparity, evaluate_pair, family_means, format_family_tables, mean_metrics,
+                           training_status)
     _positive("--max-disp", args.max_disp)
     refs = discover(args.dataset_dir, args.dataset, labeled=True)  # scores need ground truth
     if args.pairs:
@@ -368,10 +370,16 @@ def cmd_evaluate(args):
     if not refs:
         raise InputError(f"no stereo pairs with ground truth found under {args.dataset_dir}"
                          + (f" for dataset {args.dataset}" if args.dataset else ""))
+    baselines = [b.strip() for b in str(args.baseline).split(",") if b.strip()]
+    bad = [b for b in baselines if b not in ("sgbm", "census", "none")]
+    if bad or not baselines or ("none" in baselines and len(baselines) > 1):
+        raise InputError(f"--baseline: expected a comma-separated list of sgbm, census, or none; got {args.baseline!r}")
+    if args.cost == "census" and "census" in baselines:  # the method itself is census: no second run
+        baselines.remove("census")
     weights = _load_weights(args)
     meta = weights.meta if weights is not None else None
     from .cl import ClContext
-    results, matchers, ctx = [], {}, None
+    results, matchers, census, ctx = [], {}, {}, None
     from tqdm import tqdm
     bar = tqdm(refs, unit="pair", desc="evaluating", disable=None if not args.json else True)
     for ref in bar:
@@ -385,22 +393,29 @@ def cmd_evaluate(args):
             if ctx is None:
                 ctx = ClContext(args.device)
             matchers[max_disp] = _make_matcher(args, max_disp, weights, ctx=ctx)
+            if "census" in baselines:
+                census[max_disp] = _make_matcher(argparse.Namespace(**{**vars(args), "cost": "census",
+                                                                       "hyper": []}),
+                                                 max_disp, None, ctx=ctx)
         status = training_status(meta, pair.key, pair.name) if weights is not None else "n/a"
         results.append(evaluate_pair(pair, matchers[max_disp], max_disp,
-                                     baseline=args.baseline if args.baseline != "none" else None,
-                                     fill=not args.no_fill, error_maps=args.error_maps, status=status))
+                                     baseline="sgbm" if "sgbm" in baselines else None,
+                                     fill=not args.no_fill, error_maps=args.error_maps, status=status,
+                                     others={"census": census[max_disp]} if "census" in baselines else None))
     if not results:
         raise InputError("none of the pairs has ground truth")
     mean = mean_metrics(results)
     if args.json:
         doc = {"cost": args.cost, "weights": _weights_label(args), "fill": not args.no_fill,
-               "pairs": results, "mean": mean}
+               "baselines": [b for b in baselines if b != "none"], "pairs": results, "mean": mean,
+               "families": family_means(results)}
         _say(json.dumps(_jsonable(doc), indent=2))
     else:
         who = f"MC-CNN ({_weights_label(args)})" if args.cost == "cnn" else "census cost + the MC-CNN stereo method"
-        _say(f"{who} beside OpenCV SGBM; errors in % of GT pixels, "
+        beside = " and ".join({"sgbm": "OpenCV SGBM", "census": "census (cens)"}[b] for b in baselines if b != "none")
+        _say(f"{who}" + (f" beside {beside}" if beside else "") + "; errors in % of GT pixels, "
              + ("holes filled as the KITTI devkit does" if not args.no_fill else "holes counted as errors"))
-        _say(format_table(results, mean))
+        _say(format_family_tables(results))
         _say("training: whether the weights' metadata lists the pair as a training pair "
              "(held out = not used); n/a for --cost census")
     return 0
