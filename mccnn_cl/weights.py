@@ -75,9 +75,10 @@ ARCHITECTURES = (PAPER, FST, ACRT)
 FC_OUTPUTS = {PAPER: 2, ACRT: 1}
 PAPER_CONV = [[32, 5], [200, 5], [200, 1]]
 PAPER_FC = [300, 300, 300, 300, 2]
-#: The default network: the most accurate shipped one on the held-out pairs
-#: among those that match a KITTI pair in seconds on 2 CPU cores (model card).
-DEFAULT_WEIGHTS_NAME = "kitti-fst.npz"
+#: The default network: general-fst (trained on KITTI, Middlebury, MiddEval3 and ETH3D), ahead of
+#: kitti-fst on the held-out pairs of 3 of the 4 families and level on KITTI (model card,
+#: docs/training.md); it matches a KITTI pair in seconds on 2 CPU cores.
+DEFAULT_WEIGHTS_NAME = "general-fst.npz"
 #: The paper's network (CVPR 2015 architecture), one flag away: ``--weights kitti-paper``.
 PAPER_WEIGHTS_NAME = "kitti-paper.npz"
 #: Earlier names of shipped files, still accepted by :func:`resolve`.

@@ -5,8 +5,8 @@ import shutil
 import numpy as np
 import pytest
 
-from mccnn_cl.evaluation.datasets import (discover, find_pairs, load_kitti2012, load_kitti2015,
-                               load_middlebury)
+from mccnn_cl.evaluation.datasets import (ETH3D_NDISP, dataset_of, discover, find_pairs, load_eth3d, load_kitti2012,
+                                         load_kitti2015, load_middlebury, scene_family)
 from mccnn_cl.errors import InputError
 from mccnn_cl.io import write_pfm
 
@@ -24,11 +24,23 @@ MIDDLEBURY = {
 
 #: The KITTI 2015 frames of the shared data: two official ones and eight "e" frames (ids unknown).
 KITTI2015 = ["000000", "000001"] + [f"e{n:05d}" for n in (1, 2, 3, 4, 6, 7, 8, 10)]
-#: The shared data's pairs with ground truth, in discovery order.
-LABELED = (["kitti2012/000000", "kitti2012/000001"] + [f"kitti2015/{f}" for f in KITTI2015]
-           + [f"middlebury/{s}" for s in sorted(MIDDLEBURY)])
+#: The 2005/2006 half-size Middlebury scenes added with left-right-check masks.
+MIDDLEBURY_0506 = ["Baby1", "Baby2", "Baby3", "Books", "Bowling1", "Bowling2", "Cloth1", "Cloth2", "Cloth4",
+                   "Flowerpots", "Laundry", "Midd1", "Midd2", "Moebius", "Monopoly", "Rocks1", "Rocks2"]
+#: MiddEval3 quarter-size training scenes (GT merged into the official layout).
+MIDDEVAL3 = ["Adirondack", "Jadeplant", "Piano", "PianoL", "Pipes", "Playroom", "Shelves", "Vintage"]
+#: ETH3D two-view low-res training scenes.
+ETH3D = [f"{place}_{n}" for place, ns in (("delivery_area", ("1l", "1s", "2l", "2s")),
+                                          ("electro", ("1l", "1s", "2l", "2s")), ("facade", ("1s",)),
+                                          ("forest", ("1s",)), ("playground", ("1l", "1s", "2l", "2s")),
+                                          ("terrace", ("1s", "2s")), ("terrains", ("1l", "1s"))) for n in ns]
+#: The shared data's pairs with ground truth, in discovery order (sorted folders).
+LABELED = ([f"eth3d/{s}" for s in ETH3D] + ["kitti2012/000000", "kitti2012/000001"]
+           + [f"kitti2015/{f}" for f in KITTI2015] + [f"middlebury/trainingQ/{s}" for s in MIDDEVAL3]
+           + [f"middlebury/{s}" for s in sorted(list(MIDDLEBURY) + MIDDLEBURY_0506)])
 
 
+@pytest.mark.full_data
 def test_every_pair_loads(shared_data):
     pairs = find_pairs(shared_data, labeled=True)
     keys = [p.key for p in pairs]
@@ -45,6 +57,7 @@ def test_every_pair_loads(shared_data):
         assert lg.shape == p.shape and lg.dtype == np.uint8 and lg.std() > 5
 
 
+@pytest.mark.full_data
 def test_middlebury_table(shared_data):
     for scene, (w, h, lo, hi, has_mask) in MIDDLEBURY.items():
         p = load_middlebury(shared_data / "middlebury" / scene)
@@ -56,6 +69,7 @@ def test_middlebury_table(shared_data):
         assert p.calib.endswith("calib.txt")
 
 
+@pytest.mark.full_data
 def test_kitti(shared_data):
     k12 = load_kitti2012(shared_data / "kitti2012", 0)  # dataset root with training/
     assert k12.shape == (370, 1226) and k12.left.ndim == 3 and k12.valid_noc is None
@@ -70,44 +84,94 @@ def test_kitti(shared_data):
     assert np.nanmax(k15.disp) > 60
 
 
+@pytest.mark.full_data
 def test_layout_detection(shared_data):
     assert [r.key for r in discover(shared_data / "kitti2015")] == [f"kitti2015/{f}" for f in KITTI2015]
     assert [r.key for r in discover(shared_data / "kitti2012" / "training")] == \
         ["kitti2012/000000", "kitti2012/000001"]
     assert [r.key for r in discover(shared_data / "middlebury" / "Cones")] == ["middlebury/Cones"]
-    assert len(discover(shared_data / "middlebury")) == 7
+    assert len(discover(shared_data / "middlebury")) == len(MIDDLEBURY) + len(MIDDLEBURY_0506) == 24
     assert len(discover(shared_data, dataset="kitti2015")) == len(KITTI2015) == 10
     assert [r.key for r in discover(shared_data, labeled=True)] == LABELED
     with pytest.raises(InputError, match="unknown dataset"):
         discover(shared_data, dataset="sintel")
 
 
-def test_unlabeled_pairs(shared_data, tmp_path):
-    """Pairs without ground truth (the shared data's unlabeled/: ETH3D two-view and MiddEval3
-    quarter-size scenes) are discovered as such, keep their collection in the key (a scene may
-    also be in a labelled collection), and load with images only."""
-    refs = discover(shared_data, labeled=False)
-    keys = [r.key for r in refs]
-    assert len(keys) == len(set(keys)) == 39 and not set(keys) & set(LABELED)
-    assert sum(k.startswith("middlebury/eth3d_two_view/") for k in keys) == 27
-    assert sum(k.startswith("middlebury/middeval3_trainingQ/") for k in keys) == 12
-    assert "middlebury/middeval3_trainingQ/Adirondack" in keys
-    assert len(discover(shared_data)) == len(LABELED) + 39  # both, labelled ones first (sorted folders)
-    pair = next(r for r in refs if r.name.endswith("/Adirondack")).load()
-    assert pair.disp is None and pair.valid_all is None and pair.valid_noc is None and pair.ndisp is None
-    lg, rg = pair.gray()
-    assert lg.dtype == np.uint8 and lg.shape == rg.shape == pair.shape and lg.std() > 5
-    # a scene folder of one's own without GT, and the same with GT added
-    scene = tmp_path / "mine" / "room"
+@pytest.mark.full_data
+def test_every_family_is_found(shared_data):
+    """All 62 labelled pairs of the shared data, each with its dataset and scene family."""
+    refs = discover(shared_data)
+    assert len(refs) == len(LABELED) == 62 and all(r.labeled for r in refs)
+    count = {d: sum(r.dataset == d for r in refs) for d in ("kitti", "middlebury", "middeval3", "eth3d")}
+    assert count == {"kitti": 12, "middlebury": 24, "middeval3": 8, "eth3d": 18}
+    fam = {r.key: r.family for r in refs}
+    assert {k for k, f in fam.items() if f == "middlebury/Cloth"} == {f"middlebury/Cloth{i}" for i in range(1, 5)}
+    assert {k for k, f in fam.items() if f == "middlebury/Baby"} == {f"middlebury/Baby{i}" for i in range(1, 4)}
+    assert {k for k, f in fam.items() if f == "middeval3/Piano"} == {"middlebury/trainingQ/Piano",
+                                                                      "middlebury/trainingQ/PianoL"}
+    assert {k for k, f in fam.items() if f == "eth3d/delivery_area"} == {
+        f"eth3d/delivery_area_{n}" for n in ("1l", "1s", "2l", "2s")}
+    assert fam["kitti2015/000000"] == "kitti2015/000000" and fam["middlebury/Cones"] == "middlebury/Cones"
+    assert len(set(fam.values())) == 42  # 12 KITTI frames, 16 Middlebury, 7 MiddEval3, 7 ETH3D families
+    assert dataset_of("middlebury/trainingH/Motorcycle") == "middeval3"
+    assert scene_family("middlebury/trainingF/MotorcycleE") == "middeval3/Motorcycle"
+    assert scene_family("middlebury/Midd2") == "middlebury/Midd"
+
+
+@pytest.mark.full_data
+def test_eth3d(shared_data):
+    """ETH3D two-view: images beside the GT archive's folder; the calib's ndisp (the image width) is
+    replaced by ETH3D_NDISP, which bounds every scene's GT."""
+    root = shared_data / "eth3d" / "two_view_training"
+    assert [r.key for r in discover(root)] == [f"eth3d/{s}" for s in ETH3D]
+    assert [r.key for r in discover(shared_data, dataset="eth3d")] == [f"eth3d/{s}" for s in ETH3D]
+    for name in ETH3D:
+        p = load_eth3d(root / name)
+        assert p.kind == "eth3d" and p.key == f"eth3d/{name}" and p.dataset == "eth3d"
+        h, w = p.shape
+        assert (700 <= w <= 720 if name.endswith("s") else 925 <= w <= 945) and 425 <= h <= 491
+        assert p.calib_ndisp == w and p.ndisp == ETH3D_NDISP
+        assert p.left.shape == p.right.shape and p.left.std() > 5
+        np.testing.assert_array_equal(np.isfinite(p.disp), p.valid_all)
+        assert 0 < np.nanmin(p.disp) and p.max_gt() < ETH3D_NDISP
+        assert not (p.valid_noc & ~p.valid_all).any() and 0.5 < p.valid_noc.sum() / p.valid_all.sum() < 1
+    assert load_eth3d(root / "forest_1s").max_gt() == pytest.approx(61.3, abs=0.05)
+
+
+@pytest.mark.full_data
+def test_pairs_without_ground_truth(shared_data, tmp_path):
+    """ETH3D's test split (no GT folder), a Middlebury scene without GT: discovered as unlabeled, loaded
+    with images only, keyed apart from labelled collections."""
+    src = shared_data / "eth3d" / "two_view_training" / "electro_1s"
+    scene = tmp_path / "eth3d" / "two_view_test" / "lakeside_1l"
     scene.mkdir(parents=True)
+    for n in ("im0.png", "im1.png", "calib.txt"):
+        shutil.copy(src / n, scene / n)
+    mine = tmp_path / "mine" / "room"
+    mine.mkdir(parents=True)
     for n in ("im0.png", "im1.png"):
-        (scene / n).write_bytes((shared_data / "middlebury" / "Tsukuba" / n).read_bytes())
-    (ref,) = discover(tmp_path)
-    assert (ref.key, ref.labeled) == ("middlebury/mine/room", False)
-    (scene / "disp0GT.pfm").write_bytes((shared_data / "middlebury" / "Tsukuba" / "disp0GT.pfm").read_bytes())
-    (ref,) = discover(tmp_path)
-    assert (ref.key, ref.labeled) == ("middlebury/room", True) and ref.load().disp is not None
-    assert discover(tmp_path, labeled=False) == []
+        (mine / n).write_bytes((shared_data / "middlebury" / "Tsukuba" / n).read_bytes())
+    refs = discover(tmp_path)
+    assert [(r.key, r.labeled) for r in refs] == [("eth3d/lakeside_1l", False), ("middlebury/mine/room", False)]
+    assert discover(tmp_path, labeled=True) == []
+    p = refs[0].load()
+    assert p.disp is None and p.valid_all is None and p.valid_noc is None
+    assert p.ndisp == ETH3D_NDISP and p.calib_ndisp == p.shape[1]
+    # the training split without its GT folder beside it: images only as well
+    train = tmp_path / "t" / "two_view_training" / "electro_1s"
+    shutil.copytree(scene, train)
+    (ref,) = discover(tmp_path / "t")
+    assert (ref.key, ref.labeled) == ("eth3d/electro_1s", False) and ref.load().disp is None
+    # ... and with a GT of the wrong size
+    gt = tmp_path / "t" / "two_view_training_gt" / "electro_1s"
+    gt.mkdir(parents=True)
+    write_pfm(gt / "disp0GT.pfm", np.ones((10, 10), np.float32))
+    (ref,) = discover(tmp_path / "t")
+    assert ref.labeled
+    with pytest.raises(InputError, match="sizes differ"):
+        ref.load()
+    (mine / "disp0GT.pfm").write_bytes((shared_data / "middlebury" / "Tsukuba" / "disp0GT.pfm").read_bytes())
+    assert [r.key for r in discover(tmp_path / "mine")] == ["middlebury/room"]
 
 
 def test_errors(tmp_path, shared_data):

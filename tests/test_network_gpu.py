@@ -368,7 +368,7 @@ def test_profile_selects_the_paths(ctx, monkeypatch, kind, name, type_, gpu_shap
 
 
 def test_stereo_matcher_with_the_gpu_profile(ctx, shared_data, monkeypatch):
-    """StereoMatcher with the shipped kitti-fst on this device with the gpu
+    """StereoMatcher with the shipped default fst network on this device with the gpu
     column of the rules (a profile built for a GPU): the network takes the
     GEMM conv stack and the work-group volume (and CBCA / SGM their
     work-group paths).  C_CNN equals the CPU path's bit for bit, and so do

@@ -2,8 +2,8 @@
 
 Pseudo-labels are checked against a direct numpy computation from the
 StereoResult; the unconfident case must stop or skip loudly; ``adapt`` runs
-end to end (subprocess, the real entry point) on a 160 x 96 crop of an
-unlabeled shared pair with D = 32 and 2 x 2 steps; its input errors are one
+end to end (subprocess, the real entry point) on a 160 x 96 crop of a
+shared ETH3D pair (its images only, as an unlabeled pair) with D = 32 and 2 x 2 steps; its input errors are one
 line each.  kitti-fst (4 conv 3x3) keeps every OpenCL run well under a second.
 """
 
@@ -31,8 +31,9 @@ def fst():
 
 @pytest.fixture(scope="module")
 def art(shared_data):
-    """A 160 x 96 crop (colour) of MiddEval3 quarter ArtL, an unlabeled pair, disparities < 32 here."""
-    root = shared_data / "unlabeled/middeval3_trainingQ/ArtL"
+    """A 160 x 96 crop of ETH3D electro_1s (gray content in 3 channels; its images only, used as an
+    unlabeled pair; GT disparities < 16 on the whole image, so D = 32 covers them)."""
+    root = shared_data / "eth3d/two_view_training/electro_1s"
     l, r = read_image(root / "im0.png"), read_image(root / "im1.png")
     return l[100:196, 60:220].copy(), r[100:196, 60:220].copy()
 

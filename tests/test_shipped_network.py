@@ -35,10 +35,26 @@ def _on_device(ctx, cost, left, right, D, ref):
 
 def test_shipped_names_and_default():
     models = shipped_models()
-    assert {"kitti-fst", "kitti-paper"} <= set(models)
-    assert Weights.load().architecture == FST  # the default: kitti-fst (README, model card)
+    assert {"general-fst", "kitti-fst", "kitti-paper"} <= set(models)
+    assert Weights.load().architecture == FST  # the default: general-fst (README, model card)
+    assert Weights.load().meta["name"] == "general-fst"
     assert resolve("kitti-paper").architecture == PAPER
     assert resolve("mccnn_kitti_mb_v1").architecture == PAPER  # the paper net's earlier name
+
+
+def test_general_fst_provenance():
+    """general-fst: trained on every family, whole scene families held out of it (and of the kitti-fst
+    it started from), carrying the authors' fst Middlebury settings."""
+    from mccnn_cl.evaluation.datasets import dataset_of, scene_family
+    w = resolve("general-fst")
+    t = w.meta["training"]
+    held, trained = set(t["held_out"]), set(t["trained_on"])
+    assert not held & trained and t["init"]["name"] == "kitti-fst"
+    assert {dataset_of(k) for k in trained} == {dataset_of(k) for k in held} == {"kitti", "middlebury", "middeval3",
+                                                                               "eth3d"}
+    assert not {scene_family(k) for k in held} & {scene_family(k) for k in trained}  # families held out whole
+    assert {"kitti2015/000000", "middlebury/Cones", "middlebury/Cloth1", "eth3d/delivery_area_2s"} <= held
+    assert w.stereo == authors_settings(FST, "mb")
 
 
 def test_shipped_fst_opencl_vs_reference(ctx, shared_data):

@@ -418,8 +418,16 @@ def test_cli_fst_crop_run_exports_fst(shared_data, tmp_path):
     assert c["sampler"] == "crop" and t["examples"] > 0 and t["architecture"] == "mccnn-fst"
 
 
-def test_select_pairs_skips_unlabeled(shared_data):
-    """The shared data holds 39 pairs without ground truth (unlabeled/): training never draws from them."""
+def test_select_pairs_skips_unlabeled(shared_data, tmp_path):
+    """Every family of the shared data trains (62 labelled pairs); a pair without ground truth
+    (here an ETH3D scene whose GT folder is missing) is never drawn; families hold out whole."""
     train_refs, held = select_pairs([shared_data], holdout=["kitti2015/000000", "middlebury/Cones"])
-    assert all(r.labeled for r in train_refs + held) and len(train_refs) == 17
-    assert not any("eth3d" in r.key or "middeval3" in r.key for r in train_refs)
+    assert all(r.labeled for r in train_refs + held) and len(train_refs) == 60 and len(held) == 2
+    assert {r.dataset for r in train_refs} == {"kitti", "middlebury", "middeval3", "eth3d"}
+    scene = tmp_path / "two_view_training" / "electro_1s"
+    scene.mkdir(parents=True)
+    for n in ("im0.png", "im1.png"):
+        (scene / n).write_bytes((shared_data / "eth3d/two_view_training/electro_1s" / n).read_bytes())
+    train_refs, held = select_pairs([shared_data / "middlebury", tmp_path], holdout=["middlebury/Cloth*"])
+    assert [r.key for r in held] == [f"middlebury/Cloth{i}" for i in range(1, 5)]
+    assert len(train_refs) == 20 and not any(r.kind == "eth3d" for r in train_refs)

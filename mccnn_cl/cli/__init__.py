@@ -139,15 +139,20 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--force", action="store_true", help="overwrite existing output files")
 
     e = sub.add_parser("evaluate", parents=[verbose], help="errors on a dataset, beside OpenCV SGBM",
-                       description="Match every pair with ground truth under DATASET_DIR (KITTI 2012/2015 "
-                                   "or Middlebury MiddEval3 layouts) and print KITTI/Middlebury errors "
-                                   "for MC-CNN and OpenCV StereoSGBM side by side.")
+                       description="Match every pair with ground truth under DATASET_DIR (KITTI 2012/2015, "
+                                   "Middlebury, MiddEval3 and ETH3D two-view layouts) and print, per dataset "
+                                   "family, each pair's errors in that family's metrics (KITTI 3-px and D1; "
+                                   "Middlebury and MiddEval3 bad-2.0; ETH3D bad-1.0 and bad-2.0; all and "
+                                   "non-occluded GT) for MC-CNN beside OpenCV StereoSGBM and census, with the "
+                                   "family means and whether the network was trained on each pair.")
     e.add_argument("dataset_dir", metavar="DATASET_DIR")
-    e.add_argument("--dataset", choices=("kitti2012", "kitti2015", "middlebury"), default=None,
+    e.add_argument("--dataset", choices=("kitti2012", "kitti2015", "middlebury", "eth3d"), default=None,
                    help="only pairs of this kind (default: every kind found)")
     e.add_argument("--pairs", metavar="NAME,...", help="only these pairs (names like Cones or 000000, "
                                                        "or keys like kitti2015/000000)")
-    e.add_argument("--baseline", choices=("sgbm", "none"), default="sgbm")
+    e.add_argument("--baseline", default="sgbm,census", metavar="LIST",
+                   help="comparison methods, comma-separated: sgbm (OpenCV StereoSGBM), census (the census "
+                        "cost through the same stereo method, its own settings), or none")
     _matcher_options(e, "default: the pair's ndisp (Middlebury calib.txt), else 228")
     _range_options(e)
     e.add_argument("--json", action="store_true", help="print the results as JSON")

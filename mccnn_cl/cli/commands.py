@@ -15,6 +15,7 @@ one line and exit status 2.
 
 from __future__ import annotations
 
+import argparse
 import glob
 import json
 import math
@@ -467,7 +468,8 @@ def _save_outputs(out, disp, left_img, args, calib, disparity_range):
 
 def cmd_evaluate(args):
     from ..evaluation.datasets import discover
-    from ..evaluation.scoring import default_range, evaluate_pair, format_table, mean_metrics, training_status
+    from ..evaluation.scoring import (default_range, evaluate_pair, family_means, format_family_tables, mean_metrics,
+                                      training_status)
     _positive("--max-disp", args.max_disp)
     request = _range_request(args)
     refs = discover(args.dataset_dir, args.dataset, labeled=True)  # scores need ground truth
@@ -483,10 +485,16 @@ def cmd_evaluate(args):
     if not refs:
         raise InputError(f"no stereo pairs with ground truth found under {args.dataset_dir}"
                          + (f" for dataset {args.dataset}" if args.dataset else ""))
+    baselines = [b.strip() for b in str(args.baseline).split(",") if b.strip()]
+    bad = [b for b in baselines if b not in ("sgbm", "census", "none")]
+    if bad or not baselines or ("none" in baselines and len(baselines) > 1):
+        raise InputError(f"--baseline: expected a comma-separated list of sgbm, census, or none; got {args.baseline!r}")
+    if args.cost == "census" and "census" in baselines:  # the method itself is census: no second run
+        baselines.remove("census")
     weights = _load_weights(args)
     meta = weights.meta if weights is not None else None
     from ..opencl.context import ClContext
-    results, matchers, ctx = [], {}, None
+    results, matchers, census, ctx = [], {}, {}, None
     from tqdm import tqdm
     bar = tqdm(refs, unit="pair", desc="evaluating", disable=None if not args.json else True)
     for ref in bar:
@@ -508,24 +516,30 @@ def cmd_evaluate(args):
             if ctx is None:
                 ctx = ClContext(args.device)
             matchers[key] = _make_matcher(args, max_disp, weights, ctx=ctx, min_disparity=min_disp)
+            if "census" in baselines:
+                census[key] = _make_matcher(argparse.Namespace(**{**vars(args), "cost": "census", "hyper": []}),
+                                            max_disp, None, ctx=ctx, min_disparity=min_disp)
         status = training_status(meta, pair.key, pair.name) if weights is not None else "n/a"
         base_min, base_levels = (stated_min, stated_levels) if request == "auto" else (min_disp, max_disp)
         results.append(evaluate_pair(pair, matchers[key], base_levels,
-                                     baseline=args.baseline if args.baseline != "none" else None,
+                                     baseline="sgbm" if "sgbm" in baselines else None,
                                      fill=not args.no_fill, error_maps=args.error_maps, status=status,
-                                     min_disparity=base_min))
+                                     min_disparity=base_min,
+                                     others={"census": census[key]} if "census" in baselines else None))
     if not results:
         raise InputError("none of the pairs has ground truth")
     mean = mean_metrics(results)
     if args.json:
         doc = {"cost": args.cost, "weights": _weights_label(args), "fill": not args.no_fill,
-               "pairs": results, "mean": mean}
+               "baselines": [b for b in baselines if b != "none"], "pairs": results, "mean": mean,
+               "families": family_means(results)}
         _say(json.dumps(_jsonable(doc), indent=2))
     else:
         who = f"MC-CNN ({_weights_label(args)})" if args.cost == "cnn" else "census cost + the MC-CNN stereo method"
-        _say(f"{who} beside OpenCV SGBM; errors in % of GT pixels, "
+        beside = " and ".join({"sgbm": "OpenCV SGBM", "census": "census (cens)"}[b] for b in baselines if b != "none")
+        _say(f"{who}" + (f" beside {beside}" if beside else "") + "; errors in % of GT pixels, "
              + ("holes filled as the KITTI devkit does" if not args.no_fill else "holes counted as errors"))
-        _say(format_table(results, mean))
+        _say(format_family_tables(results))
         _say("training: whether the weights' metadata lists the pair as a training pair "
              "(held out = not used); n/a for --cost census")
     return 0

@@ -12,7 +12,25 @@ Middlebury MiddEval3 (``kind="middlebury"``)
     one folder per scene: ``im0.png``, ``im1.png``, ``disp0GT.pfm`` (or
     ``disp0.pfm``; +inf = unknown), optional ``mask0nocc.png`` (255 =
     non-occluded, 128 = occluded, 0 = unknown) and ``calib.txt``
-    (``ndisp``, ``width``, ``height``, ...).
+    (``ndisp``, ``width``, ``height``, ...).  Scenes inside MiddEval3's
+    ``trainingQ|H|F`` / ``testQ|H|F`` folders (the GT archive merged in) are
+    named ``trainingQ/<scene>`` and belong to the ``middeval3`` dataset.
+ETH3D two-view (``kind="eth3d"``)
+    ``two_view_training/<scene>/{im0.png, im1.png, calib.txt}`` beside
+    ``two_view_training_gt/<scene>/{disp0GT.pfm, mask0nocc.png}`` (the two
+    official archives unpacked side by side; ``two_view_test`` has no GT).
+    ETH3D's ``calib.txt`` sets ``ndisp`` to the image width, a loose bound
+    rather than a range to search, so such pairs get ``ndisp`` =
+    :data:`ETH3D_NDISP` (64: the GT of the 27 low-res training scenes stays
+    below it; the largest is forest_1s at 61.3 px); the calib value is kept
+    in ``calib_ndisp``.
+
+Every pair belongs to a *dataset* (:func:`dataset_of`: kitti, middlebury,
+middeval3, eth3d) and a *scene family* (:func:`scene_family`): Middlebury
+scenes sharing a name stem (Cloth1-4, Baby1-3), MiddEval3's lighting /
+exposure variants (Piano, PianoL), ETH3D's views of one place
+(delivery_area_1l/1s/2l/2s); a KITTI frame is its own family.  Hold families
+out whole when measuring.
 
 Ground truth is optional (KITTI ``testing/``, MiddEval3 test scenes): such
 pairs have ``disp = None``.  Every problem a user's files can cause raises
@@ -32,10 +50,20 @@ from ..errors import InputError
 from ..imageops import luminance
 from ..io import read_image, read_kitti_disparity, read_pfm
 
-__all__ = ["StereoPair", "PairRef", "load_kitti2012", "load_kitti2015", "load_middlebury",
-           "read_calib", "discover", "find_pairs", "KINDS"]
+__all__ = ["StereoPair", "PairRef", "load_kitti2012", "load_kitti2015", "load_middlebury", "load_eth3d",
+           "read_calib", "discover", "find_pairs", "KINDS", "DATASETS", "ETH3D_NDISP", "dataset_of",
+           "scene_family"]
 
-KINDS = ("kitti2012", "kitti2015", "middlebury")
+KINDS = ("kitti2012", "kitti2015", "middlebury", "eth3d")
+
+#: Dataset families a pair can belong to (:func:`dataset_of`).
+DATASETS = ("kitti", "middlebury", "middeval3", "eth3d")
+
+#: Disparity range given to ETH3D two-view pairs (their calib.txt says the image width).
+ETH3D_NDISP = 64
+
+#: ETH3D folders holding scenes, and where their GT lives.
+_ETH3D_SPLITS = {"two_view_training": "two_view_training_gt", "two_view_test": None}
 
 #: Ground-truth files of a MiddEval3-layout scene, first existing wins.
 MIDDLEBURY_GT = ("disp0GT.pfm", "disp0.pfm")
@@ -72,11 +100,22 @@ class StereoPair:
     calib: str | None
     kind: str
     disp_range: tuple | None = None
+    calib_ndisp: int | None = None  # ndisp as calib.txt states it, where it differs from ``ndisp``
 
     @property
     def key(self) -> str:
         """``"<kind>/<name>"``, e.g. ``"kitti2015/000000"`` or ``"middlebury/Cones"``."""
         return f"{self.kind}/{self.name}"
+
+    @property
+    def dataset(self) -> str:
+        """The pair's dataset family (:func:`dataset_of`)."""
+        return dataset_of(self.key)
+
+    @property
+    def family(self) -> str:
+        """The pair's scene family (:func:`scene_family`), e.g. ``"middlebury/Cloth"``."""
+        return scene_family(self.key)
 
     @property
     def shape(self) -> tuple:
@@ -246,6 +285,82 @@ def load_middlebury(scene_dir) -> StereoPair:
                       valid_all=valid_all, ndisp=ndisp, calib=calib, kind="middlebury", disp_range=disp_range)
 
 
+def load_eth3d(scene_dir, gt_dir=None) -> StereoPair:
+    """Load an ETH3D two-view scene: ``two_view_training/<scene>`` (images, calib.txt); its GT
+    (``disp0GT.pfm``, ``mask0nocc.png``) from ``gt_dir``, by default the sibling
+    ``two_view_training_gt/<scene>`` (no GT when that folder does not exist).
+
+    ``ndisp`` is :data:`ETH3D_NDISP` (the calib's ``ndisp``, the image width, is in ``calib_ndisp``).
+    """
+    scene = Path(scene_dir)
+    if not scene.is_dir():
+        raise InputError(f"ETH3D scene folder not found: {scene}")
+    if gt_dir is None:
+        gt_name = _ETH3D_SPLITS.get(scene.parent.name)
+        gt_dir = scene.parent.parent / gt_name / scene.name if gt_name else None
+    pair = load_middlebury(scene) if gt_dir is None or not Path(gt_dir).is_dir() else None
+    if pair is None:
+        gt = Path(gt_dir)
+        left = read_image(scene / "im0.png")
+        right = read_image(scene / "im1.png")
+        disp = valid_noc = valid_all = None
+        if (gt / "disp0GT.pfm").exists():
+            g = read_pfm(gt / "disp0GT.pfm")
+            if g.ndim != 2:
+                raise InputError(f"{gt / 'disp0GT.pfm'}: expected a 1-channel PFM, got {g.shape[2]} channels")
+            valid_all = np.isfinite(g) & (g >= 0)
+            disp = np.where(valid_all, g, np.float32(np.nan)).astype(np.float32)
+        mask_path = gt / "mask0nocc.png"
+        mask = read_image(mask_path, gray=True) if mask_path.exists() else None
+        _check_shapes(f"ETH3D {scene}", im0=left, im1=right, disp0GT=disp, mask0nocc=mask)
+        if mask is not None and valid_all is not None:
+            valid_noc = (mask == 255) & valid_all
+        calib = str(scene / "calib.txt") if (scene / "calib.txt").exists() else None
+        cnd = _calib_int(read_calib(calib), "ndisp", calib) if calib else None
+        pair = StereoPair(name=scene.name, left=left, right=right, disp=disp, valid_noc=valid_noc,
+                          valid_all=valid_all, ndisp=None, calib=calib, kind="eth3d")
+    else:
+        cnd = pair.ndisp
+    pair.kind, pair.name = "eth3d", scene.name
+    pair.calib_ndisp, pair.ndisp = cnd, ETH3D_NDISP
+    return pair
+
+
+# -- families ------------------------------------------------------------------
+
+def dataset_of(key: str) -> str:
+    """Dataset family of a pair key: ``kitti`` (2012 and 2015), ``middeval3`` (scenes in a
+    MiddEval3 ``trainingQ|H|F``/``testQ|H|F`` folder), ``eth3d``, else ``middlebury``."""
+    kind, _, name = str(key).partition("/")
+    if kind.startswith("kitti"):
+        return "kitti"
+    if kind == "eth3d":
+        return "eth3d"
+    if re.match(r"(training|test)[QHF]/", name):
+        return "middeval3"
+    return "middlebury"
+
+
+def scene_family(key: str) -> str:
+    """``"<dataset>/<stem>"``: pairs of one scene family share it (hold them out together).
+
+    Middlebury: the name without trailing digits (Cloth1-4 -> Cloth, Baby1-3 -> Baby);
+    MiddEval3: the scene without its lighting/exposure suffix (PianoL -> Piano,
+    MotorcycleE -> Motorcycle); ETH3D: the place without ``_<n><l|s>`` (delivery_area_1l
+    -> delivery_area); KITTI: the frame itself (``kitti2015/000000``).
+    """
+    ds = dataset_of(key)
+    kind, _, name = str(key).partition("/")
+    base = name.rsplit("/", 1)[-1]
+    if ds == "kitti":
+        return f"{kind}/{name}"
+    if ds == "eth3d":
+        return "eth3d/" + re.sub(r"_\d+[ls]?$", "", base)
+    if ds == "middeval3":
+        return "middeval3/" + re.sub(r"(?<=[a-z])[LE]$", "", base)
+    return "middlebury/" + (re.sub(r"\d+$", "", base) or base)
+
+
 # -- layout detection -------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -253,7 +368,7 @@ class PairRef:
     """A pair found on disk but not loaded yet: ``load()`` reads it."""
 
     kind: str
-    root: str  # KITTI: the training/testing folder; Middlebury: the scene folder
+    root: str  # KITTI: the training/testing folder; Middlebury, ETH3D: the scene folder
     name: str
     labeled: bool = True  # ground truth on disk (False: images only, e.g. the shared data's unlabeled/)
 
@@ -261,7 +376,17 @@ class PairRef:
     def key(self) -> str:
         return f"{self.kind}/{self.name}"
 
+    @property
+    def dataset(self) -> str:
+        return dataset_of(self.key)
+
+    @property
+    def family(self) -> str:
+        return scene_family(self.key)
+
     def load(self) -> StereoPair:
+        if self.kind == "eth3d":
+            return load_eth3d(self.root)
         if self.kind == "middlebury":
             pair = load_middlebury(self.root)
             pair.name = self.name
@@ -302,7 +427,7 @@ def discover(root, dataset: str | None = None, labeled: bool | None = None) -> l
 
     ``root`` may be a KITTI dataset root (holding ``training/``), a KITTI
     ``training``/``testing`` folder, a Middlebury scene folder, a folder of
-    scenes (e.g. MiddEval3 ``trainingQ``), or any folder holding such folders
+    scenes (e.g. MiddEval3 ``trainingQ``, ETH3D ``two_view_training``), or any folder holding such folders
     (searched three levels deep, in sorted order).  ``dataset`` (one of
     :data:`KINDS`) keeps only pairs of that kind; ``labeled`` True only pairs
     with ground truth on disk, False only pairs without (images only: they
@@ -321,6 +446,10 @@ def _discover(root, dataset, _depth):
     kind = _kitti_kind(d)
     if kind is not None:
         return _kitti_refs(kind, d) if dataset in (None, kind) else []
+    if (d / "im0.png").exists() and (d / "im1.png").exists() and d.parent.name in _ETH3D_SPLITS:
+        gt_name = _ETH3D_SPLITS[d.parent.name]
+        labeled = bool(gt_name) and (d.parent.parent / gt_name / d.name / "disp0GT.pfm").exists()
+        return [PairRef("eth3d", str(d), d.name, labeled)] if dataset in (None, "eth3d") else []
     if (d / "im0.png").exists() and (d / "im1.png").exists():
         return ([PairRef("middlebury", str(d), _scene_name(d), _middlebury_gt(d))]
                 if dataset in (None, "middlebury") else [])
@@ -341,5 +470,5 @@ def find_pairs(root, dataset: str | None = None, labeled: bool | None = None) ->
     if not refs:
         raise InputError(f"no stereo pairs found under {root}"
                          + (f" for dataset {dataset}" if dataset else "")
-                         + " (expected a KITTI 2012/2015 or Middlebury MiddEval3 layout)")
+                         + " (expected a KITTI 2012/2015, Middlebury MiddEval3 or ETH3D two-view layout)")
     return [r.load() for r in refs]

@@ -21,10 +21,19 @@ import numpy as np
 
 from . import metrics
 from .baseline import sgbm
-from .datasets import to_gray_u8
+from .datasets import DATASETS, dataset_of, scene_family, to_gray_u8
 
 __all__ = ["training_pairs", "training_status", "default_max_disparity", "default_range", "evaluate_pair",
-           "mean_metrics", "format_table", "KITTI_DEFAULT_DISPARITY"]
+           "mean_metrics", "format_table", "family_means", "format_family_tables", "FAMILY_METRICS",
+           "KITTI_DEFAULT_DISPARITY"]
+
+#: The metrics each dataset family is judged by (keys of a method's result; the headline first).
+FAMILY_METRICS = {
+    "kitti": ("bad3_noc", "bad3_all", "d1_all"),
+    "middlebury": ("bad2_noc", "bad2_all"),
+    "middeval3": ("bad2_noc", "bad2_all"),
+    "eth3d": ("bad1_noc", "bad1_all", "bad2_noc", "bad2_all"),
+}
 
 KITTI_DEFAULT_DISPARITY = 228
 
@@ -110,38 +119,49 @@ def default_range(pair) -> tuple:
 def _score(pred, pair, fill):
     scored = metrics.fill_invalid(pred) if fill else pred
     out = metrics.evaluate_disparity(scored, pair.disp, pair.valid_noc, pair.valid_all)
+    # ETH3D's headline metric: bad-1.0
+    out["bad1_all"] = metrics.middlebury_bad(scored, pair.disp, pair.valid_all, threshold=1.0)
+    out["bad1_noc"] = (metrics.middlebury_bad(scored, pair.disp, pair.valid_noc & pair.valid_all, threshold=1.0)
+                       if pair.valid_noc is not None else float("nan"))
     out["density"] = metrics.density(pred)
     return out
 
 
 def evaluate_pair(pair, matcher, max_disparity, baseline="sgbm", fill=True, error_maps=None,
-                  status="unknown", min_disparity=0) -> dict:
+                  status="unknown", min_disparity=0, others=None) -> dict:
     """Metrics of one :class:`~mccnn_cl.evaluation.datasets.StereoPair` for ``matcher`` and the baseline.
 
     ``matcher`` is an object with ``compute(left, right)`` returning the
-    left disparity map (e.g. :class:`mccnn_cl.pipeline.StereoMatcher`);
-    ``error_maps`` is a folder for ``<kind>_<name>_{mccnn,sgbm}_err.png``.
-    Returns a JSON-ready dict: pair, size, max_disparity, training, and per
-    method the metrics plus ``seconds``.  ``min_disparity``: the range's M
-    (the baseline's too).  A matcher with ``max_disparity="auto"`` chooses its
-    range (in ``disparity_range``; the coarse pass counts in its seconds),
-    the baseline searches M .. M + max_disparity - 1.
+    left disparity map (e.g. :class:`mccnn_cl.pipeline.StereoMatcher`), or
+    None (only the baseline and ``others``); ``others``: more such matchers
+    by method name (e.g. ``{"census": StereoMatcher(cost="census", ...)}``);
+    ``error_maps`` is a folder for ``<kind>_<name>_<method>_err.png``.
+    Returns a JSON-ready dict: pair, dataset, family, size, max_disparity,
+    disparity_range, training, and per method the metrics plus ``seconds``.
+    ``min_disparity``: the range's M (the baseline's too).  A matcher with
+    ``max_disparity="auto"`` chooses its range (``matcher``'s is the one in
+    ``disparity_range``; the coarse pass counts in its seconds), the
+    baseline searches M .. M + max_disparity - 1.
     """
     left, right = to_gray_u8(pair.left), to_gray_u8(pair.right)
-    result = {"pair": pair.key, "size": [int(left.shape[1]), int(left.shape[0])],
+    result = {"pair": pair.key, "dataset": dataset_of(pair.key), "family": scene_family(pair.key),
+              "size": [int(left.shape[1]), int(left.shape[0])],
               "max_disparity": int(max_disparity), "training": status, "methods": {},
               "disparity_range": [int(min_disparity), int(min_disparity + max_disparity - 1)]}
-    t0 = time.perf_counter()
-    if getattr(matcher, "auto_range", False):
-        lo, hi = matcher.choose_range(left, right)["range"]
-        result["disparity_range"], result["auto"] = [lo, hi], True
-        result["max_disparity"] = hi - lo + 1
-        ours = np.asarray(matcher.compute(left, right, disparity_range=(lo, hi)), dtype=np.float32)
-    else:
-        ours = np.asarray(matcher.compute(left, right), dtype=np.float32)
-    seconds = time.perf_counter() - t0
-    maps = {"mccnn": ours}
-    result["methods"]["mccnn"] = dict(_score(ours, pair, fill), seconds=seconds)
+    maps = {}
+    for name, m in ([("mccnn", matcher)] if matcher is not None else []) + list((others or {}).items()):
+        t0 = time.perf_counter()
+        if getattr(m, "auto_range", False):
+            lo, hi = m.choose_range(left, right)["range"]
+            if name == "mccnn":
+                result["disparity_range"], result["auto"] = [lo, hi], True
+                result["max_disparity"] = hi - lo + 1
+            ours = np.asarray(m.compute(left, right, disparity_range=(lo, hi)), dtype=np.float32)
+        else:
+            ours = np.asarray(m.compute(left, right), dtype=np.float32)
+        seconds = time.perf_counter() - t0
+        maps[name] = ours
+        result["methods"][name] = dict(_score(ours, pair, fill), seconds=seconds)
     if baseline == "sgbm":
         base, seconds = sgbm(left, right, max_disparity, return_time=True, min_disparity=min_disparity)
         maps["sgbm"] = base
@@ -154,7 +174,8 @@ def evaluate_pair(pair, matcher, max_disparity, baseline="sgbm", fill=True, erro
             scored = metrics.fill_invalid(pred) if fill else pred
             stem = f"{pair.kind}_{pair.name}".replace("/", "_").replace(os.sep, "_")
             path = os.path.join(error_maps, f"{stem}_{method}_err.png")
-            write_image(path, error_image(scored, pair.disp, 3.0 if pair.kind != "middlebury" else 2.0))
+            thr = {"kitti": 3.0, "eth3d": 1.0}.get(dataset_of(pair.key), 2.0)
+            write_image(path, error_image(scored, pair.disp, thr))
     return result
 
 
@@ -176,7 +197,13 @@ def mean_metrics(results) -> dict:
 _COLUMNS = [("bad3_noc", "3px-noc"), ("bad3_all", "3px-all"), ("d1_all", "D1-all"),
             ("bad2_noc", "bad2-noc"), ("bad2_all", "bad2-all"), ("epe_all", "EPE px"),
             ("density", "dens. %"), ("seconds", "time s")]
-_SHORT = {"mccnn": "ours", "sgbm": "sgbm"}
+_SHORT = {"mccnn": "ours", "sgbm": "sgbm", "census": "cens"}
+_TITLES = {"bad3_noc": "3px-noc", "bad3_all": "3px-all", "d1_all": "D1-all", "bad2_noc": "bad2-noc",
+           "bad2_all": "bad2-all", "bad1_noc": "bad1-noc", "bad1_all": "bad1-all", "epe_all": "EPE px",
+           "density": "dens. %", "seconds": "time s"}
+_FAMILY_NAMES = {"kitti": "KITTI (3-px error, D1)", "middlebury": "Middlebury (bad-2.0)",
+                 "middeval3": "MiddEval3 (bad-2.0)", "eth3d": "ETH3D two-view (bad-1.0, bad-2.0)"}
+_METHOD_ORDER = ("mccnn", "sgbm", "census")
 
 
 def _fmt(v, key, width=5):
@@ -189,10 +216,16 @@ def _fmt(v, key, width=5):
     return text
 
 
-def format_table(results, mean=None) -> str:
-    """A plain-text table: one row per pair (and the mean), each metric with MC-CNN and SGBM side by side."""
-    methods = [m for m in ("mccnn", "sgbm") if any(m in r["methods"] for r in results)]
-    name_w = max([len("pair")] + [len(r["pair"]) for r in results] + [len("mean")])
+def format_table(results, mean=None, columns=None, extra_means=()) -> str:
+    """A plain-text table: one row per pair (and the mean), each metric with MC-CNN and SGBM side by side.
+
+    ``columns``: metric keys to show (default: the KITTI and Middlebury ones, EPE, density, time);
+    ``extra_means``: more ``(label, mean)`` rows after the mean (e.g. the held-out pairs' mean).
+    """
+    methods = [m for m in _METHOD_ORDER if any(m in r["methods"] for r in results)]
+    cols = _COLUMNS if columns is None else [(k, _TITLES[k]) for k in columns]
+    name_w = max([len("pair")] + [len(r["pair"]) for r in results] + [len("mean")]
+                 + [len(label) for label, _ in extra_means])
     cell = 5
     group = len(methods) * (cell + 1) - 1
     def shown(r):  # the range searched: D levels from 0, else MIN..MAX
@@ -202,14 +235,14 @@ def format_table(results, mean=None) -> str:
     dw = max([4] + [len(shown(r)) for r in results])
     head1 = f"{'':<{name_w}}  {'D':>{dw}}  {'training':<8}"
     head2 = f"{'pair':<{name_w}}  {'':>{dw}}  {'':<8}"
-    for _, title in _COLUMNS:
+    for _, title in cols:
         head1 += "  " + f"{title:^{group}}"
         head2 += "  " + " ".join(f"{_SHORT[m]:>{cell}}" for m in methods)
     lines = [head1, head2, "-" * len(head2)]
 
     def row(label, d, status, per_method):
         s = f"{label:<{name_w}}  {d:>{dw}}  {status:<8}"
-        for key, _ in _COLUMNS:
+        for key, _ in cols:
             s += "  " + " ".join(f"{_fmt(per_method.get(m, {}).get(key), key, cell):>{cell}}" for m in methods)
         return s
 
@@ -218,4 +251,38 @@ def format_table(results, mean=None) -> str:
     if mean is not None and len(results) > 1:
         lines.append("-" * len(head2))
         lines.append(row("mean", "", "", mean))
+    for label, m in extra_means:
+        lines.append(row(label, "", "", m))
     return "\n".join(lines)
+
+
+def family_means(results) -> dict:
+    """Per dataset family (kitti, middlebury, middeval3, eth3d) found in ``results``: the number of
+    pairs, the per-method means over all of them (``mean``) and over the held-out ones
+    (``mean_held_out``, absent when none is held out)."""
+    out = {}
+    for ds in DATASETS:
+        rows = [r for r in results if r.get("dataset", dataset_of(r["pair"])) == ds]
+        if not rows:
+            continue
+        held = [r for r in rows if r["training"] == "held out"]
+        out[ds] = {"pairs": len(rows), "held_out": len(held), "metrics": list(FAMILY_METRICS[ds]),
+                   "mean": mean_metrics(rows)}
+        if held:
+            out[ds]["mean_held_out"] = mean_metrics(held)
+    return out
+
+
+def format_family_tables(results) -> str:
+    """One table per dataset family with that family's metrics (all and non-occluded), the pairs'
+    training status and the family mean (and the held-out pairs' mean when some are trained on)."""
+    blocks = []
+    fam = family_means(results)
+    for ds, info in fam.items():
+        rows = [r for r in results if r.get("dataset", dataset_of(r["pair"])) == ds]
+        cols = list(FAMILY_METRICS[ds]) + ["density", "seconds"]
+        extra = ([("mean held out", info["mean_held_out"])]
+                 if 0 < info["held_out"] < info["pairs"] and len(rows) > 1 else [])
+        text = format_table(rows, info["mean"] if len(rows) > 1 else None, columns=cols, extra_means=extra)
+        blocks.append(f"{_FAMILY_NAMES[ds]}: {info['pairs']} pair(s), {info['held_out']} held out\n{text}")
+    return "\n\n".join(blocks)

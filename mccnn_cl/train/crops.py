@@ -34,11 +34,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from mccnn_cl.evaluation.datasets import dataset_of
 from mccnn_cl.errors import InputError
 
 from .patches import normalise, training_view
 
-__all__ = ["Augment", "CropSampler", "CropBatch", "gather", "KITTI_AUGMENT", "MIDDLEBURY_AUGMENT"]
+__all__ = ["Augment", "CropSampler", "CropBatch", "gather", "KITTI_AUGMENT", "MIDDLEBURY_AUGMENT", "BALANCES",
+           "pair_weights"]
 
 
 @dataclass(frozen=True)
@@ -62,6 +64,33 @@ class Augment:
 KITTI_AUGMENT = Augment()
 MIDDLEBURY_AUGMENT = Augment(hscale=0.8, d_vtrans=1.0, d_rotate=3.0, d_hscale=0.9, d_hshear=0.3,
                              d_brightness=0.7, d_contrast=1.1)
+
+#: How a sampler spreads its crops over the pairs (``CropSampler(balance=)``).
+BALANCES = ("pixels", "pair", "dataset")
+
+
+def pair_weights(counts, datasets, balance: str = "pixels", max_per_pair: int | None = None) -> np.ndarray:
+    """Probability of drawing each pair's crops (sums to 1).
+
+    ``pixels``: in proportion to the pair's usable GT pixels (capped at
+    ``max_per_pair``); ``pair``: every pair alike; ``dataset``: every dataset
+    (``datasets[i]``, e.g. kitti / middlebury / middeval3 / eth3d) an equal
+    share, split within it in proportion to the capped GT pixels.
+    """
+    if balance not in BALANCES:
+        raise InputError(f"balance must be one of {', '.join(BALANCES)}, got {balance!r}")
+    w = np.array([n if max_per_pair is None else min(n, max_per_pair) for n in counts], np.float64)
+    if balance == "pair":
+        w = (w > 0).astype(np.float64)
+    elif balance == "dataset":
+        ds = list(datasets)
+        tot = {d: sum(wi for wi, di in zip(w, ds) if di == d) for d in set(ds)}
+        live = [d for d, t in tot.items() if t > 0]
+        w = np.array([wi / tot[di] / len(live) if tot[di] > 0 else 0.0 for wi, di in zip(w, ds)])
+    s = float(w.sum())
+    if s == 0:
+        raise InputError("the training pairs have no usable ground-truth pixels")
+    return w / s
 
 
 @dataclass
@@ -130,10 +159,15 @@ class CropSampler:
 
     def __init__(self, pairs, patch_size: int, p_hi: float = 1, n_lo: float = 4, n_hi: float = 10,
                  crop=(47, 47), spread: int = 32, per_crop: int = 1024, negatives: int = 1,
-                 subpixel: bool = False, augment: Augment | None = None, use: str = "all",
-                 max_per_pair: int | None = None):
+                 subpixel: bool = False, augment=None, use: str = "all",
+                 max_per_pair: int | None = None, balance: str = "pixels", offsets: dict | None = None):
         if not (0 <= p_hi < n_lo <= n_hi):
             raise InputError(f"need 0 <= P_hi < N_lo <= N_hi, got P_hi={p_hi}, N_lo={n_lo}, N_hi={n_hi}")
+        for ds, (a, b, c) in (offsets or {}).items():
+            if not (0 <= a < b <= c):
+                raise InputError(f"{ds} offsets: need 0 <= P_hi < N_lo <= N_hi, got {a}, {b}, {c}")
+            if not subpixel and any(float(v) != int(v) for v in (a, b, c)):
+                raise InputError("integer mode needs integer offsets (use subpixel=True for fractional ones)")
         h, w = crop
         if h < 1 or w < 1 or h % 2 == 0 or w % 2 == 0:
             raise InputError(f"crop sizes must be odd and positive, got {crop}")
@@ -147,7 +181,12 @@ class CropSampler:
         self.per_crop, self.negatives = int(per_crop), int(negatives)
         self.subpixel, self.aug = subpixel, augment
         self.keys, self.imgs, self.gt, self.weights = [], [], [], []
+        self.pair_aug, self.pair_off, datasets = [], [], []
         for p in pairs:
+            ds = dataset_of(p.key)
+            datasets.append(ds)
+            self.pair_aug.append(augment.get(ds) if isinstance(augment, dict) else augment)
+            self.pair_off.append(tuple((offsets or {}).get(ds, (p_hi, n_lo, n_hi))))
             lg, rg, valid = training_view(p, use, patch_size)
             hh, ww = lg.shape
             disp = np.where(valid, np.nan_to_num(p.disp, nan=0.0), 0.0).astype(np.float32)
@@ -159,18 +198,16 @@ class CropSampler:
             self.weights.append(n if max_per_pair is None else min(n, max_per_pair))
         if not self.keys:
             raise InputError("no training pairs given")
-        wsum = float(sum(self.weights))
-        if wsum == 0:
-            raise InputError("the training pairs have no usable ground-truth pixels")
-        self.prob = np.array(self.weights, np.float64) / wsum
+        self.datasets = datasets
+        self.prob = pair_weights([len(g[2]) for g in self.gt], datasets, balance, max_per_pair)
+        self.augmenting = any(a is not None for a in self.pair_aug)
 
     def counts(self) -> dict:
         return {k: int(len(g[2])) for k, g in zip(self.keys, self.gt)}
 
     # -- geometry -------------------------------------------------------
-    def _draw_warp(self, rng):
-        """Forward linear maps (source -> crop) for left and right, and photometric (c, b) pairs."""
-        a = self.aug
+    def _draw_warp(self, rng, a):
+        """Forward linear maps (source -> crop) for left and right, and photometric (c, b) pairs (``a``: Augment)."""
         if a is None:
             eye = np.eye(2)
             return eye, eye, 0.0, (1.0, 0.0), (1.0, 0.0)
@@ -227,7 +264,7 @@ class CropSampler:
             raise InputError(f"take must be a non-empty range within 0..{n_crops}, got {take}")
         r, h, w, wr = self.r, self.h, self.w, self.wr
         Hc, Wc, Wrc = h + 2 * r, w + 2 * r, wr + 2 * r
-        exact = not self.subpixel and self.aug is None
+        exact = not self.subpixel and not self.augmenting
         lefts, rights, crops, qls, qps, qns, srcs = [], [], [], [], [], [], []
         K = self.negatives
         b = 0
@@ -239,10 +276,12 @@ class CropSampler:
             k = int(rng.integers(len(xs)))
             xa, ya = int(xs[k]), int(ys[k])
             da = float(disp[ya, xa])
-            A, B, ty, (cl, bl), (cr, br) = self._draw_warp(rng)
+            aug = self.pair_aug[pi]
+            p_hi, n_lo, n_hi = self.pair_off[pi]
+            A, B, ty, (cl, bl), (cr, br) = self._draw_warp(rng, aug)
             xra = xa - int(math.floor(da + 0.5))  # right crop centre: the anchor's (rounded) match
             # Candidate GT pixels: a source window covering the left crop under any allowed warp.
-            ext = int(math.ceil(max(h, w) * 0.75)) + 2 if self.aug is not None else 0
+            ext = int(math.ceil(max(h, w) * 0.75)) + 2 if aug is not None else 0
             hy, hx = (h // 2 + ext), (w // 2 + ext)
             y0, y1 = max(ya - hy, 0), min(ya + hy + 1, H)
             x0, x1 = max(xa - hx, 0), min(xa + hx + 1, W)
@@ -255,11 +294,11 @@ class CropSampler:
             if m == 0:
                 continue
             if self.subpixel:
-                op = rng.uniform(-self.p_hi, self.p_hi, m)
-                on = rng.uniform(self.n_lo, self.n_hi, (m, K))
+                op = rng.uniform(-p_hi, p_hi, m)
+                on = rng.uniform(n_lo, n_hi, (m, K))
             else:
-                op = rng.integers(-int(self.p_hi), int(self.p_hi) + 1, m).astype(np.float64)
-                on = rng.integers(int(self.n_lo), int(self.n_hi) + 1, (m, K)).astype(np.float64)
+                op = rng.integers(-int(p_hi), int(p_hi) + 1, m).astype(np.float64)
+                on = rng.integers(int(n_lo), int(n_hi) + 1, (m, K)).astype(np.float64)
             on = np.where(rng.random((m, K)) < 0.5, -on, on)
             xp = px - d + op
             xn = px[:, None] - d[:, None] + on

@@ -85,7 +85,9 @@ class TrainConfig:
     gt: str = "all"                         # GT pixels making examples: "all" or "noc"
     max_per_pair: int | None = None         # cap on locations drawn from one pair per epoch
     augment: bool = False
-    augment_preset: str | None = None       # crop sampler: "kitti" | "middlebury"; None: the pairs' majority
+    augment_preset: str | None = None       # crop sampler: "kitti" | "middlebury" | "family"; None: the pairs' majority
+    balance: str = "pixels"                 # crop sampler: "pixels" | "pair" | "dataset" (crops per dataset alike)
+    family_offsets: bool = False            # crop sampler: each dataset's offsets (FAMILY_OFFSETS[arch])
     conv_layers: list = field(default_factory=lambda: [list(c) for c in PAPER_CONV])
     fc_layers: list = field(default_factory=lambda: list(PAPER_FC))
     margin: float = 0.2                     # fst hinge margin
@@ -113,6 +115,18 @@ ARCH_DEFAULTS = {
     "acrt": dict(lr=0.003, n_lo=4, n_hi=10, p_hi=1, conv_layers=DEFAULT_LAYERS[ACRT][0],
                  fc_layers=DEFAULT_LAYERS[ACRT][1]),
 }
+
+
+#: Per-dataset (P_hi, N_lo, N_hi) of ``--family-offsets``: the released code's KITTI recipe for
+#: KITTI, its Middlebury recipe for Middlebury, MiddEval3 and ETH3D (ETH3D has none of its own).
+FAMILY_OFFSETS = {
+    "fst": {"kitti": (1, 4, 10), "middlebury": (0.5, 1.5, 6), "middeval3": (0.5, 1.5, 6), "eth3d": (0.5, 1.5, 6)},
+    "acrt": {"kitti": (1, 4, 10), "middlebury": (0.5, 1.5, 18), "middeval3": (0.5, 1.5, 18),
+             "eth3d": (0.5, 1.5, 18)},
+}
+#: Per-dataset augmentation of ``augment_preset="family"`` (ETH3D: the Middlebury ranges).
+FAMILY_AUGMENT = {"kitti": KITTI_AUGMENT, "middlebury": MIDDLEBURY_AUGMENT, "middeval3": MIDDLEBURY_AUGMENT,
+                  "eth3d": MIDDLEBURY_AUGMENT}
 
 
 def lr_at(cfg: TrainConfig, it: int, total: int) -> float:
@@ -315,15 +329,22 @@ def _export(model, path: Path, meta: dict) -> None:
 def crop_sampler(cfg: TrainConfig, train_pairs, patch_size: int) -> CropSampler:
     """The run's :class:`CropSampler` (augmentation ranges: ``cfg.augment_preset``, else the pairs' majority)."""
     aug = None
-    if cfg.augment:
+    if cfg.augment and cfg.augment_preset == "family":
+        aug = dict(FAMILY_AUGMENT)
+    elif cfg.augment:
         kitti = sum(p.key.startswith("kitti") for p in train_pairs) * 2 >= len(train_pairs)
         if cfg.augment_preset is not None:
             kitti = {"kitti": True, "middlebury": False}[cfg.augment_preset]
         aug = KITTI_AUGMENT if kitti else MIDDLEBURY_AUGMENT
+    offsets = None
+    if cfg.family_offsets:
+        if cfg.arch not in FAMILY_OFFSETS:
+            raise InputError(f"--family-offsets: no per-dataset offsets for {cfg.arch}")
+        offsets = FAMILY_OFFSETS[cfg.arch]
     return CropSampler(train_pairs, patch_size, p_hi=cfg.p_hi, n_lo=cfg.n_lo, n_hi=cfg.n_hi,
                        crop=tuple(cfg.crop), spread=cfg.spread, per_crop=cfg.per_crop,
                        negatives=cfg.negatives, subpixel=cfg.subpixel, augment=aug, use=cfg.gt,
-                       max_per_pair=cfg.max_per_pair)
+                       max_per_pair=cfg.max_per_pair, balance=cfg.balance, offsets=offsets)
 
 
 def new_model(cfg: TrainConfig, device):
@@ -706,7 +727,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--data", nargs="+", required=True,
                    help="dataset folders: KITTI 2012/2015 roots or training/ dirs, MiddEval3 scenes or "
                         "folders of scenes, or a folder holding several of these")
-    g.add_argument("--dataset", choices=["kitti2012", "kitti2015", "middlebury"], default=None,
+    g.add_argument("--dataset", choices=["kitti2012", "kitti2015", "middlebury", "eth3d"], default=None,
                    help="keep only pairs of this kind")
     g.add_argument("--include", nargs="+", default=["*"], help="pairs to train on (keys kind/name or patterns)")
     g.add_argument("--holdout", nargs="*", default=[],
@@ -736,6 +757,12 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--p-hi", type=float, default=None, help="true1: largest positive offset")
     g.add_argument("--augment", action=argparse.BooleanOptionalAction, default=d.augment,
                    help="geometric/photometric jitter of the released code (not in the paper)")
+    g.add_argument("--augment-preset", choices=["kitti", "middlebury", "family"], default=None,
+                   help="crop sampler: augmentation ranges; family: each dataset's (KITTI's for KITTI, "
+                        "Middlebury's for the others); default: the training pairs' majority")
+    g.add_argument("--family-offsets", action="store_true",
+                   help="crop sampler (--subpixel): each dataset's P_hi/N_lo/N_hi (KITTI 1/4/10, the others "
+                        "the released Middlebury recipe: fst 0.5/1.5/6, acrt 0.5/1.5/18)")
     g.add_argument("--conv", type=_parse_layers, default=None, help="JSON [[maps, kernel], ...]")
     g.add_argument("--fc", type=_parse_layers, default=None, help="JSON [units, ..., outputs] ([] for fst)")
     g = p.add_argument_group("sampler")
@@ -746,6 +773,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--spread", type=int, default=d.spread, help="crop sampler: extra right columns each side")
     g.add_argument("--per-crop", type=int, default=d.per_crop, help="crop sampler: GT pixels per crop at most")
     g.add_argument("--crops-per-step", type=int, default=d.crops_per_step)
+    g.add_argument("--balance", choices=["pixels", "pair", "dataset"], default=d.balance,
+                   help="crop sampler: draw crops in proportion to each pair's GT pixels (capped by "
+                        "--max-per-pair), every pair alike, or every dataset (kitti, middlebury, middeval3, "
+                        "eth3d) alike with its pairs by capped GT pixels")
     g.add_argument("--negatives", type=int, default=d.negatives, help="crop sampler: negatives per GT pixel")
     g.add_argument("--subpixel", action=argparse.BooleanOptionalAction, default=d.subpixel,
                    help="crop sampler: exact GT disparity and continuous offsets (bilinear feature sampling)")
@@ -837,6 +868,8 @@ def _main(args, argv, device, t0=None) -> int:
                       lr_factor=args.lr_factor, momentum=args.momentum, weight_decay=args.weight_decay,
                       n_lo=pick(args.n_lo, "n_lo"), n_hi=pick(args.n_hi, "n_hi"), p_hi=pick(args.p_hi, "p_hi"),
                       gt=args.gt, max_per_pair=args.max_per_pair, augment=args.augment,
+                      augment_preset=args.augment_preset, balance=args.balance,
+                      family_offsets=args.family_offsets,
                       conv_layers=[list(c) for c in pick(args.conv, "conv_layers")],
                       fc_layers=list(pick(args.fc, "fc_layers")), margin=args.margin, sampler=args.sampler,
                       crop=tuple(args.crop), spread=args.spread, per_crop=args.per_crop,

@@ -1,0 +1,139 @@
+"""Per-family comparison of stereo methods on chosen pairs (docs/training.md's per-family table).
+
+Each method is ``LABEL=SPEC``: ``sgbm`` (OpenCV StereoSGBM), ``census`` (the census cost through
+the stereo method with its default settings), or a network (a shipped name, a weights ``.npz``, a
+published ``.t7``/``.pt``) run with the stereo settings it carries; ``SPEC@ARCH/DATASET`` runs it
+with the authors' table ``mccnn_cl.settings.AUTHORS[(ARCH, DATASET)]`` instead (e.g.
+``kitti-fst@mccnn-fst/mb``).  Every (method, pair) result is appended to ``--out`` as one JSON line
+(the :func:`mccnn_cl.evaluate.evaluate_pair` record plus ``method``), and pairs already there are
+skipped, so an interrupted run continues where it stopped.  ``--summary`` prints the per-family
+means of the records as a Markdown table (each family's metrics; seconds per pair).
+
+    python scripts/family_table.py --data ../shared/data --pairs kitti2015/000000 'middlebury/Cloth*' \\
+        --methods sgbm census kitti-fst=kitti-fst --out runs/table.jsonl
+    python scripts/family_table.py --summary runs/table.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import json
+import math
+import os
+import sys
+import time
+
+import numpy as np
+
+
+def _select(refs, patterns):
+    return [r for r in refs if any(fnmatch.fnmatchcase(r.key, p) for p in patterns)]
+
+
+def _matcher(spec, D, ctx):
+    from mccnn_cl.pipeline import StereoMatcher
+    from mccnn_cl.settings import authors_settings
+    if spec == "census":
+        return StereoMatcher(max_disparity=D, cost="census", device=ctx)
+    weights, _, table = spec.partition("@")
+    extra = {}
+    if table:
+        arch, ds = table.split("/")
+        extra = authors_settings(arch, ds)
+    return StereoMatcher(max_disparity=D, weights=weights, device=ctx, **extra)
+
+
+def run(args):
+    from mccnn_cl.opencl.context import ClContext
+    from mccnn_cl.evaluation.datasets import discover
+    from mccnn_cl.evaluation.scoring import default_max_disparity, evaluate_pair
+    refs = _select(discover(args.data, labeled=True), args.pairs)
+    if not refs:
+        sys.exit(f"error: no pair under {args.data} matches {args.pairs}")
+    done = set()
+    if os.path.exists(args.out):
+        with open(args.out) as f:
+            for line in f:
+                r = json.loads(line)
+                done.add((r["method"], r["pair"]))
+    ctx = ClContext(args.device)
+    methods = [m.partition("=") for m in args.methods]
+    methods = [(lab, spec or lab) for lab, _, spec in methods]
+    for ref in refs:
+        pair = None
+        for label, spec in methods:
+            if (label, ref.key) in done:
+                continue
+            pair = pair or ref.load()
+            D = default_max_disparity(pair)
+            t0 = time.time()
+            if spec == "sgbm":
+                rec = evaluate_pair(pair, None, D, baseline="sgbm")
+            else:
+                m = _matcher(spec, D, ctx)
+                rec = evaluate_pair(pair, m, D, baseline=None)
+                rec["methods"] = {"sgbm" if k == "sgbm" else "method": v for k, v in rec["methods"].items()}
+            (res,) = rec["methods"].values()
+            rec.update(method=label, spec=spec, result=res)
+            del rec["methods"]
+            with open(args.out, "a") as f:
+                f.write(json.dumps(rec, default=float) + "\n")
+            print(f"{time.strftime('%H:%M:%S')} {label:<14} {ref.key:<36} D={D:<4} "
+                  f"bad1 {res['bad1_all']:.2f} bad2 {res['bad2_all']:.2f} bad3 {res['bad3_all']:.2f} "
+                  f"({res['seconds']:.1f} s, {time.time() - t0:.0f} s with loading)", flush=True)
+
+
+def summary(paths, held_only_of=None, methods=None):
+    from mccnn_cl.evaluation.scoring import FAMILY_METRICS
+    recs = {}
+    for path in paths:
+        with open(path) as f:
+            for line in f:
+                r = json.loads(line)
+                recs[(r["method"], r["pair"])] = r  # the last record of a (method, pair) wins
+    order = methods or list(dict.fromkeys(m for m, _ in recs))
+    fams = {}
+    for (m, p), r in recs.items():
+        fams.setdefault(r["dataset"], {}).setdefault(m, []).append(r)
+    out = []
+    for ds, by_m in fams.items():
+        keys = FAMILY_METRICS[ds]
+        pairs = sorted({r["pair"] for rs in by_m.values() for r in rs})
+        out.append(f"\n**{ds}** ({len(pairs)} pairs: {', '.join(p.split('/', 1)[1] for p in pairs)})\n")
+        out.append("| method | " + " | ".join(keys) + " | s / pair | pairs |")
+        out.append("|---" * (len(keys) + 3) + "|")
+        for m in order:
+            rs = [r for r in by_m.get(m, []) if r["pair"] in pairs]
+            if not rs:
+                continue
+            cells = []
+            for k in keys:
+                v = [r["result"][k] for r in rs if r["result"].get(k) is not None and not math.isnan(r["result"][k])]
+                cells.append(f"{np.mean(v):.2f}" if v else "–")
+            sec = np.mean([r["result"]["seconds"] for r in rs])
+            out.append(f"| {m} | " + " | ".join(cells) + f" | {sec:.1f} | {len(rs)}{'' if len(rs) == len(pairs) else ' (incomplete)'} |")
+    return "\n".join(out)
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", default="../shared/data")
+    p.add_argument("--pairs", nargs="+", default=["*"], help="pair keys or shell patterns")
+    p.add_argument("--methods", nargs="+", default=["sgbm", "census"], help="LABEL=SPEC (see the module doc)")
+    p.add_argument("--out", help="JSON-lines file to append to")
+    p.add_argument("--device", default=None)
+    p.add_argument("--summary", nargs="+", metavar="JSONL", help="print per-family means of these files")
+    p.add_argument("--order", nargs="+", help="--summary: methods in this order")
+    args = p.parse_args(argv)
+    if args.summary:
+        print(summary(args.summary, methods=args.order))
+        return 0
+    if not args.out:
+        p.error("--out is required")
+    run(args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
