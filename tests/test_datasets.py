@@ -29,6 +29,7 @@ LABELED = (["kitti2012/000000", "kitti2012/000001"] + [f"kitti2015/{f}" for f in
            + [f"middlebury/{s}" for s in sorted(MIDDLEBURY)])
 
 
+@pytest.mark.full_data
 def test_every_pair_loads(shared_data):
     pairs = find_pairs(shared_data, labeled=True)
     keys = [p.key for p in pairs]
@@ -45,6 +46,7 @@ def test_every_pair_loads(shared_data):
         assert lg.shape == p.shape and lg.dtype == np.uint8 and lg.std() > 5
 
 
+@pytest.mark.full_data
 def test_middlebury_table(shared_data):
     for scene, (w, h, lo, hi, has_mask) in MIDDLEBURY.items():
         p = load_middlebury(shared_data / "middlebury" / scene)
@@ -56,6 +58,7 @@ def test_middlebury_table(shared_data):
         assert p.calib.endswith("calib.txt")
 
 
+@pytest.mark.full_data
 def test_kitti(shared_data):
     k12 = load_kitti2012(shared_data / "kitti2012", 0)  # dataset root with training/
     assert k12.shape == (370, 1226) and k12.left.ndim == 3 and k12.valid_noc is None
@@ -70,6 +73,7 @@ def test_kitti(shared_data):
     assert np.nanmax(k15.disp) > 60
 
 
+@pytest.mark.full_data
 def test_layout_detection(shared_data):
     assert [r.key for r in discover(shared_data / "kitti2015")] == [f"kitti2015/{f}" for f in KITTI2015]
     assert [r.key for r in discover(shared_data / "kitti2012" / "training")] == \
@@ -82,6 +86,7 @@ def test_layout_detection(shared_data):
         discover(shared_data, dataset="sintel")
 
 
+@pytest.mark.full_data
 def test_unlabeled_pairs(shared_data, tmp_path):
     """Pairs without ground truth (the shared data's unlabeled/: ETH3D two-view and MiddEval3
     quarter-size scenes) are discovered as such, keep their collection in the key (a scene may
