@@ -2,6 +2,7 @@
 their references (torch for the paper network, numpy for fst), and the
 default is the fst network."""
 
+import pytest
 import cv2
 import numpy as np
 
@@ -41,6 +42,7 @@ def test_shipped_names_and_default():
     assert resolve("mccnn_kitti_mb_v1").architecture == PAPER  # the paper net's earlier name
 
 
+@pytest.mark.slow
 def test_shipped_fst_opencl_vs_reference(ctx, shared_data):
     w = resolve("kitti-fst")
     t = w.meta["training"]
