@@ -49,6 +49,7 @@ def test_random_images(ctx, case, tiles):
     check(run_poisoned(ctx, cost, left, right, D), ref.cost_volume(w, left, right, D))
 
 
+@pytest.mark.slow
 def test_real_crop_default_layers(ctx, shared_data):
     """KITTI crop through the default acrt sizes (4 x 112 maps, fc 4 x 384, 1)."""
     lp, rp = "kitti2015/training/image_2/000000_10.png", "kitti2015/training/image_3/000000_10.png"

@@ -53,6 +53,7 @@ def _check_fit(f, x, t):
     assert f["max_rel_dev"] == pytest.approx(dev.max(), rel=1e-6, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_quick_run_json_is_consistent(tmp_path, shared_data, request):
     out, png = tmp_path / "scaling.json", tmp_path / "scaling.png"
     cmd = [sys.executable, str(SCRIPT), "--quick", "--json", str(out), "--plot", str(png)]

@@ -72,6 +72,7 @@ def check(ctx, cost, img_l, img_r, iterations=4, eta=4, include_neighbor=False):
 
 
 @pytest.mark.gpu_check
+@pytest.mark.slow
 def test_random_odd_size(ctx):
     rng = np.random.default_rng(1)
     D, H, W = 16, 37, 53
@@ -84,6 +85,7 @@ def test_random_odd_size(ctx):
     assert got[valid].std() > 0.01
 
 
+@pytest.mark.slow
 def test_random_long_arms_neighbor_variant_and_tight_bound(ctx):
     rng = np.random.default_rng(2)
     D, H, W = 9, 23, 31
@@ -117,6 +119,7 @@ def test_real_images_ad_volume(ctx, shared_data, rel_l, rel_r, y0, x0):
 
 
 @pytest.mark.gpu_check
+@pytest.mark.slow
 def test_d_at_least_w_single_row_single_column(ctx):
     rng = np.random.default_rng(3)
     for D, H, W in [(20, 7, 12), (5, 1, 40), (4, 30, 1), (1, 1, 1), (3, 2, 2), (7, 5, 300), (40, 3, 70)]:
@@ -227,6 +230,7 @@ def multi_vs_single(ctx, cost, arms_l, arms_r, iterations, in_place):
 
 
 @pytest.mark.parametrize("in_place", [False, True])
+@pytest.mark.slow
 def test_multi_iteration_counts_random(ctx, in_place):
     """cbca_fused_multi_short (MULTI_K iterations per launch, then a shorter
     launch) is bit-identical to iterating cbca_fused_short, for iteration
@@ -251,6 +255,7 @@ def test_multi_iteration_counts_random(ctx, in_place):
 
 
 @pytest.mark.gpu_check
+@pytest.mark.slow
 def test_multi_iteration_counts_kitti_crop(ctx, shared_data):
     """The same on a real KITTI crop (AD volume, arms from the images)."""
     H, W, D = 40, 75, 20
@@ -288,6 +293,7 @@ def mirrored_right(cost):
 
 
 @pytest.mark.parametrize("source,eta,nb", [("random", 4, False), ("random", 9, True), ("kitti", 4, False)])
+@pytest.mark.slow
 def test_right_reference_aggregation_is_the_left_one_shifted(ctx, shared_data, source, eta, nb):
     """The pipeline takes the right reference's first CBCA from the left one:
     CBCA of the mirrored right-reference volume, with the mirrored right and
@@ -323,6 +329,7 @@ def test_right_reference_aggregation_is_the_left_one_shifted(ctx, shared_data, s
     compare(ctx.from_device(d_out, cost.shape), want, cost)
 
 
+@pytest.mark.slow
 def test_large_volume_default_path(ctx):
     """This device's default CBCA on a volume of KITTI height and half its
     width equals the two-pass short kernels (which the tests above check

@@ -102,6 +102,7 @@ def check_all(ctx, cost, arms_l, arms_r, iterations, sizes=SIZES, in_place=False
 
 @pytest.mark.parametrize("D,H,W,eta,nb,its", [(16, 37, 53, 4, False, (1, 4)), (9, 23, 31, 9, True, (2, 5)),
                                              (11, 19, 45, 6, False, (3,))])
+@pytest.mark.slow
 def test_random_odd_sizes_every_group_size(ctx, D, H, W, eta, nb, its):
     """Odd sizes, arms up to 3, 8 (SHORT_MAX, the longest the path serves) and 5,
     1 to 5 iterations; the aggregation really changed the costs."""
@@ -119,6 +120,7 @@ def test_random_odd_sizes_every_group_size(ctx, D, H, W, eta, nb, its):
 
 @pytest.mark.parametrize("D,H,W", [(20, 7, 12), (5, 1, 40), (4, 30, 1), (1, 1, 1), (3, 2, 2), (40, 3, 70),
                                    (6, 5, 300)])
+@pytest.mark.slow
 def test_degenerate_and_d_at_least_w(ctx, D, H, W):
     """One row, one column, one pixel, D > W (whole tiles and rows invalid), a
     row of 300 columns (several chunks of the rows ring at every size)."""
@@ -128,6 +130,7 @@ def test_degenerate_and_d_at_least_w(ctx, D, H, W):
     check_all(ctx, cost, arms_l, arms_r, 2, sizes=(1, 4, (5, (2, 3)), "max"))
 
 
+@pytest.mark.slow
 def test_kitti_crop_in_place(ctx, shared_data):
     """A real KITTI crop (AD costs, arms from the images), in place as the
     pipeline runs it, 4 iterations."""
@@ -144,6 +147,7 @@ def test_kitti_crop_in_place(ctx, shared_data):
 
 
 @pytest.mark.parametrize("ls", [1, 16, (6, (5, 3)), None])
+@pytest.mark.slow
 def test_half_storage(ctx, shared_data, ls):
     """Half volumes: equal to the short passes in half (the row sums stored as
     half between the passes in both) and within tests/test_half.py's bound of
@@ -268,6 +272,7 @@ def test_profile_selects_the_path(ctx, monkeypatch, kind, name, type_, path):
 
 
 @pytest.mark.parametrize("dtype", ["float32", "float16"])
+@pytest.mark.slow
 def test_stereo_matcher_with_the_gpu_profile(ctx, shared_data, monkeypatch, dtype):
     """StereoMatcher on this device with the gpu column of the rules (a profile
     built for a GPU): both CBCA runs take the work-group path and SGM is

@@ -60,6 +60,7 @@ def crops(tmp_path_factory, shared_data):
     return d
 
 
+@pytest.mark.slow
 def test_match_pfm_with_colour(crops, tmp_path):
     out = tmp_path / "d.pfm"
     rc, so, se = run("match", crops / "ts_l.png", crops / "ts_r.png", "-o", out, "--cost", "census",
@@ -143,6 +144,7 @@ def test_batch_with_globs(crops, tmp_path):
     assert_one_line_error(rc, se, 2, "without a left partner", "b.png")
 
 
+@pytest.mark.slow
 def test_input_errors(crops, tmp_path):
     o = tmp_path / "o.pfm"
     l, r = crops / "ts_l.png", crops / "ts_r.png"
@@ -216,6 +218,7 @@ def test_devices_lists_something():
     assert any(line.startswith(" * ") for line in so.splitlines())
 
 
+@pytest.mark.slow
 def test_evaluate_tsukuba_beside_sgbm(shared_data, tmp_path):
     rc, so, se = run("evaluate", shared_data / "middlebury", "--pairs", "Tsukuba", "--cost", "census",
                      "--max-disp", 16, "--json", "--error-maps", tmp_path)
@@ -285,6 +288,7 @@ def test_evaluate_finds_every_family(shared_data, tmp_path):
     assert_one_line_error(rc, se, 2, "--baseline")
 
 
+@pytest.mark.slow
 def test_bench_and_demo_census(tmp_path):
     rc, so, se = run("bench", "--cost", "census", "--size", "160x96", "--max-disp", 16)
     assert rc == 0, se
@@ -312,6 +316,7 @@ def test_bench_and_demo_census(tmp_path):
     assert img.shape[1] == 2 * (2 * 225) + 6 and img.shape[0] > 4 * 188  # 2x tiles, 2 x 2
 
 
+@pytest.mark.slow
 def test_demo_with_shipped_weights(tmp_path):
     """The README's first command: the shipped network on the bundled (held-out) Cones pair."""
     out = tmp_path / "demo.png"

@@ -242,6 +242,7 @@ def test_pipeline_confidence_half_and_tiled(ctx, kitti_crop):
 
 
 # -- CLI --------------------------------------------------------------------
+@pytest.mark.slow
 def test_cli_confidence_and_labels(ctx, kitti_crop, tmp_path):
     left, right = kitti_crop
     cv2.imwrite(str(tmp_path / "l.png"), left)

@@ -150,6 +150,7 @@ TOL = 5e-5
 
 
 @pytest.mark.parametrize("name", list(CONFIGS))
+@pytest.mark.slow
 def test_ddp_step_equals_single_process_step_on_union(name, ddp_out, shared_data, tmp_path):
     ranks = [torch.load(ddp_out / name / f"rank{r}.pt") for r in range(WORLD)]
     for k, v in ranks[0].items():  # DDP keeps the replicas identical (same all-reduced gradient, same SGD)

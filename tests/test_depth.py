@@ -27,6 +27,7 @@ def test_kitti2015_calib_cam_to_cam(shared_data):
     assert c01.baseline == pytest.approx(387.5744 / 721.5377, rel=1e-6)
 
 
+@pytest.mark.full_data
 def test_middlebury_calib_without_focal(shared_data):
     c = depth.read_calib(shared_data / "middlebury/Cones/calib.txt")
     assert (c.width, c.height, c.ndisp) == (450, 375, 80)

@@ -12,6 +12,7 @@ Cross-implementation agreement (PoCL vs Intel's runtime) is measured by
 compilers may contract/reorder float operations, so it is not bit-exact.
 """
 
+import pytest
 import cv2
 import numpy as np
 
@@ -40,6 +41,7 @@ def _same_bits(a: np.ndarray, b: np.ndarray, what: str) -> None:
                              f"first at {idx}")
 
 
+@pytest.mark.slow
 def test_network_cost_volume_is_bit_identical(ctx, shared_data):
     # a mid-sized random net (2 hidden layers of 48, 16 maps): more than one
     # register tile per work-item and several tiles per disparity

@@ -44,6 +44,7 @@ def _run_script(tmp_path, vendors, extra_path=None, *args):
 
 
 @pytest.mark.parametrize("with_pocl", [True, False])
+@pytest.mark.slow
 def test_no_gpu_prints_one_line_and_exits_0(tmp_path, with_pocl):
     p, out = _run_script(tmp_path, _vendors(tmp_path, with_pocl))
     assert p.returncode == 0, p.stdout + p.stderr
@@ -54,6 +55,7 @@ def test_no_gpu_prints_one_line_and_exits_0(tmp_path, with_pocl):
     assert not out.exists()  # no tests, no bench, no report
 
 
+@pytest.mark.slow
 def test_no_gpu_names_a_missing_nvidia_icd(tmp_path):
     """nvidia-smi sees a GPU (a stand-in script here) but no OpenCL GPU device
     shows up: the line names the NVIDIA driver / ICD as the cause."""

@@ -39,6 +39,7 @@ def _gpu(ctx, monkeypatch):
 
 
 @pytest.mark.parametrize("cost,weights,D,W", [("census", None, 24, 241), ("cnn", "kitti-fst", 128, 400)])
+@pytest.mark.slow
 def test_tiled_run_on_a_small_gpu(ctx, shared_data, monkeypatch, cost, weights, D, W):
     left, right = kitti_crop(shared_data, 100, 300, 190, W)
     cpu = StereoMatcher(weights, cost=cost, max_disparity=D, device=ctx, tile_overlap=16)

@@ -50,6 +50,7 @@ def small_data(shared_data, tmp_path_factory):
     return root
 
 
+@pytest.mark.full_data
 def test_pack_gpu_data_gives_a_layout_discover_reads(small_data, tmp_path):
     dest = tmp_path / "packed"
     r = subprocess.run(["bash", str(REPO / "scripts" / "pack_gpu_data.sh"), str(small_data), str(dest)],
@@ -80,6 +81,7 @@ def test_pack_gpu_data_missing_data_is_one_line(tmp_path):
     assert r.stdout == "" and len(r.stderr.strip().splitlines()) == 1 and "no data folder" in r.stderr
 
 
+@pytest.mark.slow
 def test_training_entry_point_needs_no_pyopencl(tmp_path):
     """The GPU image has torch but no pyopencl: importing the trainer (and its --help) must not need it."""
     (tmp_path / "sitecustomize.py").write_text("import sys\nsys.modules['pyopencl'] = None\n")
@@ -101,6 +103,7 @@ def _gpu_train(args, tmp_path, **env):
                           env=e, timeout=120, cwd=tmp_path)
 
 
+@pytest.mark.slow
 def test_gpu_train_refuses_without_cuda(tmp_path):
     r = _gpu_train(["fst", "1"], tmp_path)
     lines = (r.stdout + r.stderr).strip().splitlines()
@@ -130,6 +133,7 @@ def test_plan_fits_the_budget():
         plan(5, cal, 500)
 
 
+@pytest.mark.full_data
 def test_fit_minutes_run_is_the_run_with_the_chosen_schedule(small_data, tmp_path, capsys):
     """--fit-minutes only chooses --epochs/--steps-per-epoch: the calibration leaves the run untouched."""
     base = ["--data", str(small_data), "--include", "kitti2015/*", "--holdout", "middlebury/Cones",

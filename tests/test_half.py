@@ -99,6 +99,7 @@ def test_census_half(ctx, shared_data):
 
 
 @pytest.mark.gpu_check
+@pytest.mark.slow
 def test_network_half(ctx):
     w = Weights.random(seed=5)
     rng = np.random.default_rng(6)
@@ -130,6 +131,7 @@ def real_crop(shared_data, rows, cols):
 
 @pytest.mark.parametrize("short,fused,multi,bound", [(True, True, True, None), (True, True, False, None),
                                                      (True, False, False, None), (False, False, False, 255)])
+@pytest.mark.slow
 def test_cbca_half(ctx, shared_data, short, fused, multi, bound):
     """Half CBCA (every implementation) against the reference on the half input.
     Each iteration stores its result as half (the two-pass kernels also their
@@ -191,6 +193,7 @@ def test_cbca_half_multi_matches_single(ctx, shared_data):
 
 @pytest.mark.parametrize("W", [45, 100])
 @pytest.mark.gpu_check
+@pytest.mark.slow
 def test_sgm_half(ctx, shared_data, W):
     """Half SGM against the reference on the half input.  The recurrences run in
     float on exactly the reference's inputs; the four directions accumulate in
@@ -217,6 +220,7 @@ def test_sgm_half(ctx, shared_data, W):
     assert np.nanmax(np.abs(got - want)) > 0  # rounding did happen: the half path really ran
 
 
+@pytest.mark.slow
 def test_pipeline_half_storage(ctx, shared_data):
     """StereoMatcher(volume_dtype="float16"): half the volume memory, the same
     disparities within the stated tolerance (>= 99.5 % of pixels within 0.5 px
@@ -243,6 +247,7 @@ def test_pipeline_half_storage(ctx, shared_data):
         StereoMatcher(cost="census", max_disparity=48, device=ctx, volume_dtype="float64")
 
 
+@pytest.mark.slow
 def test_cbca_half_default_path_tall_image(ctx, shared_data):
     """The CBCA path the pipeline takes by default (fused on CPU devices; the
     two-pass kernels on Rusticl, whose fused half kernel computed wrong sums

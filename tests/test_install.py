@@ -1,5 +1,6 @@
 """`pip install .` gives a package that carries its kernels (works outside the checkout)."""
 
+import pytest
 import subprocess
 import sys
 from pathlib import Path
@@ -7,6 +8,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_non_editable_install_carries_kernels(tmp_path):
     target = tmp_path / "site"
     r = subprocess.run(

@@ -33,6 +33,7 @@ def test_pfm_rows_bottom_to_top_and_big_endian(tmp_path):
     np.testing.assert_array_equal(read_pfm(p2), data)
 
 
+@pytest.mark.full_data
 def test_pfm_real_middlebury_has_inf_unknowns(shared_data):
     gt = read_pfm(shared_data / "middlebury" / "Cones" / "disp0GT.pfm")
     assert gt.shape == (375, 450) and gt.dtype == np.float32
@@ -68,6 +69,7 @@ def test_kitti_png_round_trip(tmp_path):
     assert (back[~valid] == 0).all()
 
 
+@pytest.mark.full_data
 def test_kitti_png_real(shared_data):
     disp, valid = read_kitti_disparity(shared_data / "kitti2015/training/disp_occ_0/000000_10.png")
     assert disp.shape == (375, 1242) and 0 < valid.mean() < 0.5

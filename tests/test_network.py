@@ -102,6 +102,7 @@ def test_paper_net_random_image(ctx, paper_weights):
     ("middlebury/Cones/im0.png", "middlebury/Cones/im1.png", 150, 200),
 ], ids=["kitti2015-000000", "middlebury-cones"])
 @pytest.mark.gpu_check
+@pytest.mark.slow
 def test_paper_net_real_crops(ctx, paper_weights, shared_data, crop):
     lp, rp, y0, x0 = crop
     left = read_gray(shared_data / lp)[y0:y0 + 40, x0:x0 + 60]
@@ -113,6 +114,7 @@ def test_paper_net_real_crops(ctx, paper_weights, shared_data, crop):
     check(got, ref.cost_volume(paper_weights, left, right, D), D, 32, 52)
 
 
+@pytest.mark.full_data
 def test_matches_torch_model(ctx, paper_weights, shared_data, monkeypatch):
     """MCCNN.from_weights run convolutionally (features -> L4 split -> head) in torch."""
     left = read_gray(shared_data / "kitti2015/training/image_2/000001_10.png")[200:236, 300:360]
@@ -151,6 +153,7 @@ def test_matches_torch_model(ctx, paper_weights, shared_data, monkeypatch):
     ([[5, 3], [7, 3]], [9, 9, 2], 11, 29, 9),      # two conv layers
 ], ids=["37x53", "one-row", "D>=W", "no-hidden", "two-conv"])
 @pytest.mark.gpu_check
+@pytest.mark.slow
 def test_small_nets(ctx, case, tiles):
     conv, fc, H, W, D = case
     w = Weights.random(conv, fc, seed=H * W)
@@ -175,6 +178,7 @@ def test_constant_images(ctx):
     assert np.ptp(v) == 0
 
 
+@pytest.mark.slow
 def test_compute_progress_and_chunks(ctx, monkeypatch):
     import mccnn_cl.costs.network as stage
     w = Weights.random(SMALL_CONV, [16, 16, 2], seed=4)
@@ -241,6 +245,7 @@ def test_input_errors(ctx):
 
 
 @pytest.mark.parametrize("max_rows", [1, 3, 100])
+@pytest.mark.slow
 def test_to_host_bands_identical(ctx, max_rows):
     """The host-resident volume (computed band by band into a band-sized device
     buffer, for volumes larger than the device) equals the one-buffer volume bit
@@ -276,6 +281,7 @@ def test_flops_count(ctx, paper_weights):
 
 # -- settings that travel with the network (StereoMatcher) --------------------
 
+@pytest.mark.slow
 def test_settings_travel_with_weights(ctx):
     """Weights.stereo applies first, the caller's overrides win; fst's settings
     (no CBCA) run without cross arms; the cost class follows the architecture."""
@@ -318,6 +324,7 @@ def test_settings_errors(ctx):
         Hyperparameters(intensity_scale="0..255")
 
 
+@pytest.mark.full_data
 def test_published_fst_file_through_matcher(ctx, shared_data):
     """A .t7 path goes through weights.resolve and the importer: the fst cost
     with the authors' KITTI settings, which the caller can still override."""

@@ -107,6 +107,8 @@ def layer_outputs(ctx, stack, img):
     ([[6, 5], [10, 5], [10, 1]], 21, 30, True),    # the paper's shapes, small: a 1x1 layer
     ([[64, 3]] * 4, 14, 45, False),                # KITTI fst's layers: K = 576, several slices
 ], ids=["odd-maps", "paper-like", "kitti-fst-layers"])
+@pytest.mark.slow
+@pytest.mark.gpu_check
 def test_conv_stack_bit_identical(ctx, conv, H, W, relu_last):
     """Every layer of the local-memory GEMM equals network_conv bit for bit
     (default and forced tiles), and the stack's features the reference."""
@@ -130,6 +132,7 @@ def test_conv_stack_bit_identical(ctx, conv, H, W, relu_last):
             assert all(l[0].tile == t for l in st.layers)
 
 
+@pytest.mark.gpu_check
 def test_default_conv_tile_fits_and_is_capped(ctx):
     """The profile's tile: TN capped by the layer's channels and TK by its
     terms, within the kernel's work-group limit and the local memory."""
@@ -150,6 +153,8 @@ def test_default_conv_tile_fits_and_is_capped(ctx):
     ([[7, 3], [5, 5]], 9, 23, 20),         # odd maps (NK 5 < TK), D > W (cropped W = 17)
     ([[12, 3]], 5, 8, 1),                  # one layer, D = 1, w < 16
 ], ids=["37x53-D16", "kitti-layers-D70", "odd-maps-D>W", "one-layer-D1"])
+@pytest.mark.slow
+@pytest.mark.gpu_check
 def test_fst_volume_bit_identical(ctx, conv, H, W, D):
     """fst_volume_wg (with the GEMM conv stack) equals the CPU kernels bit for
     bit for every tile, and the reference within test_fst's tolerance."""
@@ -174,6 +179,8 @@ def test_fst_volume_bit_identical(ctx, conv, H, W, D):
         np.testing.assert_array_equal(bits(got), bits(base))
 
 
+@pytest.mark.slow
+@pytest.mark.gpu_check
 def test_fst_real_crop_shipped_network(ctx, shared_data):
     """The shipped kitti-fst on a held-out KITTI crop: the GPU-shaped path
     equals the CPU path bit for bit and the reference within 2e-5."""
@@ -192,6 +199,8 @@ def test_fst_real_crop_shipped_network(ctx, shared_data):
 
 
 @pytest.mark.parametrize("rows", [1, 3])
+@pytest.mark.slow
+@pytest.mark.gpu_check
 def test_fst_bands_half_and_to_host(ctx, monkeypatch, rows):
     """Bands of 1 and 3 rows (the volume's row offset y0), to_host, half
     storage: the GPU-shaped path gives the CPU path's bits in each."""
@@ -220,6 +229,8 @@ def test_fst_bands_half_and_to_host(ctx, monkeypatch, rows):
     (PaperCost, [[8, 3], [12, 3], [12, 1]], [16, 16, 2], "mccnn-paper"),
     (AcrtCost, [[6, 3], [9, 3]], [10, 10, 1], "mccnn-acrt"),
 ])
+@pytest.mark.slow
+@pytest.mark.gpu_check
 def test_fc_networks_local_tiles(ctx, cls, conv, fc, arch):
     """The paper and acrt networks with the GEMM conv stack and L4 split:
     bit for bit the CPU-shaped volumes, the reference within 1e-4."""
@@ -242,7 +253,8 @@ HEAD_TILES = (None, dict(TM=4, RM=2, RN=4, CONV_RM=3), dict(TM=3, RM=1, RN=1, CO
 
 
 @pytest.mark.parametrize("cls,conv,fc,arch", [
-    (PaperCost, [[8, 3], [12, 3], [12, 1]], [16, 16, 16, 2], "mccnn-paper"),   # 2 hidden layers
+    pytest.param(PaperCost, [[8, 3], [12, 3], [12, 1]], [16, 16, 16, 2], "mccnn-paper",
+                 marks=(pytest.mark.slow, pytest.mark.gpu_check)),  # 2 hidden layers
     pytest.param(AcrtCost, [[6, 3], [9, 3]], [10, 10, 1], "mccnn-acrt", marks=pytest.mark.slow),  # 1 hidden layer
     pytest.param(AcrtCost, [[5, 3]], [7, 1], "mccnn-acrt", marks=pytest.mark.slow),  # no hidden layer
 ], ids=["paper-2-hidden", "acrt-1-hidden", "acrt-0-hidden"])
@@ -273,6 +285,8 @@ def test_gemm_head_bit_identical(ctx, monkeypatch, cls, conv, fc, arch):
                                                                 left, right, D, half=True)))
 
 
+@pytest.mark.slow
+@pytest.mark.gpu_check
 def test_gemm_head_real_crop_bands_to_host(ctx, shared_data, monkeypatch):
     """The shipped kitti-paper network on a KITTI crop: the head layer by
     layer (with the GEMM conv stack) equals the fused head bit for bit, in
@@ -296,6 +310,8 @@ def test_gemm_head_real_crop_bands_to_host(ctx, shared_data, monkeypatch):
 
 
 # -- sizes, limits and bad input ----------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.gpu_check
 def test_small_local_memory_shrinks_the_tiles(ctx, monkeypatch):
     """A device with little local memory (simulated: 1200 bytes): the default
     tiles shrink to fit and the results stay exact; a forced tile that does
@@ -317,6 +333,7 @@ def test_small_local_memory_shrinks_the_tiles(ctx, monkeypatch):
         FstCost(ctx, w, local_tiles=dict(TM=64, TN=16, TK=16, RM=4, RN=4), workgroup=False)
 
 
+@pytest.mark.gpu_check
 def test_bad_tiles(ctx):
     w = Weights.random([[8, 3]], architecture="mccnn-fst", seed=1)
     with pytest.raises(InputError, match="multiple"):
@@ -340,6 +357,7 @@ def fake_device(name, type_, units=8, width=1):
 @pytest.mark.parametrize("kind,name,type_,gpu_shaped", [
     ("gpu", "NVIDIA H200", "GPU", True), ("gpu", "Oclgrind Simulator", "ALL", True),
     ("cpu", "pthread-skylake-avx512", "CPU", False), ("llvmpipe", "llvmpipe (LLVM 15.0.6)", "CPU", False)])
+@pytest.mark.gpu_check
 def test_profile_selects_the_paths(ctx, monkeypatch, kind, name, type_, gpu_shaped):
     """The gpu column takes both GPU-shaped kernels, CPU and llvmpipe keep
     theirs; explicit choices beat the rules either way."""
@@ -367,6 +385,8 @@ def test_profile_selects_the_paths(ctx, monkeypatch, kind, name, type_, gpu_shap
     assert prof.rule("network_head_gemm") == gpu_shaped
 
 
+@pytest.mark.slow
+@pytest.mark.gpu_check
 def test_stereo_matcher_with_the_gpu_profile(ctx, shared_data, monkeypatch):
     """StereoMatcher with the shipped default fst network on this device with the gpu
     column of the rules (a profile built for a GPU): the network takes the
@@ -400,6 +420,8 @@ def test_stereo_matcher_with_the_gpu_profile(ctx, shared_data, monkeypatch):
     np.testing.assert_array_equal(bits(got.disparity), bits(want.disparity))
 
 
+@pytest.mark.slow
+@pytest.mark.gpu_check
 def test_paper_network_with_the_gpu_profile(ctx, shared_data, monkeypatch):
     """The shipped kitti-paper network with a GPU profile takes the GEMM conv
     stack and the head layer by layer; its C_CNN equals, bit for bit, the

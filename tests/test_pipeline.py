@@ -63,6 +63,7 @@ def test_census_pipeline_beats_wta_on_tsukuba(ctx, shared_data, census_matcher):
     assert all(t >= 0 for t in res.timings.values())
 
 
+@pytest.mark.slow
 def test_intermediates_follow_the_references(ctx, shared_data):
     """On a small crop every intermediate equals the reference stage applied to
     the previous intermediate, and the plain call returns the same map."""
@@ -167,6 +168,7 @@ def test_bad_sizes_rejected(ctx, census_matcher):
             StereoMatcher(weights=w, cost="census", device=ctx)
 
 
+@pytest.mark.slow
 def test_smallest_and_constant_images(census_matcher):
     # 9 x 33: a single-row cost volume; constant: every cost ties -> d = 0
     c = np.full((9, 33), 128, np.uint8)
@@ -192,6 +194,7 @@ def test_default_weights(ctx):
             StereoMatcher(device=ctx)
 
 
+@pytest.mark.slow
 def test_cnn_cost_with_random_weights(ctx, shared_data, tmp_path, capsys):
     w = Weights.random(conv_layers=[[8, 5], [12, 5], [12, 1]], fc_layers=[16, 16, 2], seed=1)
     w.save(tmp_path / "w.npz")

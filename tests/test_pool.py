@@ -52,6 +52,7 @@ def test_pool_take_give_trim(ctx):
     del a, b, c
 
 
+@pytest.mark.full_data
 def test_reused_volumes_give_the_same_result(ctx, shared_data):
     A = crop(shared_data, "Cones", 40, 60, 60, 90)
     B = crop(shared_data, "Reindeer", 100, 120, 60, 90)
@@ -84,6 +85,7 @@ def test_reused_volumes_give_the_same_result(ctx, shared_data):
 
 
 @pytest.mark.parametrize("right_reference", ["derived"])
+@pytest.mark.full_data
 def test_reuse_with_derived_right_reference(ctx, shared_data, right_reference):
     A = crop(shared_data, "Cones", 40, 60, 50, 80)
     B = crop(shared_data, "Reindeer", 100, 120, 50, 80)

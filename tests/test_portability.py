@@ -85,6 +85,7 @@ def test_unknown_or_missing_implementation_fails_loudly(tmp_path):
 
 @pytest.mark.parametrize("case", sorted(CASE_KERNELS))
 @pytest.mark.parametrize("impl", [i for i in IMPLS if i in ("rusticl", "intel")])
+@pytest.mark.slow
 def test_stage_matches_reference_on(impl, case, tmp_path):
     _env(impl, tmp_path)  # fails loudly if unavailable
     res = run_isolated(impl, case, timeout=300)

@@ -101,6 +101,7 @@ def test_enlarge(ctx, H, W, margin, shape):
 
 @pytest.mark.parametrize("vector", [True, False])
 @pytest.mark.parametrize("H,W,size", [(37, 53, 5), (1, 17, 5), (4, 3, 5), (21, 19, 3), (9, 9, 1), (6, 70, 5)])
+@pytest.mark.slow
 def test_median_random(ctx, H, W, size, vector):
     """Both kernels; 53 and 70 columns give the vector kernel interior 16-px
     chunks beside its clamped border ones.  Values rounded to 0.1, so ties occur."""

@@ -45,6 +45,7 @@ def result(ctx, fst, art):
     return m.compute(to_gray_u8(art[0]), to_gray_u8(art[1]), confidence=True)
 
 
+@pytest.mark.full_data
 def test_pseudo_labels_keep_exactly_the_confident_lr_correct_pixels(result):
     res = result
     assert res.confidence.std() > 0 and (res.labels != 0).any() and (res.labels == 0).any()
@@ -71,12 +72,14 @@ def test_pseudo_labels_keep_exactly_the_confident_lr_correct_pixels(result):
     assert CropSampler([p], 9).counts() == {"pseudo/art": int(mask.sum())}
 
 
+@pytest.mark.full_data
 def test_pseudo_labels_need_confidence(result):
     from dataclasses import replace
     with pytest.raises(selftrain.InputError, match="confidence=True"):
         selftrain.pseudo_labels(replace(result, confidence=None), 0.1)
 
 
+@pytest.mark.full_data
 def test_unconfident_pairs_are_skipped_loudly_and_none_is_an_error(ctx, fst, art, monkeypatch):
     real = selftrain._matcher
     FLAT_D = D + 16
@@ -112,6 +115,7 @@ def _write_pair(d, art, n=1):
         write_image(d / f"R_{i}.png", art[1])
 
 
+@pytest.mark.full_data
 def test_adapt_writes_adapted_weights_with_provenance(tmp_path, art, fst):
     _write_pair(tmp_path, art)
     out = tmp_path / "adapted.npz"
@@ -138,6 +142,7 @@ def test_adapt_writes_adapted_weights_with_provenance(tmp_path, art, fst):
     json.dumps(t)  # JSON all the way down
 
 
+@pytest.mark.full_data
 def test_adapt_input_errors(tmp_path, art, capsys):
     _write_pair(tmp_path, art)
     (tmp_path / "R_1.png").write_bytes((tmp_path / "R_0.png").read_bytes())
@@ -171,6 +176,7 @@ def test_adapt_input_errors(tmp_path, art, capsys):
     assert not (tmp_path / "o.npz").exists()
 
 
+@pytest.mark.full_data
 def test_self_train_control_and_mixing(ctx, fst, art, tmp_path, shared_data):
     """No unlabeled pairs: fine-tunes on labeled pairs only (the A/B's control, same schedule);
     with share=0.5 the pseudo-labels are thinned to as many pixels as the labeled pairs hold."""

@@ -92,6 +92,7 @@ def test_d_at_least_w_single_row_single_column(ctx):
         check(ctx, cost, blocky_image(rng, H, W), blocky_image(rng, H, W))
 
 
+@pytest.mark.slow
 def test_several_tiles_and_interior_chunks_with_and_without_prefetch(ctx):
     """D = 40: three 16-level tiles in sgm_rows, the last one partial; W = 100:
     interior chunks (right-image gradients read as whole vectors), edge chunks
@@ -108,6 +109,7 @@ def test_several_tiles_and_interior_chunks_with_and_without_prefetch(ctx):
         np.testing.assert_array_equal(with_pf, without_pf)
 
 
+@pytest.mark.slow
 def test_whole_tile_path_and_general_path(ctx):
     """sgm_rows moves whole 16 x 16 tiles by plain loads and stores
     (whole_tiles, default except on Rusticl) and the rest element-wise; with
@@ -138,6 +140,7 @@ CONFIGS = [(0, 16, False, True), (1, 32, True, False), (3, 128, False, False), (
 
 
 @pytest.mark.parametrize("D,H,W", [(21, 9, 150), (40, 6, 23), (17, 13, 130)])
+@pytest.mark.slow
 def test_configurations_match_reference_and_each_other(ctx, D, H, W):
     """Every band / columns / fused-rows configuration against the reference,
     and bit for bit against the others (they reorder work, never arithmetic).  W not a
@@ -301,6 +304,7 @@ def test_bad_input(ctx):
         SGM(ctx)(d_cost, d_img, d_img, 0, 3, 4)
 
 
+@pytest.mark.full_data
 def test_chain_arms_cbca_sgm_cbca_on_real_images(ctx, shared_data):
     """The paper's order, all on the device: arms, C_CBCA^4, C_SGM, CBCA again
     (now on costs of the SGM's larger range), against the references."""

@@ -73,6 +73,7 @@ def check_all(ctx, cost, img_l, img_r, sizes=GROUP_SIZES, **kw):
 
 
 @pytest.mark.parametrize("D", [16, 20, 70])
+@pytest.mark.slow
 def test_random_odd_size_every_group_size(ctx, D):
     """37 x 53, D = 16, 20 (levels below and above 16 and 4; not a multiple of
     16 or 64) and 70 (more levels than 64 work-items: several per work-item,
@@ -122,6 +123,7 @@ def test_degenerate_and_d_at_least_w(ctx, D, H, W):
     check_all(ctx, cost, blocky_image(rng, H, W), blocky_image(rng, H, W), sizes=(1, 4, 64))
 
 
+@pytest.mark.slow
 def test_largest_group_size_on_many_levels(ctx):
     """The kernel's maximum work-group size (4096 on PoCL) with D = 130: most
     work-items own no level, the reduction runs through every tree level."""

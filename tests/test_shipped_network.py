@@ -2,6 +2,7 @@
 their references (torch for the paper network, numpy for fst), and the
 default is the fst network."""
 
+import pytest
 import cv2
 import numpy as np
 
@@ -57,6 +58,7 @@ def test_general_fst_provenance():
     assert w.stereo == authors_settings(FST, "mb")
 
 
+@pytest.mark.slow
 def test_shipped_fst_opencl_vs_reference(ctx, shared_data):
     w = resolve("kitti-fst")
     t = w.meta["training"]

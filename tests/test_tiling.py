@@ -125,6 +125,7 @@ def test_tile_assembly_is_exact(ctx, shared_data, monkeypatch, cost):
     assert set(tiled.timings) >= {"C_CNN", "C_CBCA", "C_SGM", "C", "D_BF"}
 
 
+@pytest.mark.slow
 def test_cbca_rows_exact_inside_overlap(ctx, shared_data):
     """Cross-based aggregation of a row tile equals the whole volume's on the
     tile's core when the overlap covers the vertical reach (iterations x arm)."""

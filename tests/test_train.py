@@ -117,6 +117,7 @@ def test_row_features_and_costs_match_patch_forward(venus):
             assert abs(float(costs[k, d]) - float(expect)) < 1e-5
 
 
+@pytest.mark.full_data
 def test_validation_set_and_wta(venus):
     vset = make_validation([venus], patch_size=5, n_examples=200, n_pixels=300, seed=3)
     assert vset.keys == ["middlebury/Venus"] and len(vset.patches.labels) <= 200
@@ -157,6 +158,7 @@ def _small_cfg(**kw):
     return TrainConfig(**base)
 
 
+@pytest.mark.slow
 def test_training_learns_resumes_and_exports(tsukuba, venus, tmp_path):
     train_pair = crop(tsukuba, 0, 160, 0, 300)
     val_pair = crop(venus, 100, 260, 0, 300)
@@ -189,6 +191,7 @@ def test_training_learns_resumes_and_exports(tsukuba, venus, tmp_path):
     torch.testing.assert_close(m2(x, x.flip(-1)), full["model"](x, x.flip(-1)))
 
 
+@pytest.mark.full_data
 def test_cli_selects_pairs_and_exports(shared_data, tmp_path, capsys):
     train_refs, held = select_pairs([shared_data / "middlebury"], holdout=["Cones"],
                                     include=["middlebury/T*", "middlebury/Cones"])
@@ -418,6 +421,7 @@ def test_cli_fst_crop_run_exports_fst(shared_data, tmp_path):
     assert c["sampler"] == "crop" and t["examples"] > 0 and t["architecture"] == "mccnn-fst"
 
 
+@pytest.mark.full_data
 def test_select_pairs_skips_unlabeled(shared_data, tmp_path):
     """Every family of the shared data trains (62 labelled pairs); a pair without ground truth
     (here an ETH3D scene whose GT folder is missing) is never drawn; families hold out whole."""

@@ -41,15 +41,14 @@ REPO = Path(__file__).resolve().parents[1]
 #: (title, pytest arguments, modules needed beyond the package's): the
 #: kernel-vs-reference tests run on the device, most important first (subsets
 #: chosen to take ~200 s on a loaded 2-core CPU, far less on a GPU), selected
-#: by marker: ``gpu_check`` where a module's subset is run, ``not slow`` for
-#: the GPU-layout network group.
+#: by marker: ``gpu_check`` where a module's subset is run.
 TEST_GROUPS = (
     ("SGM, work-group per line (GPU layout)", ["tests/test_sgm_wg.py"], ()),
     ("SGM, CPU-shaped kernels", ["tests/test_sgm.py", "-m", "gpu_check"], ()),
     ("census", ["tests/test_census.py"], ()),
     ("network fst", ["tests/test_fst.py"], ()),
     ("networks, local-memory tiles (GPU layout: conv GEMM, fst volume, fc head)",
-     ["tests/test_network_gpu.py", "-m", "not slow"], ()),
+     ["tests/test_network_gpu.py", "-m", "gpu_check"], ()),
     ("network acrt", ["tests/test_acrt.py"], ()),
     ("network paper", ["tests/test_network.py", "-m", "gpu_check"], ("torch",)),
     ("cross arms", ["tests/test_cross.py"], ()),
