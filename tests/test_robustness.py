@@ -388,3 +388,13 @@ def test_cli_png_writer_says_which_pixels_it_cannot_hold(tmp_path, capsys):
     assert "2 pixels outside" in err and "written as invalid" in err and len(err.strip().splitlines()) == 1
     back, valid = read_kitti_disparity(tmp_path / "d.png")
     assert valid.tolist() == [[False, True, False, False]] and back[0, 1] == 5.25
+
+
+def test_weights_settings_with_a_newline_in_a_name_are_one_line(tmp_path):
+    """Found by the long fuzzing run: a stereo key "\\n0" split the error over two lines."""
+    w = Weights.random(**SMALL_NET)
+    w.meta["stereo"] = {"\n0": 1}
+    w.save(tmp_path / "w.npz")
+    with pytest.raises(WeightsError) as info:
+        Weights.load(tmp_path / "w.npz")
+    assert "\n" not in str(info.value) and "'\\n0'" in str(info.value)
