@@ -398,3 +398,19 @@ def test_weights_settings_with_a_newline_in_a_name_are_one_line(tmp_path):
     with pytest.raises(WeightsError) as info:
         Weights.load(tmp_path / "w.npz")
     assert "\n" not in str(info.value) and "'\\n0'" in str(info.value)
+
+
+# -- 6: a swapped pair ----------------------------------------------------------------------
+
+def test_swapped_pair_warns_and_the_correct_order_does_not(ctx, shared_data):
+    """Tsukuba (quarter size, census, D = 32): swapped, the left-right check fails on
+    ~22 % of the pixels -> an InputWarning naming the swap; in order none."""
+    from mccnn_cl.errors import InputWarning
+    ts = shared_data / "middlebury" / "Tsukuba"
+    left, right = read_image(ts / "im0.png"), read_image(ts / "im1.png")
+    m = StereoMatcher(cost="census", max_disparity=32, device=ctx)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)
+        m.compute(left, right)
+    with pytest.warns(InputWarning, match="swapped"):
+        m.compute(right, left)
