@@ -420,20 +420,21 @@ def test_swapped_pair_warns_and_the_correct_order_does_not(ctx, shared_data):
 
 @pytest.mark.slow
 def test_ctrl_c_is_answered_within_seconds(tmp_path, shared_data):
-    """SIGINT during a full-size KITTI match (census, D = 228: tens of seconds on
-    2 CPU cores): the process exits 130 within seconds, not after the queued work."""
+    """SIGINT during a full-size KITTI match with the paper's network (D = 228:
+    minutes on 2 CPU cores): the process exits 130 within seconds, not after the
+    queued work (main's code: the rest of the cost volume)."""
     import signal
     import time
     k = shared_data / "kitti2015" / "training"
     p = subprocess.Popen([sys.executable, "-m", "mccnn_cl", "match", k / "image_2/000000_10.png",
-                          k / "image_3/000000_10.png", "-o", tmp_path / "d.pfm", "--cost", "census"],
+                          k / "image_3/000000_10.png", "-o", tmp_path / "d.pfm", "--weights", "kitti-paper"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(8)  # past start-up and kernel builds, inside the volume stages
+    time.sleep(15)  # past start-up and kernel builds, inside the network's volume
     assert p.poll() is None, p.communicate()
     t0 = time.perf_counter()
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=300)
     seconds = time.perf_counter() - t0
     assert p.returncode == 130, err
-    assert seconds < 6, f"{seconds:.1f} s from SIGINT to exit"
+    assert seconds < 10, f"{seconds:.1f} s from SIGINT to exit"
     assert not (tmp_path / "d.pfm").exists()
