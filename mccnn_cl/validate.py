@@ -189,7 +189,8 @@ def check_settings(weights=None, overrides=None, source: str = "weights"):
     if weights is not None:
         bad = sorted(set(settings) - names)
         if bad:
-            raise WeightsError(f"{source}: the stereo settings name unknown hyperparameter(s) {', '.join(bad)}")
+            raise WeightsError(f"{source}: the stereo settings name unknown hyperparameter(s) "
+                               f"{', '.join(map(repr, bad))}")  # repr: a name may hold a newline
         try:
             Hyperparameters(**settings)
         except InputError as exc:
@@ -197,7 +198,7 @@ def check_settings(weights=None, overrides=None, source: str = "weights"):
     overrides = dict(overrides or {})
     unknown = sorted(set(overrides) - names)
     if unknown:
-        raise TypeError(f"unknown hyperparameter(s) {', '.join(unknown)}; valid names: "
+        raise TypeError(f"unknown hyperparameter(s) {', '.join(map(repr, unknown))}; valid names: "
                         + ", ".join(Hyperparameters.names()))
     settings.update(overrides)
     return Hyperparameters(**settings)

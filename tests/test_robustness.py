@@ -396,3 +396,53 @@ def test_cli_png_writer_says_which_pixels_it_cannot_hold(tmp_path, capsys):
     assert "2 pixels outside" in err and "written as invalid" in err and len(err.strip().splitlines()) == 1
     back, valid = read_kitti_disparity(tmp_path / "d.png")
     assert valid.tolist() == [[False, True, False, False]] and back[0, 1] == 5.25
+
+
+def test_weights_settings_with_a_newline_in_a_name_are_one_line(tmp_path):
+    """Found by the long fuzzing run: a stereo key "\\n0" split the error over two lines."""
+    w = Weights.random(**SMALL_NET)
+    w.meta["stereo"] = {"\n0": 1}
+    w.save(tmp_path / "w.npz")
+    with pytest.raises(WeightsError) as info:
+        Weights.load(tmp_path / "w.npz")
+    assert "\n" not in str(info.value) and "'\\n0'" in str(info.value)
+
+
+# -- 6: a swapped pair ----------------------------------------------------------------------
+
+def test_swapped_pair_warns_and_the_correct_order_does_not(ctx, shared_data):
+    """Tsukuba (quarter size, census, D = 32): swapped, the left-right check fails on
+    ~22 % of the pixels -> an InputWarning naming the swap; in order none."""
+    from mccnn_cl.errors import InputWarning
+    ts = shared_data / "middlebury" / "Tsukuba"
+    left, right = read_image(ts / "im0.png"), read_image(ts / "im1.png")
+    m = StereoMatcher(cost="census", max_disparity=32, device=ctx)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)
+        m.compute(left, right)
+    with pytest.warns(InputWarning, match="swapped"):
+        m.compute(right, left)
+
+
+# -- 11: Ctrl-C --------------------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_ctrl_c_is_answered_within_seconds(tmp_path, shared_data):
+    """SIGINT during a full-size KITTI match with the paper's network (D = 228:
+    minutes on 2 CPU cores): the process exits 130 within seconds, not after the
+    queued work (main's code: the rest of the cost volume)."""
+    import signal
+    import time
+    k = shared_data / "kitti2015" / "training"
+    p = subprocess.Popen([sys.executable, "-m", "mccnn_cl", "match", k / "image_2/000000_10.png",
+                          k / "image_3/000000_10.png", "-o", tmp_path / "d.pfm", "--weights", "kitti-paper"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(15)  # past start-up and kernel builds, inside the network's volume
+    assert p.poll() is None, p.communicate()
+    t0 = time.perf_counter()
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=300)
+    seconds = time.perf_counter() - t0
+    assert p.returncode == 130, err
+    assert seconds < 10, f"{seconds:.1f} s from SIGINT to exit"
+    assert not (tmp_path / "d.pfm").exists()
