@@ -97,7 +97,7 @@ def speed_scale(rate=None) -> tuple:
     """(factor the --cpu budgets are multiplied by, numpy GEMM GFLOP/s measured):
     CPU_REFERENCE_GFLOPS / the rate, between 1 and MAX_SCALE."""
     if rate is None:
-        from .bench import numpy_gemm_rate
+        from mccnn_cl.benchmark import numpy_gemm_rate
 
         rate = numpy_gemm_rate(n=32768, repeat=5)
     gflops = rate / 1e9

@@ -191,7 +191,10 @@ def _check_png_range(out, max_disp, min_disp=0):
     that can leave it, before any work (the writer refuses such values too)."""
     if os.path.splitext(out)[1].lower() != ".png":
         return
-    if max_disp - 1 + min_disp > PNG_MAX_DISPARITY or min_disp < 0:
+    if min_disp < 0:
+        raise InputError(f"{out}: a KITTI 16-bit PNG cannot store negative disparities (the range starts "
+                         f"at {min_disp}); write .pfm or .npy")
+    if max_disp - 1 + min_disp > PNG_MAX_DISPARITY:
         raise InputError(f"{out}: a KITTI 16-bit PNG holds disparities 0..{PNG_MAX_DISPARITY:.3f}, but the range "
                          f"reaches {min_disp}..{min_disp + max_disp - 1} (--max-disp {max_disp}); "
                          "write .pfm or .npy instead")
