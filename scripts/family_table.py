@@ -5,7 +5,7 @@ the stereo method with its default settings), or a network (a shipped name, a we
 published ``.t7``/``.pt``) run with the stereo settings it carries; ``SPEC@ARCH/DATASET`` runs it
 with the authors' table ``mccnn_cl.settings.AUTHORS[(ARCH, DATASET)]`` instead (e.g.
 ``kitti-fst@mccnn-fst/mb``).  Every (method, pair) result is appended to ``--out`` as one JSON line
-(the :func:`mccnn_cl.evaluate.evaluate_pair` record plus ``method``), and pairs already there are
+(the :func:`mccnn_cl.evaluation.scoring.evaluate_pair` record plus ``method``), and pairs already there are
 skipped, so an interrupted run continues where it stopped.  ``--summary`` prints the per-family
 means of the records as a Markdown table (each family's metrics; seconds per pair).
 

@@ -135,7 +135,7 @@ def default_tiles(ctx) -> dict:
 
 
 #: pixel groups per work-group of the register-tile conv kernel where the device
-#: takes fixed work-group sizes (:func:`mccnn_cl.cl.launch_sizes`)
+#: takes fixed work-group sizes (:func:`mccnn_cl.opencl.context.launch_sizes`)
 CONV_ROWS_LOCAL = 8
 
 

@@ -9,7 +9,7 @@
  *   VOL_HALF          [0] volumes stored as half (common.h)
  *   SGM_COLS          [32] columns per sgm_columns work-item, a multiple of 16
  *                     (the host's default: 128 on CPU devices, 32 elsewhere
- *                     and on llvmpipe; mccnn_cl.device.RULES)
+ *                     and on llvmpipe; mccnn_cl.opencl.device.RULES)
  *   SGM_CPU_PREFETCH  [unset] 1: CPU prefetch instructions, see SGM_PREFETCH
  *   SGM_SPECIALIZE    [1] the column kernel's inner loop compiled per case
  *   SGM_WHOLE_TILES   [1] sgm_rows' separate path for whole 16 x 16 tiles
@@ -51,7 +51,7 @@
 
 /* Prefetch hint for the line holding *p.  PoCL compiles OpenCL's prefetch()
  * to nothing; with -D SGM_CPU_PREFETCH=1 (set by the host on CPU devices,
- * mccnn_cl.device.RULES) clang's __builtin_prefetch emits a real prefetch instruction - only
+ * mccnn_cl.opencl.device.RULES) clang's __builtin_prefetch emits a real prefetch instruction - only
  * where the kernel is compiled straight to a CPU instruction set (PoCL).
  * Compilers going through SPIR / SPIR-V (Intel's CPU runtime, Oclgrind,
  * Rusticl's llvmpipe, which aborts on the intrinsic) get prefetch(). */

@@ -511,7 +511,7 @@ class ClContext:
 def launch_sizes(ctx, global_size, local_size=None, guarded=None):
     """``(global, local)`` of a launch whose work-group size was not chosen by
     the stage (``local_size`` None): the profile's ``launch_local`` sizes
-    (:data:`mccnn_cl.device.RULES`), the global size rounded up to them, on
+    (:data:`mccnn_cl.opencl.device.RULES`), the global size rounded up to them, on
     devices that compile a kernel anew for every work-group size (PoCL: left
     to the runtime, the work-group size follows the image size, and each new
     image size cost a compile of every such kernel at its first launch); the

@@ -134,7 +134,7 @@ class DeviceProfile:
     @property
     def launch_local(self):
         """Work-group sizes per dimension of the launches whose stage leaves
-        them open (:func:`mccnn_cl.cl.launch_sizes`), or None: the runtime's."""
+        them open (:func:`mccnn_cl.opencl.context.launch_sizes`), or None: the runtime's."""
         value = self.rule("launch_local")
         return tuple(value) if value else None
 

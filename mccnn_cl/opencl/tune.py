@@ -1,6 +1,6 @@
 """Kernel choices by measurement on the device at hand, kept in a per-device cache.
 
-:data:`mccnn_cl.device.RULES` gives every device class a value of each
+:data:`mccnn_cl.opencl.device.RULES` gives every device class a value of each
 kernel choice, measured on one machine.  :func:`tune` measures the
 candidates of the choices listed in :func:`options` on the device at hand,
 at a representative size, and keeps for each the fastest candidate whose
@@ -14,8 +14,8 @@ Files are written to a temporary name and renamed, so two processes tuning
 at once leave one whole file; a file that cannot be read is ignored with one
 warning and rewritten by the next tuning.
 
-Every :class:`~mccnn_cl.cl.ClContext` loads its device's choices
-(:meth:`DeviceProfile.rule <mccnn_cl.device.DeviceProfile.rule>` returns
+Every :class:`~mccnn_cl.opencl.context.ClContext` loads its device's choices
+(:meth:`DeviceProfile.rule <mccnn_cl.opencl.device.DeviceProfile.rule>` returns
 them) unless ``MCCNN_TUNE=off``.  A device never tuned uses the rules: the
 first use does not tune (``mccnn-cl tune`` does, in about a minute on 2 CPU
 cores).  The choices tuned are the CPU-shaped paths' (devices of the
