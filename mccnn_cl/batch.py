@@ -255,7 +255,7 @@ def output_name(key) -> str:
 def make_jobs(args):
     """The batch's :class:`Job` list from ``args`` (pairing, output names, checks);
     nothing is read or written."""
-    from .cli.commands import DISPARITY_FORMATS, IMAGE_EXTENSIONS, _confidence_outputs, _side_outputs
+    from .cli.common import DISPARITY_FORMATS, IMAGE_EXTENSIONS, _confidence_outputs, _side_outputs
     if args.pairs_dir is not None:
         if args.left_glob is not None or args.right_glob is not None:
             raise InputError("give either --pairs-dir DIR or -l LEFT_GLOB -r RIGHT_GLOB, not both")
@@ -281,7 +281,7 @@ def make_jobs(args):
 def plan_outputs(jobs, args):
     """Jobs to run, and the complete ones ``--resume`` skips; existing outputs
     without ``--resume``/``--force`` are refused before any work."""
-    from .cli.commands import _check_outputs
+    from .cli.common import _check_outputs
     if not os.path.isdir(args.output_dir):
         try:
             os.makedirs(args.output_dir, exist_ok=True)
@@ -308,7 +308,7 @@ def default_max_disp(args, calib):
     calibration's ndisp, else 228.  A batch searches one stated range for every
     pair: ``--disp-range auto`` is refused (it chooses per pair; match those one at
     a time)."""
-    from .cli.commands import _range_request
+    from .cli.common import _range_request
     request = _range_request(args)
     if request == "auto":
         raise InputError("--disp-range auto chooses a range per pair and runs one pair at a time; "
@@ -321,14 +321,14 @@ def default_max_disp(args, calib):
 
 def min_disp(args) -> int:
     """M, the range's first disparity (``--min-disp`` or ``--disp-range``'s; 0 by default)."""
-    from .cli.commands import _range_request
+    from .cli.common import _range_request
     request = _range_request(args)
     return 0 if request == "auto" else int(request[0] or 0)
 
 
 def compute_pair(job, matcher_for, max_disp, want_confidence) -> PairResult:
     """Read and match one pair; ``matcher_for(max_disp)`` gives the (kept) matcher."""
-    from .cli.commands import _gray
+    from .cli.common import _gray
     from .io import read_image
     from .validate import check_pair, patch_size
     left_img, right_img = read_image(job.left), read_image(job.right)
@@ -347,7 +347,7 @@ def compute_pair(job, matcher_for, max_disp, want_confidence) -> PairResult:
 def write_pair(job, result, args, calib) -> None:
     """Every output of ``job``: side files first, the disparity map last (each
     atomic); on any failure or interrupt the pair's side files are removed."""
-    from .cli.commands import _save_confidence, _save_outputs
+    from .cli.common import _save_confidence, _save_outputs
     from .io import read_image
     try:
         left_img = read_image(job.left) if calib is not None else None  # point-cloud colours
@@ -399,7 +399,7 @@ def prepare(args):
 
 def run_batch(args) -> int:
     """``mccnn-cl match`` on a batch in this process (no ``--workers``/``--scheduler``)."""
-    from .cli.commands import _load_weights, _make_matcher, _say
+    from .cli.common import _load_weights, _make_matcher, _say
     todo, skipped, calib = prepare(args)
     summary = Summary(skipped=[j.name for j in skipped])
     weights = _load_weights(args)

@@ -165,7 +165,7 @@ def plan_task(config, shape, max_disp, dask_worker=None) -> dict:
 
 def _prepared(m, job):
     """The pair as :meth:`StereoMatcher.compute` sees it: (I_L, I_R, J_L, J_R)."""
-    from .cli.commands import _gray
+    from .cli.common import _gray
     from .io import read_image
     I_L, I_R = m._inputs(_gray(read_image(job.left)), _gray(read_image(job.right)))[:2]
     S_L, S_R = m._threshold_images(I_L, I_R)
@@ -329,7 +329,7 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
 
 def _single_job(args):
     """The one pair of ``match LEFT RIGHT -o OUT --workers N`` as a :class:`Job` (checked as the one-process path)."""
-    from .cli.commands import DISPARITY_FORMATS, _check_outputs, _confidence_outputs, _side_outputs
+    from .cli.common import DISPARITY_FORMATS, _check_outputs, _confidence_outputs, _side_outputs
     if args.left is None or args.right is None or args.output is None:
         raise InputError("match needs LEFT RIGHT and -o OUT")
     if args.output_dir:
@@ -351,7 +351,7 @@ def _single_job(args):
 def run(args, single: bool) -> int:
     """``mccnn-cl match`` with ``--workers N`` (a LocalCluster) or ``--scheduler ADDRESS``."""
     from .batch import prepare
-    from .cli.commands import _hyperparameters, _load_weights, _say
+    from .cli.common import _hyperparameters, _load_weights, _say
     if args.workers is not None and args.scheduler is not None:
         raise InputError("give --workers N (a cluster on this machine) or --scheduler ADDRESS, not both")
     if args.workers is not None and args.workers < 1:

@@ -174,31 +174,3 @@ def check_hyperparameters(params) -> None:
     if int(params.median_size) % 2 == 0:
         raise InputError(f"median_size must be a positive odd number, not {params.median_size}")
 
-
-def check_settings(weights=None, overrides=None, source: str = "weights"):
-    """The Hyperparameters a matcher would run with: a weights file's ``stereo``
-    settings (each name known and in range, else :class:`~mccnn_cl.errors.WeightsError`
-    naming ``source``), then ``overrides`` (``--set`` / keyword arguments; an
-    unknown name is a ``TypeError``, a bad value an InputError).  The one place
-    the API, the command line (before any OpenCL work) and weights files share."""
-    from .errors import WeightsError
-    from .pipeline import Hyperparameters
-
-    names = set(Hyperparameters.names())
-    settings = weights.stereo if weights is not None else {}
-    if weights is not None:
-        bad = sorted(set(settings) - names)
-        if bad:
-            raise WeightsError(f"{source}: the stereo settings name unknown hyperparameter(s) "
-                               f"{', '.join(map(repr, bad))}")  # repr: a name may hold a newline
-        try:
-            Hyperparameters(**settings)
-        except InputError as exc:
-            raise WeightsError(f"{source}: stereo settings: {exc}") from exc
-    overrides = dict(overrides or {})
-    unknown = sorted(set(overrides) - names)
-    if unknown:
-        raise TypeError(f"unknown hyperparameter(s) {', '.join(map(repr, unknown))}; valid names: "
-                        + ", ".join(Hyperparameters.names()))
-    settings.update(overrides)
-    return Hyperparameters(**settings)

@@ -243,7 +243,7 @@ class Weights:
         w = cls(conv=conv, fc=fc, meta=meta, architecture=arch).validate(path)
         if w.conv_layers() != meta["conv_layers"] or w.fc_layers() != meta.get("fc_layers", []):
             raise WeightsError(f"{path}: arrays disagree with the metadata's layer sizes")
-        from .validate import check_settings
+        from .hyperparameters import check_settings
         check_settings(w, source=path)  # the stereo settings: known names, in range
         return w
 

@@ -250,16 +250,16 @@ def test_evaluate_finds_every_family(shared_data, tmp_path):
     training status and the per-family means (table and --json)."""
     from mccnn_cl.io import write_pfm
     src = shared_data / "eth3d"
-    y0, y1, x0, x1 = 150, 246, 300, 460
+    y0, y1, x0, x1 = 50, 146, 100, 260  # within the bundled crop too
     for split in ("two_view_training", "two_view_training_gt"):
-        (tmp_path / "eth3d" / split / "electro_1s").mkdir(parents=True)
+        (tmp_path / "eth3d" / split / "delivery_area_1s").mkdir(parents=True)
     for n in ("im0.png", "im1.png"):
-        write_image(tmp_path / "eth3d/two_view_training/electro_1s" / n,
-                    read_image(src / "two_view_training/electro_1s" / n)[y0:y1, x0:x1])
-    write_pfm(tmp_path / "eth3d/two_view_training_gt/electro_1s/disp0GT.pfm",
-              read_pfm(src / "two_view_training_gt/electro_1s/disp0GT.pfm")[y0:y1, x0:x1])
-    write_image(tmp_path / "eth3d/two_view_training_gt/electro_1s/mask0nocc.png",
-                read_image(src / "two_view_training_gt/electro_1s/mask0nocc.png", gray=True)[y0:y1, x0:x1])
+        write_image(tmp_path / "eth3d/two_view_training/delivery_area_1s" / n,
+                    read_image(src / "two_view_training/delivery_area_1s" / n)[y0:y1, x0:x1])
+    write_pfm(tmp_path / "eth3d/two_view_training_gt/delivery_area_1s/disp0GT.pfm",
+              read_pfm(src / "two_view_training_gt/delivery_area_1s/disp0GT.pfm")[y0:y1, x0:x1])
+    write_image(tmp_path / "eth3d/two_view_training_gt/delivery_area_1s/mask0nocc.png",
+                read_image(src / "two_view_training_gt/delivery_area_1s/mask0nocc.png", gray=True)[y0:y1, x0:x1])
     mb = tmp_path / "middlebury" / "Venus"
     mb.mkdir(parents=True)
     for n in ("im0.png", "im1.png", "disp0GT.pfm", "mask0nocc.png"):
@@ -269,9 +269,9 @@ def test_evaluate_finds_every_family(shared_data, tmp_path):
     doc = json.loads(so)
     assert doc["baselines"] == ["sgbm", "census"]
     by = {r["pair"]: r for r in doc["pairs"]}
-    assert set(by) == {"eth3d/electro_1s", "middlebury/Venus"}
-    eth = by["eth3d/electro_1s"]
-    assert (eth["dataset"], eth["family"], eth["training"]) == ("eth3d", "eth3d/electro", "held out")
+    assert set(by) == {"eth3d/delivery_area_1s", "middlebury/Venus"}
+    eth = by["eth3d/delivery_area_1s"]
+    assert (eth["dataset"], eth["family"], eth["training"]) == ("eth3d", "eth3d/delivery_area", "held out")
     for method in ("mccnn", "sgbm", "census"):
         m = eth["methods"][method]
         assert 0 <= m["bad2_noc"] <= m["bad1_noc"] <= 100 and 0 <= m["bad1_all"] <= 100

@@ -204,7 +204,7 @@ def test_resume_writes_only_missing(kitti, reference, cluster, tmp_path, capsys,
 def test_interrupt_leaves_complete_pairs_only(kitti, reference, tmp_path, monkeypatch, capsys):
     """Ctrl-C while a pair is written: its side files go, earlier pairs stay whole;
     --resume then writes only the missing pairs."""
-    import mccnn_cl.cli.commands as commands
+    import mccnn_cl.cli.common as commands  # the writer batches call
     real, calls = commands.write_disparity, []
 
     def interrupted(path, disp):

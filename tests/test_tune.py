@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mccnn_cl.opencl import tune
+from mccnn_cl.opencl import tune, tune_cache
 from mccnn_cl.opencl.context import ClContext
 
 
@@ -22,7 +22,7 @@ def fake_device(driver="1.0"):
 def cache(tmp_path, monkeypatch):
     monkeypatch.setenv("MCCNN_CACHE_DIR", str(tmp_path))
     monkeypatch.delenv("MCCNN_TUNE", raising=False)
-    monkeypatch.setattr(tune, "_WARNED", set())
+    monkeypatch.setattr(tune_cache, "_WARNED", set())
     return tmp_path
 
 

@@ -65,7 +65,7 @@ def device_identity(device) -> list:
 
 
 def key(device, kernel_dir: str, source: str, options) -> str:
-    from .. import __version__
+    from .._version import __version__
 
     h = hashlib.sha256()
     for part in [__version__, *device_identity(device), " ".join(options), source, _headers_digest(kernel_dir)]:

@@ -317,9 +317,9 @@ class ClContext:
         self.device = dev
         #: what the stages need to know about the device (mccnn_cl.opencl.device)
         self.profile = DeviceProfile.of(dev, cl)
-        from . import tune  # the choices measured on this device (MCCNN_TUNE=off: none)
+        from .tune_cache import load as load_tuned  # the choices measured on this device (MCCNN_TUNE=off: none)
 
-        self.profile.tuned.update(tune.load(dev))
+        self.profile.tuned.update(load_tuned(dev))
         self.context = cl.Context([dev])
         props = cl.command_queue_properties.PROFILING_ENABLE if profiling else 0
         self.queue = cl.CommandQueue(self.context, properties=props)

@@ -24,94 +24,16 @@ cores).  The choices tuned are the CPU-shaped paths' (devices of the
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
-import os
-import tempfile
 import time
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from .binaries import cache_root, device_identity
+from .tune_cache import FORMAT, SIZE, cache_path, enabled, identity, load, store  # noqa: F401 (the cache, re-exported)
 
 log = logging.getLogger(__name__)
 
-#: Format of the cache files; a file of another format is foreign.
-FORMAT = 1
-#: The representative size tuned at: volume rows, columns, disparity levels.
-SIZE = (96, 384, 128)
-
-
-def enabled() -> bool:
-    return os.environ.get("MCCNN_TUNE", "on").lower() not in ("off", "0", "no", "false")
-
-
-def identity(device) -> dict:
-    from .. import __version__
-
-    plat, plat_version, name, driver = device_identity(device)
-    return {"platform": plat, "platform_version": plat_version, "device": name, "driver_version": driver,
-            "package_version": __version__, "format": FORMAT}
-
-
-def cache_path(device) -> str:
-    ident = identity(device)
-    digest = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:24]
-    return os.path.join(cache_root(), "tune", digest + ".json")
-
-
-_WARNED: set = set()
-
-
-def _warn_once(path: str, why: str) -> None:
-    if path not in _WARNED:
-        _WARNED.add(path)
-        warnings.warn(f"mccnn_cl: ignoring the tuning cache {path} ({why}); the rules table is used "
-                      "until `mccnn-cl tune` rewrites it", RuntimeWarning, stacklevel=3)
-
-
-def load(device) -> dict:
-    """The stored choices of ``device`` ({} when none, when disabled, or when
-    the file is corrupt or of another device/driver/version: one warning)."""
-    if not enabled():
-        return {}
-    path = cache_path(device)
-    try:
-        with open(path, encoding="utf-8") as f:
-            data = json.load(f)
-    except FileNotFoundError:
-        return {}
-    except (OSError, ValueError) as exc:
-        _warn_once(path, f"unreadable: {exc}")
-        return {}
-    if not isinstance(data, dict) or data.get("identity") != identity(device) \
-            or not isinstance(data.get("choices"), dict):
-        _warn_once(path, "written for another device, driver or package version, or malformed")
-        return {}
-    from .device import RULES
-
-    return {k: v for k, v in data["choices"].items() if k in RULES}
-
-
-def store(device, choices: dict, measured: dict) -> str:
-    """Write the choices atomically (temporary file in the same folder, then rename)."""
-    path = cache_path(device)
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    data = {"identity": identity(device), "choices": choices, "measured": measured,
-            "size": list(SIZE), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
-    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), prefix=".tmp-", suffix=".json")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=1, sort_keys=True)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
 
 
 @dataclass
