@@ -178,7 +178,7 @@ TEXT = st.one_of(st.text(max_size=12), st.sampled_from(["1e309", "-0", "nan", "i
                       max_size=4))
 def test_set_options_are_accepted_or_one_input_error(items):
     from mccnn_cl.cli.commands import _hyperparameters
-    from mccnn_cl.validate import check_settings
+    from mccnn_cl.hyperparameters import check_settings
     try:
         hyper = _hyperparameters([f"{k}={v}" for k, v in items])
         params = check_settings(None, hyper)
