@@ -231,7 +231,7 @@ def main(argv=None) -> int:
     verbose = bool(getattr(args, "verbose", False))
     if verbose:
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-        from . import cl
+        from ..opencl import context as cl
 
         cl.COMPILER_OUTPUT = True  # the compiler's "N warnings generated." lines
     else:

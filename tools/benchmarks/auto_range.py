@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 from mccnn_cl import StereoMatcher
 from mccnn_cl.opencl.context import ClContext
-from mccnn_cl.evaluation.datasets import discover, to_gray, load_middlebury
+from mccnn_cl.evaluation.datasets import discover, to_gray_u8 as to_gray, load_middlebury
 from mccnn_cl.evaluation.scoring import default_range
 from mccnn_cl.io import read_image, read_pfm
-from mccnn_cl import metrics
+from mccnn_cl.evaluation import metrics
 
 SD = Path(os.environ.get("MCCNN_SHARED_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"))
 cost = sys.argv[1]

@@ -23,7 +23,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mccnn_cl import StereoMatcher, tune
+from mccnn_cl import StereoMatcher
+from mccnn_cl.opencl import tune
 from mccnn_cl.benchmark import copy_bandwidth, group_timings, numpy_gemm_rate
 from mccnn_cl.opencl.context import ClContext
 from mccnn_cl.opencl.device import RULES
