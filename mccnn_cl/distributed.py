@@ -178,7 +178,7 @@ def tile_task(config, job, max_disp, tile, tile_budget, want_confidence):
     """Task: one row tile's volume stages (as :meth:`StereoMatcher._tiled_volume_stages`
     runs them); returns the core rows of (D_SE, confidence, labels)."""
     from .pipeline import _Recorder
-    from .costs.features import normalise
+    from .imageops import image_stats
     c0, c1, e0, e1 = tile
     with _LOCK:
         m = _matcher(config, max_disp)
@@ -193,9 +193,9 @@ def tile_task(config, job, max_disp, tile, tile_budget, want_confidence):
         if m.cost.local:
             d_cost = m.cost(I_L[e0:e1 + 2 * mg], I_R[e0:e1 + 2 * mg], D, out=m._take_volume(D, e1 - e0, W))
         else:  # the network on the tile's rows of the whole image's standardisation
-            Ln, Rn = normalise(I_L), normalise(I_R)
-            host = m.cost.to_host(Ln[e0:e1 + 2 * mg], Rn[e0:e1 + 2 * mg], D, max_bytes=tile_budget,
-                                  normalised=True)
+            stats = (image_stats(I_L), image_stats(I_R))
+            host = m.cost.to_host(I_L[e0:e1 + 2 * mg], I_R[e0:e1 + 2 * mg], D, max_bytes=tile_budget,
+                                  stats=stats)
             d_cost = m._take_volume(D, e1 - e0, W)
             ctx.cl.enqueue_copy(ctx.queue, d_cost, np.ascontiguousarray(host))
             del host

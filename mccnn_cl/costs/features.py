@@ -302,8 +302,18 @@ class ConvNetCost(MatchingCost):
     def band_rows(self, h: int, w: int) -> int:
         raise NotImplementedError
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None, normalised=False):
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None):
         raise NotImplementedError
+
+    @staticmethod
+    def standardised(L, R, stats=None):
+        """The images as the network sees them (:func:`normalise`): each by its own
+        mean and std, or by ``stats`` (``((mean, std), (mean, std))``: e.g. those of
+        the whole image a padded image or a row tile was cut from, so that its
+        values equal the whole image's, bit for bit)."""
+        if stats is None:
+            return normalise(L), normalise(R)
+        return normalise(L, stats[0]), normalise(R, stats[1])
 
     def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None):
         """Inputs checked, the volume's buffer (``out`` or a new one), :meth:`_enqueue`
@@ -325,14 +335,13 @@ class ConvNetCost(MatchingCost):
             raise OpenCLError(f"{self.label} ({D} x {h} x {w}) failed on {ctx.describe()}: {exc}") from exc
         return out
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None,
-                normalised=False):
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None):
         """Each band computed into one device buffer of at most ``max_bytes``
         (default: the max allocation) and copied into the host volume
         (``_enqueue(..., host=)``); values identical to :meth:`__call__`'s.
-        ``normalised``: the images are already standardised (:func:`normalise`,
-        over a larger image whose rows they are: a row tile's volume then equals
-        those rows of the whole image's volume; :mod:`mccnn_cl.distributed`)."""
+        ``stats``: as :meth:`standardised` (a row tile standardised with the whole
+        image's stats gives those rows of the whole image's volume;
+        :mod:`mccnn_cl.distributed`)."""
         ctx = self.ctx
         L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
         row = D * w * self.vdtype.itemsize
@@ -345,7 +354,7 @@ class ConvNetCost(MatchingCost):
         host = np.empty((D, h, w), self.vdtype)
         d_band = ctx.empty(D * rows * w * self.vdtype.itemsize, "cost volume band")
         try:
-            self._enqueue(L, R, D, h, w, rows, d_band, progress, host=host, stats=stats, normalised=normalised)
+            self._enqueue(L, R, D, h, w, rows, d_band, progress, host=host, stats=stats)
         except ctx.cl.Error as exc:
             raise OpenCLError(f"{self.label} ({D} x {h} x {w}, in bands of {rows} rows) failed on "
                               f"{ctx.describe()}: {exc}") from exc

@@ -170,14 +170,9 @@ class FstCost(ConvNetCost):
         self.stack.give(d_feat)
         return d_out
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None, normalised=False):
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None):
         q, P = self.ctx.queue, self.patch
-        if normalised:
-            Ln, Rn = L, R
-        elif stats is None:
-            Ln, Rn = normalise(L), normalise(R)
-        else:
-            Ln, Rn = normalise(L, stats[0]), normalise(R, stats[1])
+        Ln, Rn = self.standardised(L, R, stats)
         bands = range(0, h, rows)
         for i, y0 in enumerate(bands):
             hb = min(rows, h - y0)

@@ -264,7 +264,7 @@ class PaperCost(ConvNetCost):
         self.ctx.check_alloc(row, f"network L4 split of one row ({w} x {self.hp})")
         return max(1, min(h, min(BAND_BYTES, self.ctx.max_alloc) // row))
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None, normalised=False):
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None):
         """The launches of :meth:`__call__` (inputs already checked).  With
         ``host`` (a [D][h][w] array), ``d_cost`` holds one band at a time
         ([D][hb][w]), copied into ``host`` after each band."""
@@ -273,12 +273,7 @@ class PaperCost(ConvNetCost):
         i32 = np.int32
         if host is None:  # NaN into every invalid cell (x < d) of the volume, once
             self._mark(q, *launch_sizes(self.ctx, (w, h, D), guarded=(1, 1, 0)), d_cost, i32(h), i32(w), i32(0))
-        if normalised:
-            Ln, Rn = L, R
-        elif stats is None:
-            Ln, Rn = normalise(L), normalise(R)
-        else:
-            Ln, Rn = normalise(L, stats[0]), normalise(R, stats[1])
+        Ln, Rn = self.standardised(L, R, stats)
         bands = range(0, h, rows)
         done = 0
         for y0 in bands:
