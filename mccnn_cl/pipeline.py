@@ -289,6 +289,8 @@ class StereoMatcher:
         with self._lock:
             self._pool.clear()
             self.cost.release_buffers()
+            if self._coarse is not None:  # the automatic range's census matcher
+                self._coarse.release_buffers()
 
     # -- input checks ------------------------------------------------------
     def _inputs(self, left, right, disparity_range=None, bit_depth=None):
