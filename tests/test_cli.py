@@ -311,24 +311,28 @@ def test_bench_and_demo_census(tmp_path):
     out = tmp_path / "demo.png"
     rc, so, se = run("demo", "--cost", "census", "-o", out, script=True)
     assert rc == 0, se
-    assert "3-px err" in so and "OpenCV SGBM" in so and "wrote" in so
+    assert "bad-2.0" in so and "3-px err" in so and "OpenCV SGBM" in so and "wrote" in so
     img = cv2.imread(str(out))
-    assert img.shape[1] == 2 * (2 * 225) + 6 and img.shape[0] > 4 * 188  # 2x tiles, 2 x 2
+    assert img.shape[1] == 2 * 718 + 6 and img.shape[0] > 2 * 496  # 2 x 2 tiles at 1x
 
 
 @pytest.mark.slow
 def test_demo_with_shipped_weights(tmp_path):
-    """The README's first command: the shipped network on the bundled (held-out) Cones pair."""
+    """The README's first command: the shipped network on the bundled (held-out) Adirondack pair."""
     out = tmp_path / "demo.png"
     rc, so, se = run("demo", "-o", out)
     assert rc == 0, se
-    assert "general-fst.npz (shipped); Cones was held out of their training" in so
-    row = next(line for line in so.splitlines() if line.startswith("MC-CNN (OpenCL)"))
-    bad3, bad2 = (float(v.rstrip("%")) for v in row.split()[2:4])
-    # shipped general-fst scores 7.3 % / 10.8 % here (SGBM 8.2 % / 10.7 %; kitti-fst 6.6 % / 11.5 %); a
-    # clearly worse figure means the weights or the pipeline regressed
-    assert bad3 < 10.0 and bad2 < 16.0, so
+    assert "demo pair: MiddEval3 Adirondack, quarter size (718x496), 73 disparities" in so
+    assert "general-fst.npz (shipped); Adirondack was held out of their training" in so
+    rows = {name: [float(v.rstrip("%px")) for v in line.split()[2:6]] for line in so.splitlines()
+            for name in ("MC-CNN (OpenCL)", "OpenCV SGBM") if line.startswith(name)}
+    (bad2, noc, bad3, _), sgbm_row = rows["MC-CNN (OpenCL)"], rows["OpenCV SGBM"]
+    # measured (PoCL on an AMD EPYC): general-fst bad-2.0 6.55 % (non-occluded 3.70 %), 3-px 5.49 %;
+    # SGBM 13.95 % / 8.90 %; kitti-fst 7.56 % / 4.47 %; census 11.01 % / 7.62 %. 0.5 points holds
+    # another device's rounding (a few hundred of the 354 918 pixels) and catches the next-best network
+    assert abs(bad2 - 6.55) < 0.5 and abs(noc - 3.70) < 0.5 and abs(bad3 - 5.49) < 0.5, so
+    assert bad2 < 0.6 * sgbm_row[0] and noc < 0.6 * sgbm_row[1], so  # what the demo shows
     h, w, _ = cv2.imread(str(out)).shape
-    assert w == 2 * (2 * 225) + 6 and h > 2 * (24 + 2 * 188) + 12  # 2 x 2 tiles at 2x, captions, legend
+    assert w == 2 * 718 + 6 and h > 2 * (24 + 496) + 12  # 2 x 2 tiles at 1x, captions, legend
     rc, _, se = run("demo", "-o", out)  # the picture exists now
     assert_one_line_error(rc, se, 2, "exists", "--force")

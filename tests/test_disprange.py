@@ -50,7 +50,8 @@ RECORDED_ON = "pthread-skylake-avx512-AMD EPYC"
 
 
 def _demo(repo):
-    d = repo / "mccnn_cl" / "demo"
+    """"demo" in the keys above: the eighth-size Cones pair (tests/cones_eighth), gray in [0, 1]."""
+    d = repo / "tests" / "cones_eighth"
     return [cv2.imread(str(d / f), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255 for f in ("im0.png", "im1.png")]
 
 
@@ -263,7 +264,7 @@ def test_auto_range_covers_demo_ground_truth(ctx, repo):
     from mccnn_cl.io import read_pfm
 
     left, right = _demo(repo)
-    gt = read_pfm(repo / "mccnn_cl" / "demo" / "disp0GT.pfm")
+    gt = read_pfm(repo / "tests" / "cones_eighth" / "disp0GT.pfm")
     gt = np.where(np.isfinite(gt), gt, np.nan)
     m = StereoMatcher(cost="census", max_disparity="auto", device=ctx)
     res = m.compute(left, right, timings=True)
@@ -323,7 +324,7 @@ def _cli(*args, cwd):
     (["--disp-range", "wide"], "expects 'auto' or MIN:MAX"),
 ], ids=["min>=max", "wider-than-image", "no-valid-pixel", "auto-and-max", "bad-spec"])
 def test_bad_ranges_cli(tmp_path, repo, args, message):
-    d = repo / "mccnn_cl" / "demo"
+    d = repo / "tests" / "cones_eighth"
     p = _cli("match", str(d / "im0.png"), str(d / "im1.png"), "-o", str(tmp_path / "d.pfm"), "--cost", "census",
              *args, cwd=tmp_path)
     assert p.returncode == 2, p.stderr
@@ -333,7 +334,7 @@ def test_bad_ranges_cli(tmp_path, repo, args, message):
 
 
 def test_kitti_png_refuses_negative_before_work(tmp_path, repo):
-    d = repo / "mccnn_cl" / "demo"
+    d = repo / "tests" / "cones_eighth"
     p = _cli("match", str(d / "im0.png"), str(d / "im1.png"), "-o", str(tmp_path / "d.png"), "--cost", "census",
              "--min-disp", "-8", "--max-disp", "32", "--device", "no-such-device", cwd=tmp_path)
     # refused before the OpenCL device is even looked for
@@ -341,7 +342,7 @@ def test_kitti_png_refuses_negative_before_work(tmp_path, repo):
 
 
 def test_cli_negative_range_and_auto(tmp_path, repo):
-    d = repo / "mccnn_cl" / "demo"
+    d = repo / "tests" / "cones_eighth"
     p = _cli("match", str(d / "im0.png"), str(d / "im1.png"), "-o", str(tmp_path / "d.pfm"), "--cost", "census",
              "--min-disp", "-32", "--max-disp", "64", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
@@ -362,7 +363,7 @@ def test_calib_range_read_and_used(tmp_path, repo):
 
     scene = tmp_path / "Neg"
     scene.mkdir()
-    d = repo / "mccnn_cl" / "demo"
+    d = repo / "tests" / "cones_eighth"
     for f in ("im0.png", "im1.png"):
         (scene / f).write_bytes((d / f).read_bytes())
     gt = np.full((188, 225), -3.5, np.float32)

@@ -5,7 +5,7 @@ hyperparameter sets (:data:`mccnn_cl.validate.HYPERPARAMETER_RANGES` and the
 kernels' upper bounds), image sizes, dtypes and channels, disparity counts,
 the matching cost (census or a small random network of each architecture),
 ``--set`` strings and weights-file metadata.  Each matcher run is on a small
-crop of the bundled demo pair (Cones) on the session's OpenCL device.
+crop of the eighth-size Cones pair (tests/cones_eighth) on the session's OpenCL device.
 
 The properties: a call returns a finite float32 map of the left image's
 shape, or raises :class:`~mccnn_cl.errors.InputError` (``WeightsError``
@@ -37,7 +37,7 @@ from mccnn_cl.pipeline import Hyperparameters, StereoMatcher  # noqa: E402
 from mccnn_cl.validate import HYPERPARAMETER_RANGES, hyperparameter_maxima  # noqa: E402
 from mccnn_cl.weights import ACRT, FST, PAPER, Weights  # noqa: E402
 
-DEMO = Path(__file__).resolve().parents[1] / "mccnn_cl" / "demo"
+DEMO = Path(__file__).resolve().parent / "cones_eighth"  # Middlebury Cones, 225x188 (README there)
 
 settings.register_profile("short", max_examples=12, deadline=None, derandomize=True, print_blob=True,
                           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
@@ -123,7 +123,7 @@ def hyperparameters(draw):
 
 @st.composite
 def pairs(draw, demo):
-    """A crop of the demo pair: size, dtype (uint8, uint16, float32/64 in [0, 1]), gray or colour."""
+    """A crop of the Cones pair: size, dtype (uint8, uint16, float32/64 in [0, 1]), gray or colour."""
     left, right = demo
     H = draw(st.integers(1, 40))
     W = draw(st.integers(1, 56))

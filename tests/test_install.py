@@ -1,4 +1,4 @@
-"""`pip install .` gives a package that carries its kernels (works outside the checkout)."""
+"""`pip install .` gives a package that carries its kernels and the demo pair (works outside the checkout)."""
 
 import pytest
 import subprocess
@@ -21,8 +21,13 @@ def test_non_editable_install_carries_kernels(tmp_path):
     assert sources and set(sources) <= set(kernels), (sources, kernels)
     for sub in ("stages", "reference", "train", "importers"):
         assert (target / "mccnn_cl" / sub / "__init__.py").exists(), sub
+    demo = sorted(p.name for p in (REPO / "mccnn_cl" / "demo").iterdir())
+    assert "disp0GT.png" in demo and demo == sorted(p.name for p in (target / "mccnn_cl" / "demo").iterdir())
     code = ("import mccnn_cl, mccnn_cl.opencl.context as c; ctx = c.ClContext(); "
             "assert mccnn_cl.__file__.startswith(%r), mccnn_cl.__file__; "
+            "from mccnn_cl.cli.demo import demo_dir, load_demo_pair\n"
+            "with demo_dir() as d: p = load_demo_pair(d)\n"
+            "assert p.shape == (496, 718) and p.valid_noc.sum() > 300000, p.shape\n"
             "print(ctx.kernel_dir)" % str(target))
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
                        env={"PYTHONPATH": str(target), "PATH": "/usr/bin:/bin"}, timeout=120)

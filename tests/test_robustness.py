@@ -1,7 +1,7 @@
 """Defects of a user trial (issue 28): nothing silently wrong, no crash, no lost file.
 
 One test (or a few) per row of the issue's table; each failed before its fix.
-Small crops of the bundled demo pair and the shared data keep every OpenCL
+Small crops of the eighth-size Cones pair (tests/cones_eighth) and the shared data keep every OpenCL
 run to seconds on PoCL.
 """
 
@@ -20,7 +20,7 @@ from mccnn_cl.io import read_image
 from mccnn_cl.pipeline import Hyperparameters, StereoMatcher
 from mccnn_cl.weights import Weights
 
-DEMO = Path(__file__).resolve().parents[1] / "mccnn_cl" / "demo"
+DEMO = Path(__file__).resolve().parent / "cones_eighth"  # Middlebury Cones, 225x188 (README there)
 SMALL_NET = dict(conv_layers=[[8, 3], [12, 3], [12, 1]], fc_layers=[16, 16, 2])
 
 
@@ -41,7 +41,7 @@ def one_line(err, *words):
 
 @pytest.fixture(scope="module")
 def demo_pair():
-    """The demo pair (Cones, 225x188), gray in [0, 1]."""
+    """The eighth-size Cones pair (225x188), gray in [0, 1]."""
     from mccnn_cl.imageops import to_gray
     return to_gray(read_image(DEMO / "im0.png")), to_gray(read_image(DEMO / "im1.png"))
 
@@ -361,9 +361,8 @@ def test_docs_error_examples_run_as_written(tmp_path, shared_data):
     kitti = shared_data / "kitti2015" / "training"  # the shifted pair of the disparity-range examples
     write_image(tmp_path / "left_shifted.png", read_image(kitti / "image_2" / "000000_10.png")[:, 64:])
     write_image(tmp_path / "right_shifted.png", read_image(kitti / "image_3" / "000000_10.png")[:, :-64])
-    demo = Path(__file__).resolve().parents[1] / "mccnn_cl" / "demo"  # im0.png, im1.png: the demo pair
-    for name in ("im0.png", "im1.png"):
-        os.symlink(demo / name, tmp_path / name)
+    for name in ("im0.png", "im1.png"):  # the eighth-size Cones pair the docs name
+        os.symlink(DEMO / name, tmp_path / name)
     has_gpu = any(d.type == "GPU" for d in list_devices())
     for cmd, want in examples:
         if "--device gpu" in cmd and has_gpu:

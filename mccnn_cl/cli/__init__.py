@@ -3,7 +3,7 @@
 Sub-commands: ``match`` (one pair or a batch → disparity files, colour
 pictures, depth, point clouds), ``evaluate`` (a dataset, beside OpenCV
 SGBM), ``devices`` (OpenCL devices and the choice), ``bench`` (per-stage
-timings), ``demo`` (the bundled Middlebury Cones pair) and ``adapt``
+timings), ``demo`` (the bundled MiddEval3 Adirondack pair) and ``adapt``
 (self-training on unlabeled pairs, :mod:`mccnn_cl.cli.adapt`).  See docs/cli.md.
 This module only parses and dispatches (:data:`COMMANDS`): ``match``,
 ``evaluate`` and ``devices`` and the helpers they share are implemented in
@@ -185,14 +185,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the untimed first run (then kernel builds count in the times)")
     _matcher_options(b, "default: 228")
 
-    dm = sub.add_parser("demo", parents=[verbose], help="match the bundled Middlebury Cones pair",
-                        description="Match the bundled demo pair (Middlebury Cones, 225x188, held out of "
+    dm = sub.add_parser("demo", parents=[verbose], help="match the bundled MiddEval3 Adirondack pair",
+                        description="Match the bundled demo pair (MiddEval3 Adirondack, 718x496, held out of "
                                     "training) with the shipped weights, compare with OpenCV SGBM and the "
                                     "ground truth, and write a colour picture.")
     dm.add_argument("-o", "--output", default=DEMO_OUTPUT, metavar="OUT.png",
                     help=f"picture to write (default {DEMO_OUTPUT})")
     dm.add_argument("--force", action="store_true", help="overwrite OUT.png if it exists")
-    _matcher_options(dm, "default: 32 (the demo's ndisp)")
+    _matcher_options(dm, "default: 73 (the demo's ndisp)")
 
     a = sub.add_parser("adapt", parents=[verbose], help="fine-tune a network to your camera without ground truth",
                        description="Self-training: pseudo-label your rectified pairs with the network (pixels the "

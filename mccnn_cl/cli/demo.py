@@ -1,8 +1,8 @@
-"""``mccnn-cl demo``: the bundled Middlebury Cones pair (``mccnn_cl/demo/``, a
-data folder; hence this module's name) matched with the shipped network,
-beside OpenCV SGBM and the ground truth, and one picture of the four
-(:func:`compose_picture`).  The parser lives in :mod:`mccnn_cl.cli`, the
-shared helpers in :mod:`mccnn_cl.cli.commands`.
+"""``mccnn-cl demo``: the bundled MiddEval3 Adirondack pair (``mccnn_cl/demo/``, a
+data folder; hence this module's name; :func:`load_demo_pair`) matched with the
+shipped network, beside OpenCV SGBM and the ground truth, and one picture of
+the four (:func:`compose_picture`).  The parser lives in :mod:`mccnn_cl.cli`,
+the shared helpers in :mod:`mccnn_cl.cli.commands`.
 """
 
 from __future__ import annotations
@@ -16,21 +16,49 @@ import numpy as np
 
 from ..errors import InputError
 
+#: The bundled pair's key as the datasets' loaders name it (MiddEval3 training, quarter size).
+DEMO_KEY = "middlebury/trainingQ/Adirondack"
+
 
 def demo_dir():
     """Context manager yielding the folder of the bundled demo pair."""
     return resources.as_file(resources.files("mccnn_cl") / "demo")
 
 
+def load_demo_pair(folder):
+    """The demo pair as a :class:`~mccnn_cl.evaluation.datasets.StereoPair`: a MiddEval3
+    scene folder whose ground truth is ``disp0GT.png``, a KITTI-format 16-bit PNG
+    (disparity × 256, 0 = unknown), in place of the 1.4 MB float PFM."""
+    from pathlib import Path
+
+    from ..evaluation.datasets import load_middlebury
+    from ..io import read_image, read_kitti_disparity
+
+    folder = Path(folder)
+    pair = load_middlebury(folder)
+    disp, valid = read_kitti_disparity(folder / "disp0GT.png")
+    mask = read_image(folder / "mask0nocc.png", gray=True)
+    if disp.shape != pair.shape or mask.shape != pair.shape:
+        raise InputError(f"{folder}: disp0GT.png {disp.shape} / mask0nocc.png {mask.shape} "
+                         f"do not match im0.png {pair.shape}")
+    pair.disp = np.where(valid, disp, np.float32(np.nan)).astype(np.float32)
+    pair.valid_all, pair.valid_noc = valid, valid & (mask == 255)
+    pair.kind, pair.name = DEMO_KEY.split("/", 1)
+    return pair
+
+
 def compose_picture(left_bgr, gt, ours, base, vmax, captions) -> np.ndarray:
-    """Left image | GT on top, ours | SGBM below, each at 2x (nearest) with its
-    caption, and one disparity legend under them (uint8 BGR)."""
+    """Left image | GT on top, ours | SGBM below, each with its caption, and one
+    disparity legend under them (uint8 BGR).  Images narrower than 360 px are
+    shown at 2x (nearest: crisp pixels, room for the caption)."""
     import cv2
 
     from ..visualize import colorize, label, legend_bar
 
-    def tile(img, caption):  # 2x, nearest: crisp pixels, room for the caption
-        big = cv2.resize(img, None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST)
+    zoom = 2 if left_bgr.shape[1] < 360 else 1
+
+    def tile(img, caption):
+        big = cv2.resize(img, None, fx=zoom, fy=zoom, interpolation=cv2.INTER_NEAREST) if zoom > 1 else img
         return label(big, caption, height=24, scale=0.5)
 
     tiles = [tile(left_bgr, captions[0])] + [tile(colorize(d, 0, vmax), c) for d, c in zip((gt, ours, base), captions[1:])]
@@ -47,7 +75,6 @@ def run(args) -> int:
 
     from . import commands
     from ..evaluation.baseline import sgbm
-    from ..evaluation.datasets import load_middlebury
     from ..evaluation.scoring import training_status
     from ..io import write_image
     from ..evaluation.metrics import evaluate_disparity, fill_invalid
@@ -59,12 +86,12 @@ def run(args) -> int:
         raise InputError(f"{out}: the demo writes a picture; use a .png or .jpg name")
     commands._check_outputs([out], args.force)
     with ExitStack() as stack:
-        pair = load_middlebury(stack.enter_context(demo_dir()))
-    max_disp = args.max_disp or pair.ndisp or 32
+        pair = load_demo_pair(stack.enter_context(demo_dir()))
+    max_disp = args.max_disp or pair.ndisp
     weights = commands._load_weights(args)
     left, right = pair.gray()
     check_pair(left, right, max_disp, patch_size(weights))
-    status = training_status(weights.meta, "middlebury/Cones", "Cones") if weights is not None else "n/a"
+    status = training_status(weights.meta, pair.key, "Adirondack") if weights is not None else "n/a"
     t0 = time.perf_counter()
     matcher = commands._make_matcher(args, max_disp, weights, progress=commands._tty())
     t_setup = time.perf_counter() - t0
@@ -79,31 +106,32 @@ def run(args) -> int:
     base, t_base = sgbm(left, right, max_disp, return_time=True)
     m_ours = evaluate_disparity(fill_invalid(ours), pair.disp, pair.valid_noc, pair.valid_all)
     m_base = evaluate_disparity(fill_invalid(base), pair.disp, pair.valid_noc, pair.valid_all)
-    n_gt = int(pair.valid_all.sum())
+    n_gt, n_noc = int(pair.valid_all.sum()), int(pair.valid_noc.sum())
     h, w = left.shape
-    say(f"demo pair: Middlebury Cones at 1/8 size ({w}x{h}), {max_disp} disparities, "
+    say(f"demo pair: MiddEval3 Adirondack, quarter size ({w}x{h}), {max_disp} disparities, "
         "ground truth from structured light")
     if weights is None:
         say("cost:      census (no network)")
     else:
         name = (os.path.basename(args.weights) if args.weights else
                 os.path.basename(default_weights_path()) + " (shipped)")
-        phrase = {"held out": "Cones was held out of their training",
-                  "trained": "Cones was one of their TRAINING pairs",
+        phrase = {"held out": "Adirondack was held out of their training",
+                  "trained": "Adirondack was one of their TRAINING pairs",
                   "unknown": "they do not record their training pairs"}[status]
         say(f"weights:   {name}; {phrase}")
-    say(f"{'method':<22} {'3-px err':>9} {'bad-2.0':>9} {'EPE':>8} {'time':>8}")
+    say(f"{'method':<22} {'bad-2.0':>9} {'bad-2 noc':>9} {'3-px err':>9} {'EPE':>8} {'time':>8}")
     label_ours = "MC-CNN (OpenCL)" if args.cost == "cnn" else "census+SGM (OpenCL)"
     for name, m, t in ((label_ours, m_ours, t_ours), ("OpenCV SGBM", m_base, t_base)):
-        say(f"{name:<22} {m['bad3_all']:>8.2f}% {m['bad2_all']:>8.2f}% {m['epe_all']:>6.2f}px "
-            f"{t:>7.3f}s")
-    say(f"(errors in % of the {n_gt} pixels with ground truth; SGBM's holes filled as the KITTI devkit "
+        say(f"{name:<22} {m['bad2_all']:>8.2f}% {m['bad2_noc']:>8.2f}% {m['bad3_all']:>8.2f}% "
+            f"{m['epe_all']:>6.2f}px {t:>7.3f}s")
+    say(f"(errors in % of the {n_gt} pixels with ground truth, 'noc' of the {n_noc} non-occluded ones; "
+        f"SGBM's holes filled as the KITTI devkit "
         f"does; one-time OpenCL set-up, not in the time: {t_setup:.1f} s on {ctx.device.name.strip()}, "
         f"{ctx.builds} kernel builds, {ctx.binary_loads} stored binaries)")
     left_bgr = cv2.cvtColor(left, cv2.COLOR_GRAY2BGR) if pair.left.ndim == 2 else pair.left
     captions = ("left image", "ground truth (black: unknown)",
-                f"{label_ours}: 3-px {m_ours['bad3_all']:.1f} %, bad-2 {m_ours['bad2_all']:.1f} %",
-                f"OpenCV SGBM: 3-px {m_base['bad3_all']:.1f} %, bad-2 {m_base['bad2_all']:.1f} %")
+                f"{label_ours}: bad-2.0 {m_ours['bad2_all']:.1f} %, 3-px {m_ours['bad3_all']:.1f} %",
+                f"OpenCV SGBM: bad-2.0 {m_base['bad2_all']:.1f} %, 3-px {m_base['bad3_all']:.1f} %")
     write_image(out, compose_picture(left_bgr, pair.disp, ours, base, max_disp - 1, captions))
     say(f"wrote {out}")
     return 0

@@ -75,8 +75,28 @@ _KITTI = {
 }
 
 
+class _Named:
+    """``key``, ``dataset`` and ``family`` of a pair from its ``kind`` and ``name``
+    (shared by :class:`StereoPair` and :class:`PairRef`)."""
+
+    @property
+    def key(self) -> str:
+        """``"<kind>/<name>"``, e.g. ``"kitti2015/000000"`` or ``"middlebury/Cones"``."""
+        return f"{self.kind}/{self.name}"
+
+    @property
+    def dataset(self) -> str:
+        """The pair's dataset family (:func:`dataset_of`)."""
+        return dataset_of(self.key)
+
+    @property
+    def family(self) -> str:
+        """The pair's scene family (:func:`scene_family`), e.g. ``"middlebury/Cloth"``."""
+        return scene_family(self.key)
+
+
 @dataclass
-class StereoPair:
+class StereoPair(_Named):
     """A rectified stereo pair and its ground truth.
 
     ``left``/``right``: uint8 images as read (colour = BGR (H, W, 3), or gray
@@ -101,21 +121,6 @@ class StereoPair:
     kind: str
     disp_range: tuple | None = None
     calib_ndisp: int | None = None  # ndisp as calib.txt states it, where it differs from ``ndisp``
-
-    @property
-    def key(self) -> str:
-        """``"<kind>/<name>"``, e.g. ``"kitti2015/000000"`` or ``"middlebury/Cones"``."""
-        return f"{self.kind}/{self.name}"
-
-    @property
-    def dataset(self) -> str:
-        """The pair's dataset family (:func:`dataset_of`)."""
-        return dataset_of(self.key)
-
-    @property
-    def family(self) -> str:
-        """The pair's scene family (:func:`scene_family`), e.g. ``"middlebury/Cloth"``."""
-        return scene_family(self.key)
 
     @property
     def shape(self) -> tuple:
@@ -364,25 +369,13 @@ def scene_family(key: str) -> str:
 # -- layout detection -------------------------------------------------------
 
 @dataclass(frozen=True)
-class PairRef:
+class PairRef(_Named):
     """A pair found on disk but not loaded yet: ``load()`` reads it."""
 
     kind: str
     root: str  # KITTI: the training/testing folder; Middlebury, ETH3D: the scene folder
     name: str
     labeled: bool = True  # ground truth on disk (False: images only, e.g. the shared data's unlabeled/)
-
-    @property
-    def key(self) -> str:
-        return f"{self.kind}/{self.name}"
-
-    @property
-    def dataset(self) -> str:
-        return dataset_of(self.key)
-
-    @property
-    def family(self) -> str:
-        return scene_family(self.key)
 
     def load(self) -> StereoPair:
         if self.kind == "eth3d":
