@@ -200,10 +200,15 @@ def test_tune_command(cache):
     import sys
 
     env = dict(os.environ, MCCNN_CACHE_DIR=str(cache), MCCNN_TUNE="on")
-    p = subprocess.run([sys.executable, "-m", "mccnn_cl", "tune", "--no-binaries"], env=env,
-                       capture_output=True, text=True, timeout=900)
+    # a small size and 2 rounds: the default KITTI-like size takes ~30-70 s here
+    p = subprocess.run([sys.executable, "-m", "mccnn_cl", "tune", "--no-binaries", "--size", "32x400x64",
+                        "--rounds", "2"], env=env, capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr
     assert "written to" in p.stdout and "wrong/failed" not in p.stdout
+    assert json.load(open(tune.cache_path(ClContext(None).device)))["size"] == [32, 400, 64]
+    bad = subprocess.run([sys.executable, "-m", "mccnn_cl", "tune", "--size", "96x1242"], env=env,
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "--size" in bad.stderr
     d = subprocess.run([sys.executable, "-m", "mccnn_cl", "devices"], env=env, capture_output=True, text=True)
     assert "tuned on this device" in d.stdout
 

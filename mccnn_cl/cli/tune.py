@@ -34,10 +34,24 @@ def run(args) -> int:
     from ..opencl import tune
     from ..opencl.context import ClContext
 
+    from ..errors import InputError
+
+    size = tune.SIZE
+    if getattr(args, "size", None):
+        try:
+            size = tuple(int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            size = ()
+        if len(size) != 3 or min(size) < 1 or size[1] < 16:
+            raise InputError(f"--size must look like 96x1242x228 (rows x columns x levels, 16 columns or more), "
+                             f"got {args.size!r}")
+    rounds = getattr(args, "rounds", 5)
+    if rounds < 1:
+        raise InputError(f"--rounds must be >= 1, got {rounds}")
     ctx = ClContext(args.device)
-    print(f"tuning {ctx.describe()}")
+    print(f"tuning {ctx.describe()} at {'x'.join(map(str, size))} (rows x columns x levels), {rounds} rounds")
     t0 = time.perf_counter()
-    choices, measured, path = tune.tune(ctx, progress=True)
+    choices, measured, path = tune.tune(ctx, progress=True, size=size, rounds=rounds)
     for name, res in measured.items():
         parts = []
         for cand, sec in res["candidates"]:

@@ -241,7 +241,7 @@ def tune(ctx, progress: bool = False, size=SIZE, rounds=5) -> tuple:
     finally:
         if bar is not None:
             bar.close()
-    path = store(ctx.device, choices, measured)
+    path = store(ctx.device, choices, measured, size)
     ctx.profile.tuned.clear()
     ctx.profile.tuned.update(choices)
     return choices, measured, path

@@ -88,12 +88,13 @@ def load(device) -> dict:
     return {k: v for k, v in data["choices"].items() if k in RULES}
 
 
-def store(device, choices: dict, measured: dict) -> str:
-    """Write the choices atomically (temporary file in the same folder, then rename)."""
+def store(device, choices: dict, measured: dict, size=SIZE) -> str:
+    """Write the choices (measured at ``size``) atomically (temporary file in
+    the same folder, then rename)."""
     path = cache_path(device)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     data = {"identity": identity(device), "choices": choices, "measured": measured,
-            "size": list(SIZE), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
+            "size": list(size), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
     fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), prefix=".tmp-", suffix=".json")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
