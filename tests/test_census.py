@@ -12,11 +12,11 @@ from mccnn_cl.costs.census import CensusCost
 from conftest import POISON
 
 
-def run_census(ctx, left, right, D):
+def run_census(ctx, left, right, D, shape=None):
     H, W = left.shape[0] - 8, left.shape[1] - 8
     out = ctx.empty(D * H * W * 4, "poisoned")
     ctx.fill(out, POISON, D * H * W * 4)
-    d = CensusCost(ctx)(left, right, D, out=out)
+    d = CensusCost(ctx, launch_shape=shape)(left, right, D, out=out)
     return ctx.from_device(d, (D, H, W))
 
 
@@ -25,12 +25,18 @@ def same_nan(a, b):
     np.testing.assert_array_equal(a[~np.isnan(a)], b[~np.isnan(b)])
 
 
-@pytest.mark.parametrize("Hi,Wi,D", [(37, 53, 16), (9, 30, 7), (12, 14, 20)])
-def test_census_random(ctx, Hi, Wi, D):
+# launch shapes of the cost kernel (RULES "census_cost_launch"): all levels per
+# work-item (CPU-shaped devices), one, three (a partial last chunk of levels)
+SHAPES = [(0, (16, 1, 1)), (1, None), (3, (2, 2, 2))]
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+@pytest.mark.parametrize("Hi,Wi,D", [(37, 53, 16), (9, 30, 7), (12, 14, 20), (10, 60, 40)])
+def test_census_random(ctx, Hi, Wi, D, shape):
     rng = np.random.default_rng(Hi * Wi)
     left = (rng.integers(0, 8, (Hi, Wi)) / 7).astype(np.float32)  # few levels: equal neighbours occur
     right = (rng.integers(0, 8, (Hi, Wi)) / 7).astype(np.float32)
-    C = run_census(ctx, left, right, D)
+    C = run_census(ctx, left, right, D, shape)
     expect = ref.census_cost(left, right, D)
     same_nan(C, expect)
     valid = ~np.isnan(C)

@@ -258,14 +258,17 @@ def case_census(ctx, rng, chk):
     from mccnn_cl.reference import disparity as ref
     from mccnn_cl.costs.census import CensusCost
 
-    st = CensusCost(ctx)
-    for (h, wd, D) in ((12, 20, 5), (11, 13, 7)):
-        left, right = _images(rng, h, wd)
-        H, W = h - 8, wd - 8
-        out = _poisoned(ctx, D * H * W * 4)
-        st(left, right, D, out=out)
-        # Hamming distance / 80: exact in float32
-        chk.close(f"census {h}x{wd} D={D}", ctx.from_device(out, (D, H, W)), ref.census_cost(left, right, D))
+    # the device's launch shape, and the CPU-shaped one (all levels per work-item)
+    for shape in (None, (0, (16, 1, 1))):
+        st = CensusCost(ctx, launch_shape=shape)
+        for (h, wd, D) in ((12, 20, 5), (11, 13, 7), (10, 43, 20)):
+            left, right = _images(rng, h, wd)
+            H, W = h - 8, wd - 8
+            out = _poisoned(ctx, D * H * W * 4)
+            st(left, right, D, out=out)
+            # Hamming distance / 80: exact in float32
+            chk.close(f"census {h}x{wd} D={D} shape {shape}", ctx.from_device(out, (D, H, W)),
+                      ref.census_cost(left, right, D))
 
 
 def case_range(ctx, rng, chk):

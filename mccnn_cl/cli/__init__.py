@@ -173,6 +173,11 @@ def build_parser() -> argparse.ArgumentParser:
                                    "MCCNN_TUNE=off ignores the cache.")
     t.add_argument("--device", metavar="SPEC", default=None, help="OpenCL device (as for match)")
     t.add_argument("--no-binaries", action="store_true", help="do not store kernel binaries")
+    t.add_argument("--size", metavar="HxWxD", default=None,
+                   help="representative volume: rows x columns x disparity levels (default 96x1242x228: a quarter "
+                        "of a KITTI pair's rows at its full width and range)")
+    t.add_argument("--rounds", type=int, default=5, metavar="R",
+                   help="interleaved rounds per candidate, best time kept (default 5)")
 
     b = sub.add_parser("bench", parents=[verbose], help="per-stage runtime on a KITTI-size pair",
                        description="Time each stage of the pipeline (best of --repeat runs after a "

@@ -18,11 +18,14 @@ def describe_choices(device) -> list:
         head = "kernel choices: the rules table (MCCNN_TUNE=off)"
     elif tuned:
         head = f"kernel choices: tuned on this device ({tune.cache_path(device)}), the rest from the rules table"
+    elif tune.record(device) is not None:
+        head = (f"kernel choices: tuned on this device ({tune.cache_path(device)}): no candidate beat the "
+                "rules table's")
     else:
         head = "kernel choices: the rules table (not tuned: run `mccnn-cl tune`)"
     profile.tuned.update(tuned)
     lines = [head]
-    for name in ("sgm_cols", "sgm_paired_max_units", "cbca_fused", "cbca_multi", "launch_local"):
+    for name in ("sgm_paired_max_units", "sgm_cols", "cbca_fused", "cbca_multi", "launch_local"):
         lines.append(f"  {name:22s} {profile.rule(name)!s:14s} ({profile.rule_source(name)})")
     return lines
 
@@ -31,17 +34,31 @@ def run(args) -> int:
     from ..opencl import tune
     from ..opencl.context import ClContext
 
+    from ..errors import InputError
+
+    size = tune.SIZE
+    if getattr(args, "size", None):
+        try:
+            size = tuple(int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            size = ()
+        if len(size) != 3 or min(size) < 1 or size[1] < 16:
+            raise InputError(f"--size must look like 96x1242x228 (rows x columns x levels, 16 columns or more), "
+                             f"got {args.size!r}")
+    rounds = getattr(args, "rounds", 5)
+    if rounds < 1:
+        raise InputError(f"--rounds must be >= 1, got {rounds}")
     ctx = ClContext(args.device)
-    print(f"tuning {ctx.describe()}")
+    print(f"tuning {ctx.describe()} at {'x'.join(map(str, size))} (rows x columns x levels), {rounds} rounds")
     t0 = time.perf_counter()
-    choices, measured, path = tune.tune(ctx, progress=True)
-    for name, results in measured.items():
+    choices, measured, path = tune.tune(ctx, progress=True, size=size, rounds=rounds)
+    for name, res in measured.items():
         parts = []
-        for cand, sec in results:
-            label = ",".join(f"{v}" for v in cand.values())
+        for cand, sec in res["candidates"]:
+            label = " ".join(f"{k}={v}" for k, v in cand.items()) or "rules"
             parts.append(f"{label}: " + ("wrong/failed" if sec is None else f"{sec * 1e3:.1f} ms"))
-        print(f"  {name:13s} " + "; ".join(parts))
-    print(f"choices {choices}\nwritten to {path} ({time.perf_counter() - t0:.0f} s)")
+        print(f"  {name} (noise {res['noise']:.0%}): " + "; ".join(parts))
+    print(f"choices {choices or 'none (the rules table stands)'}\nwritten to {path} ({time.perf_counter() - t0:.0f} s)")
     if not args.no_binaries:
         from ..opencl import binaries
 

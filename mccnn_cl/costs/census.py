@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from ..opencl.context import launch
+from ..opencl.context import launch, round_up
 from ..stages.disparity import volume_bytes
 from .base import MatchingCost
 
@@ -33,9 +33,13 @@ class CensusCost(MatchingCost):
     local = True  # a row tile's volume needs only the tile's rows (mccnn_cl.costs.registry)
     floor = 0.0  # lower bound of the cost: a Hamming distance
 
-    def __init__(self, ctx, half: bool = False):
+    def __init__(self, ctx, half: bool = False, launch_shape=None):
+        """``launch_shape``: (levels per work-item, 0 = all; work-group size or
+        None) of the cost kernel, None: the device's RULES row
+        ``census_cost_launch``; every shape gives the same bits."""
         self.ctx = ctx
         self.half = bool(half)
+        self.launch_shape = ctx.profile.rule("census_cost_launch") if launch_shape is None else launch_shape
         self.vdtype = np.dtype(np.float16 if half else np.float32)
         self.k_transform = ctx.kernel("census.cl", "census_transform")
         self.k_cost = ctx.kernel("census.cl", "census_cost", VOL_HALF=int(half))
@@ -98,6 +102,12 @@ class CensusCost(MatchingCost):
                    np.int32(H), np.int32(W))
         if out is None:
             out = self.ctx.empty(D * H * W * volume_bytes(self.half), "census cost volume")
-        launch(self.ctx, "census cost", self.k_cost, (W, H, D), d_bits_l, d_bits_r, out,
-               np.int32(D), np.int32(H), np.int32(W))
+        # a work-item: 16 columns x `levels` levels (RULES "census_cost_launch")
+        levels, local = self.launch_shape
+        levels = D if int(levels) <= 0 else min(int(levels), D)
+        glob = (-(-W // 16), H, -(-D // levels))
+        if local is not None:
+            glob = tuple(round_up(g, int(n)) for g, n in zip(glob, local))
+        launch(self.ctx, "census cost", self.k_cost, glob, d_bits_l, d_bits_r, out,
+               np.int32(D), np.int32(H), np.int32(W), np.int32(levels), local_size=local)
         return out

@@ -59,6 +59,8 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: (TX columns x TD disparities, TK maps per slice, RX x RD per work-item).  The
 #: tiles are the same in every column (they are what a forced run starts from) and
 #: shrink to the kernel's CL_KERNEL_WORK_GROUP_SIZE and the local memory.
+#: ``census_cost_launch``: (levels per census_cost work-item, 0 = all D; its
+#: work-group size, None = the runtime's), kernels/census.cl.
 RULES = {
     "sgm_stage":               {CPU: "lines", LLVMPIPE: "lines", GPU: "workgroup"},
     "sgm_prefetch":            {CPU: True,  LLVMPIPE: True,  GPU: False},
@@ -81,6 +83,7 @@ RULES = {
     "fst_workgroup":           {CPU: False, LLVMPIPE: False, GPU: True},
     "fst_volume_tile":         {c: dict(TX=64, TD=64, TK=16, RX=4, RD=4) for c in (CPU, LLVMPIPE, GPU)},
     "launch_local":            {CPU: (64, 2, 2), LLVMPIPE: (64, 2, 2), GPU: None},
+    "census_cost_launch":      {CPU: (0, (16, 1, 1)), LLVMPIPE: (0, (16, 1, 1)), GPU: (1, None)},
 }
 
 #: Declared facts per class: (loop_limit or None, slow_compiler).

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .tune_cache import FORMAT, SIZE, cache_path, enabled, identity, load, store  # noqa: F401 (the cache, re-exported)
+from .tune_cache import FORMAT, SIZE, cache_path, enabled, identity, load, record, store  # noqa: F401 (the cache, re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -71,14 +71,15 @@ def _timed(ctx, fn, repeat):
     return best
 
 
-def options(ctx, size=SIZE, repeat=3) -> list:
+def options(ctx, size=SIZE, repeat=1) -> list:
     """The choices tuned on ``ctx``'s device (none on GPU-shaped devices)."""
     if not ctx.profile.is_cpu:
         return []
     H, W, D = size
     img_l, img_r, vol = _inputs(ctx, size)
     d_l, d_r, d_vol = ctx.to_device(img_l), ctx.to_device(img_r), ctx.to_device(vol)
-    out = ctx.empty(vol.nbytes, "tuning output")
+    del vol
+    out = ctx.empty(4 * D * H * W, "tuning output")
 
     def sgm_run(ctx_):
         from ..stages.sgm import SGM
@@ -99,38 +100,37 @@ def options(ctx, size=SIZE, repeat=3) -> list:
         return sec, ctx_.from_device(out, (D, H, W))
 
     def local_run(ctx_):
-        from ..costs.census import CensusCost
+        # the stages after SGM that leave their work-group size to launch_local
         from ..stages.disparity import Subpixel, WinnerTakeAll
 
-        cost, wta, sub = CensusCost(ctx_), WinnerTakeAll(ctx_), Subpixel(ctx_)
-        h, w = H - 8, W - 8
+        wta, sub = WinnerTakeAll(ctx_), Subpixel(ctx_)
 
         def go():
-            cost(img_l, img_r, D, out=out)
-            disp = wta.left(out, D, h, w)
-            return sub(out, disp, D, h, w)
+            disp = wta.left(d_vol, D, H, W)
+            return sub(d_vol, disp, D, H, W)
 
         sec = _timed(ctx_, go, repeat)
-        return sec, ctx_.from_device(go(), (h, w))
+        return sec, ctx_.from_device(go(), (H, W))
 
-    units = ctx.profile.compute_units
+    units = max(ctx.profile.compute_units, 1)
+    # SGM: the paired sweeps (their chunk width is fixed), or the one-direction
+    # kernels at each column width (without paired sweeps the width matters)
+    sgm = [{"sgm_paired_max_units": units}] + [{"sgm_paired_max_units": 0, "sgm_cols": c} for c in (32, 64, 128)]
     opts = [
-        Option("sgm_cols", [{"sgm_cols": c} for c in (32, 64, 128)], sgm_run),
-        Option("sgm_paired", [{"sgm_paired_max_units": 0}, {"sgm_paired_max_units": max(units, 1)}], sgm_run,
-               exact=False),
+        Option("sgm", sgm, sgm_run, exact=False),
         Option("cbca_path", [{"cbca_fused": True, "cbca_multi": True}, {"cbca_fused": True, "cbca_multi": False},
                              {"cbca_fused": False, "cbca_multi": False}], cbca_run),
         Option("launch_local", [{"launch_local": list(t)} for t in ((64, 2, 2), (32, 4, 4), (16, 4, 4), (8, 8, 8),
                                                                     (128, 1, 1))], local_run),
     ]
     if ctx.profile.loop_limit is not None:  # llvmpipe: the paired sweeps refuse to run under its limit
-        opts = [o for o in opts if o.name != "sgm_paired"]
+        opts[0].candidates = opts[0].candidates[1:]
     return opts
 
 
-#: How much faster than the rules' candidate another must be to be chosen
-#: (timings on a shared machine vary by a few per cent between runs).
-MARGIN = 0.05
+#: The least relative margin by which a candidate must beat the rules' own
+#: to replace it, whatever the measured noise.
+MARGIN = 0.03
 
 
 def _rules_value(profile, name):
@@ -138,6 +138,11 @@ def _rules_value(profile, name):
 
     v = RULES[name][profile.kind]
     return list(v) if isinstance(v, tuple) else v
+
+
+def _is_rules(profile, cand) -> bool:
+    """The candidate sets every row to the rules' own value (the rules' choice)."""
+    return all(_rules_value(profile, k) == (list(v) if isinstance(v, tuple) else v) for k, v in cand.items())
 
 
 def _same(a, b, exact) -> bool:
@@ -148,55 +153,80 @@ def _same(a, b, exact) -> bool:
     return bool(np.allclose(a, b, rtol=1e-5, atol=1e-5, equal_nan=True))
 
 
+def noise(times) -> float:
+    """Relative spread of one candidate's repeated timings: (max - min) / min
+    (0 for fewer than two)."""
+    times = [t for t in times if t is not None]
+    if len(times) < 2 or min(times) <= 0:
+        return 0.0
+    return (max(times) - min(times)) / min(times)
+
+
 def choose(ctx, opts, progress=None, rounds=1) -> tuple:
-    """Measure every candidate of every option (rules first: the reference
-    output), ``rounds`` times in turn (candidate 1, 2, ..., 1, 2, ...: a
-    change of the machine's load falls on all of them), the best time kept;
-    returns ``(choices, measured)``: the RULES rows of the fastest correct
-    candidate per option, and every candidate's seconds (None: wrong output
-    in any round, or failed)."""
+    """Measure the rules' choice (candidate ``{}``, always first; candidates
+    equal to it are dropped) and every other candidate of every option,
+    ``rounds`` times interleaved (rules, 1, 2, ..., then the reverse order,
+    ...: a change of the machine's load falls on all of them), keeping each
+    candidate's best time.  Another candidate replaces the rules' choice only
+    when its best time beats the rules' best by more than the noise: the
+    relative spread of the rules' own timings over the rounds
+    (:func:`noise`), at least :data:`MARGIN`.  A candidate whose output
+    differs from the rules' (bit for bit, or to rounding where the option is
+    not ``exact``) in any round, or that fails, is never chosen.  Returns
+    ``(choices, measured)``: the RULES rows set by the chosen candidates
+    (none for an option whose rules' choice stands), and per option each
+    candidate's best seconds (None: wrong or failed) and the noise."""
     profile = ctx.profile
     choices, measured = {}, {}
     for opt in opts:
+        cands = [{}] + [c for c in opt.candidates if c and not _is_rules(profile, c)]
         saved = dict(profile.tuned)
+        times = [[] for _ in cands]
+        failed = [False] * len(cands)
         try:
             profile.tuned.clear()
-            profile.tuned.update({k: v for k, v in choices.items()})
+            profile.tuned.update(choices)
             _, reference = opt.run(ctx)
-            best = [float("inf")] * len(opt.candidates)
-            for _ in range(max(1, int(rounds))):
-                for j, cand in enumerate(opt.candidates):
-                    if best[j] is None:
+            for r in range(max(1, int(rounds))):
+                order = range(len(cands)) if r % 2 == 0 else reversed(range(len(cands)))
+                for j in order:
+                    if failed[j]:
                         continue
                     profile.tuned.clear()
                     profile.tuned.update(choices)
-                    profile.tuned.update(cand)
+                    profile.tuned.update(cands[j])
                     try:
                         sec, output = opt.run(ctx)
                         ok = _same(output, reference, opt.exact)
                     except Exception as exc:  # noqa: BLE001 - a candidate that fails is not chosen
-                        log.info("tuning %s: candidate %s failed: %s", opt.name, cand, exc)
-                        sec, ok = None, False
-                    best[j] = min(best[j], sec) if ok else None
+                        log.info("tuning %s: candidate %s failed: %s", opt.name, cands[j], exc)
+                        ok = False
+                    if ok:
+                        times[j].append(sec)
+                    else:
+                        failed[j] = True
                     if progress is not None:
                         progress()
-            results = list(zip(opt.candidates, best))
         finally:
             profile.tuned.clear()
             profile.tuned.update(saved)
-        measured[opt.name] = [[c, s] for c, s in results]
-        good = [(s, i) for i, (c, s) in enumerate(results) if s is not None]
-        if good:
-            fastest, i = min(good)
-            rules = [j for j, (c, s) in enumerate(results) if s is not None
-                     and all(_rules_value(profile, k) == v for k, v in c.items())]
-            if rules and results[rules[0]][1] <= fastest * (1 + MARGIN):
-                i = rules[0]  # the rules' own candidate unless another is clearly faster
-            choices.update(results[i][0])
+        best = [None if failed[j] or not times[j] else min(times[j]) for j in range(len(cands))]
+        spread = max(MARGIN, noise(times[0]))
+        measured[opt.name] = {"candidates": [[c, s] for c, s in zip(cands, best)], "noise": spread}
+        if best[0] is None:  # the rules' own choice failed: the fastest that ran is taken
+            good = [(s, j) for j, s in enumerate(best) if s is not None]
+            if good:
+                choices.update(cands[min(good)[1]])
+            continue
+        others = [(s, j) for j, s in enumerate(best) if j > 0 and s is not None]
+        if others:
+            fastest, j = min(others)
+            if fastest * (1 + spread) < best[0]:
+                choices.update(cands[j])
     return choices, measured
 
 
-def tune(ctx, progress: bool = False, size=SIZE, rounds=3) -> tuple:
+def tune(ctx, progress: bool = False, size=SIZE, rounds=5) -> tuple:
     """Tune ``ctx``'s device, store the choices, apply them to ``ctx.profile``;
     returns ``(choices, measured, path)``."""
     opts = options(ctx, size, repeat=1)
@@ -204,13 +234,14 @@ def tune(ctx, progress: bool = False, size=SIZE, rounds=3) -> tuple:
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=rounds * sum(len(o.candidates) for o in opts), desc="tuning", unit="run")
+        runs = sum(1 + len([c for c in o.candidates if c and not _is_rules(ctx.profile, c)]) for o in opts)
+        bar = tqdm(total=rounds * runs, desc="tuning", unit="run")
     try:
         choices, measured = choose(ctx, opts, None if bar is None else (lambda: bar.update(1)), rounds)
     finally:
         if bar is not None:
             bar.close()
-    path = store(ctx.device, choices, measured)
+    path = store(ctx.device, choices, measured, size)
     ctx.profile.tuned.clear()
     ctx.profile.tuned.update(choices)
     return choices, measured, path

@@ -17,10 +17,14 @@ from .binaries import cache_root, device_identity
 
 log = logging.getLogger(__name__)
 
-FORMAT = 1
-#: the representative size (H, W, D) candidates are timed at (recorded with the choices)
-SIZE = (96, 384, 128)
-#: The representative size tuned at: volume rows, columns, disparity levels.
+#: 2: the KITTI-like size and the rules' candidate measured beside the others
+#: (files of format 1, tuned on a 96 x 384 volume, are ignored)
+FORMAT = 2
+#: The representative size (H, W, D) candidates are timed at (recorded with
+#: the choices): a quarter of a KITTI 2015 pair's rows at its full width and
+#: disparity range (1242 x 375, D 228), so that row strides, plane strides
+#: and the volume (109 MB, beyond every cache) behave as on a KITTI pair.
+SIZE = (96, 1242, 228)
 
 
 def enabled() -> bool:
@@ -51,35 +55,46 @@ def _warn_once(path: str, why: str) -> None:
                       "until `mccnn-cl tune` rewrites it", RuntimeWarning, stacklevel=3)
 
 
-def load(device) -> dict:
-    """The stored choices of ``device`` ({} when none, when disabled, or when
-    the file is corrupt or of another device/driver/version: one warning)."""
+def record(device):
+    """The stored record of ``device`` (a dict with its choices and what was
+    measured), or None when there is none, when tuning is disabled, or when
+    the file is corrupt or of another device/driver/version (one warning)."""
     if not enabled():
-        return {}
+        return None
     path = cache_path(device)
     try:
         with open(path, encoding="utf-8") as f:
             data = json.load(f)
     except FileNotFoundError:
-        return {}
+        return None
     except (OSError, ValueError) as exc:
         _warn_once(path, f"unreadable: {exc}")
-        return {}
+        return None
     if not isinstance(data, dict) or data.get("identity") != identity(device) \
             or not isinstance(data.get("choices"), dict):
         _warn_once(path, "written for another device, driver or package version, or malformed")
+        return None
+    return data
+
+
+def load(device) -> dict:
+    """The stored choices of ``device`` ({} when none: see :func:`record`;
+    also when tuning kept the rules' every choice)."""
+    data = record(device)
+    if data is None:
         return {}
     from .device import RULES
 
     return {k: v for k, v in data["choices"].items() if k in RULES}
 
 
-def store(device, choices: dict, measured: dict) -> str:
-    """Write the choices atomically (temporary file in the same folder, then rename)."""
+def store(device, choices: dict, measured: dict, size=SIZE) -> str:
+    """Write the choices (measured at ``size``) atomically (temporary file in
+    the same folder, then rename)."""
     path = cache_path(device)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     data = {"identity": identity(device), "choices": choices, "measured": measured,
-            "size": list(SIZE), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
+            "size": list(size), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
     fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), prefix=".tmp-", suffix=".json")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
