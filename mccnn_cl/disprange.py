@@ -54,6 +54,11 @@ AUTO_WINDOW = (0.25, 0.5)
 AUTO_TRIM = 0.0005
 #: Margin added on each side: max(AUTO_MARGIN[0] px, AUTO_MARGIN[1] x the span).
 AUTO_MARGIN = (16, 0.2)
+#: The check: a second pass at 1/AUTO_CHECK_SCALE size (when the first ran at
+#: 1/4 or smaller) over the first range with AUTO_CHECK_WIDEN x its span added
+#: above it (nearer), where thin near structures lost at 1/4 size lie.
+AUTO_CHECK_SCALE = 2
+AUTO_CHECK_WIDEN = 1
 
 
 def check_min_disparity(value) -> int:
@@ -235,39 +240,64 @@ def coarse_scale(shape) -> int:
     return s
 
 
-def choose_range(matcher, I_L, I_R) -> dict:
-    """The automatic range of one pair (gray float32 [0, 1] images).
-
-    Returns ``{"range": (lo, hi), "found": the trimmed extremes before the
-    margin (full-size px), "scale", "window": the coarse window (full-size px),
-    "consistent": fraction of coarse pixels used, "seconds"}``."""
+def _coarse_pass(matcher, I_L, I_R, s, window):
+    """The census stereo method at 1/s size over ``window`` (coarse px): the
+    disparities (full-size px) of the pixels that pass the left-right check,
+    and the fraction of such pixels."""
     import cv2
 
-    t0 = time.perf_counter()
     Hi, Wi = I_L.shape
-    s = coarse_scale(I_L.shape)
     if s > 1:
         size = (Wi // s, Hi // s)
         L = cv2.resize(I_L, size, interpolation=cv2.INTER_AREA)
         R = cv2.resize(I_R, size, interpolation=cv2.INTER_AREA)
     else:
         L, R = I_L, I_R
-    wc = L.shape[1]
-    lo_c, hi_c = -int(wc * AUTO_WINDOW[0]), int(wc * AUTO_WINDOW[1])
     coarse = matcher._coarse_matcher()
-    res = coarse.compute(L, R, confidence=True, disparity_range=(lo_c, hi_c))
+    res = coarse.compute(L, R, confidence=True, disparity_range=window)
     m = coarse.margin
     d = res.disparity[m:-m, m:-m]
     ok = (res.labels[m:-m, m:-m] == 0) & np.isfinite(d)
-    used = float(ok.mean()) if ok.size else 0.0
-    if ok.sum() >= 16:
-        q_lo, q_hi = np.quantile(d[ok], [AUTO_TRIM, 1.0 - AUTO_TRIM])
-    else:  # nothing consistent: the whole coarse window
-        q_lo, q_hi = lo_c, hi_c
-    lo, hi = s * float(q_lo), s * float(q_hi)
-    found = (lo, hi)
+    return np.float32(s) * d[ok], (float(ok.mean()) if ok.size else 0.0)
+
+
+def _with_margin(lo, hi):
     margin = max(AUTO_MARGIN[0], AUTO_MARGIN[1] * (hi - lo))
-    lo, hi = math.floor(lo - margin), math.ceil(hi + margin)
+    return math.floor(lo - margin), math.ceil(hi + margin)
+
+
+def choose_range(matcher, I_L, I_R) -> dict:
+    """The automatic range of one pair (gray float32 [0, 1] images).
+
+    Returns ``{"range": (lo, hi), "found": the trimmed extremes before the
+    margin (full-size px), "scale", "window": the coarse window (full-size px),
+    "consistent": fraction of coarse pixels used, "check": the second pass's
+    window (full-size px; None when the first ran at 1/2 size or finer),
+    "seconds"}``."""
+    t0 = time.perf_counter()
+    Hi, Wi = I_L.shape
+    s = coarse_scale(I_L.shape)
+    wc = Wi // s
+    lo_c, hi_c = -int(wc * AUTO_WINDOW[0]), int(wc * AUTO_WINDOW[1])
+    d, used = _coarse_pass(matcher, I_L, I_R, s, (lo_c, hi_c))
+    if d.size >= 16:
+        found = tuple(float(q) for q in np.quantile(d, [AUTO_TRIM, 1.0 - AUTO_TRIM]))
+    else:  # nothing consistent: the whole coarse window
+        found = (float(lo_c * s), float(hi_c * s))
+    lo, hi = _with_margin(*found)
+    first, check, found_check = found, None, None
+    if s >= 2 * AUTO_CHECK_SCALE and d.size >= 16:
+        # the check: 1/AUTO_CHECK_SCALE size over lo .. hi + AUTO_CHECK_WIDEN x the span
+        s2 = AUTO_CHECK_SCALE
+        w_lo = max(lo, lo_c * s) // s2  # within the first pass's window
+        w_hi = -(-min(hi + AUTO_CHECK_WIDEN * (hi - lo), hi_c * s) // s2)
+        check = (w_lo * s2, w_hi * s2)
+        d2, _ = _coarse_pass(matcher, I_L, I_R, s2, (int(w_lo), int(w_hi)))
+        if d2.size >= 16:
+            f2 = found_check = tuple(float(q) for q in np.quantile(d2, [AUTO_TRIM, 1.0 - AUTO_TRIM]))
+            found = (min(found[0], f2[0]), max(found[1], f2[1]))
+            lo2, hi2 = _with_margin(*f2)
+            lo, hi = min(lo, lo2), max(hi, hi2)
     # within what the image allows: fewer levels than the width, some pixel with a match
     wcrop = Wi - 2 * matcher.margin
     lo = max(lo, -(wcrop - 1))
@@ -275,4 +305,6 @@ def choose_range(matcher, I_L, I_R) -> dict:
     if hi <= lo:
         hi = lo + 1
     return {"range": (int(lo), int(hi)), "found": found, "scale": s, "window": (lo_c * s, hi_c * s),
-            "consistent": used, "seconds": time.perf_counter() - t0}
+            "consistent": used, "check": check, "check_scale": AUTO_CHECK_SCALE if check else None,
+            "found_first": first, "found_check": found_check,
+            "seconds": time.perf_counter() - t0}
