@@ -36,10 +36,11 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, InputWarning
 
 #: Cost of a cell whose left or right pixel is padding: the largest value of
 #: every matching cost (census, paper, acrt: [0, 1]; fst: -cos in [-1, 1]).
@@ -52,12 +53,16 @@ AUTO_SCALE = 4
 AUTO_WINDOW = (0.25, 0.5)
 #: Fraction of the coarse pass's consistent pixels left out at each end.
 AUTO_TRIM = 0.0005
-#: Margin added on each side: max(AUTO_MARGIN[0] px, AUTO_MARGIN[1] x the span).
-AUTO_MARGIN = (16, 0.2)
+#: Margin added on each side of the range found: max(AUTO_MARGIN[0] px,
+#: AUTO_MARGIN[1] x the span).
+AUTO_MARGIN = (8, 0.2)
 #: The check: a second pass at 1/AUTO_CHECK_SCALE size (when the first ran at
-#: 1/4 or smaller) over the first range with AUTO_CHECK_WIDEN x its span added
-#: above it (nearer), where thin near structures lost at 1/4 size lie.
+#: 1/4 or smaller) over the first pass's extremes widened by
+#: max(AUTO_CHECK_MARGIN[0] px, AUTO_CHECK_MARGIN[1] x the span) on each side,
+#: with that window's width again added above it (nearer): where thin near
+#: structures lost at 1/4 size lie.
 AUTO_CHECK_SCALE = 2
+AUTO_CHECK_MARGIN = (16, 0.2)
 AUTO_CHECK_WIDEN = 1
 
 
@@ -254,16 +259,19 @@ def _coarse_pass(matcher, I_L, I_R, s, window):
     else:
         L, R = I_L, I_R
     coarse = matcher._coarse_matcher()
-    res = coarse.compute(L, R, confidence=True, disparity_range=window)
+    with warnings.catch_warnings():  # a pass over a window that leaves most pixels out looks "swapped":
+        warnings.simplefilter("ignore", InputWarning)  # the full-size match says what applies
+        res = coarse.compute(L, R, confidence=True, disparity_range=window)
     m = coarse.margin
     d = res.disparity[m:-m, m:-m]
     ok = (res.labels[m:-m, m:-m] == 0) & np.isfinite(d)
     return np.float32(s) * d[ok], (float(ok.mean()) if ok.size else 0.0)
 
 
-def _with_margin(lo, hi):
-    margin = max(AUTO_MARGIN[0], AUTO_MARGIN[1] * (hi - lo))
-    return math.floor(lo - margin), math.ceil(hi + margin)
+def _with_margin(lo, hi, margin=None):
+    px, frac = AUTO_MARGIN if margin is None else margin
+    m = max(px, frac * (hi - lo))
+    return math.floor(lo - m), math.ceil(hi + m)
 
 
 def choose_range(matcher, I_L, I_R) -> dict:
@@ -284,20 +292,20 @@ def choose_range(matcher, I_L, I_R) -> dict:
         found = tuple(float(q) for q in np.quantile(d, [AUTO_TRIM, 1.0 - AUTO_TRIM]))
     else:  # nothing consistent: the whole coarse window
         found = (float(lo_c * s), float(hi_c * s))
-    lo, hi = _with_margin(*found)
     first, check, found_check = found, None, None
     if s >= 2 * AUTO_CHECK_SCALE and d.size >= 16:
-        # the check: 1/AUTO_CHECK_SCALE size over lo .. hi + AUTO_CHECK_WIDEN x the span
+        # the check: 1/AUTO_CHECK_SCALE size over the first extremes with AUTO_CHECK_MARGIN,
+        # plus AUTO_CHECK_WIDEN x that width above (within the first pass's window)
         s2 = AUTO_CHECK_SCALE
-        w_lo = max(lo, lo_c * s) // s2  # within the first pass's window
-        w_hi = -(-min(hi + AUTO_CHECK_WIDEN * (hi - lo), hi_c * s) // s2)
-        check = (w_lo * s2, w_hi * s2)
+        c_lo, c_hi = _with_margin(*found, AUTO_CHECK_MARGIN)
+        w_lo = max(c_lo, lo_c * s) // s2
+        w_hi = -(-min(c_hi + AUTO_CHECK_WIDEN * (c_hi - c_lo), hi_c * s) // s2)
+        check = (int(w_lo * s2), int(w_hi * s2))
         d2, _ = _coarse_pass(matcher, I_L, I_R, s2, (int(w_lo), int(w_hi)))
         if d2.size >= 16:
-            f2 = found_check = tuple(float(q) for q in np.quantile(d2, [AUTO_TRIM, 1.0 - AUTO_TRIM]))
-            found = (min(found[0], f2[0]), max(found[1], f2[1]))
-            lo2, hi2 = _with_margin(*f2)
-            lo, hi = min(lo, lo2), max(hi, hi2)
+            found_check = tuple(float(q) for q in np.quantile(d2, [AUTO_TRIM, 1.0 - AUTO_TRIM]))
+            found = (min(found[0], found_check[0]), max(found[1], found_check[1]))
+    lo, hi = _with_margin(*found)
     # within what the image allows: fewer levels than the width, some pixel with a match
     wcrop = Wi - 2 * matcher.margin
     lo = max(lo, -(wcrop - 1))
