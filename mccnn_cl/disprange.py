@@ -29,7 +29,11 @@ is 0.  With M = 0 none of this runs (the method is unchanged, bit for bit).
 The automatic range (:func:`choose_range`) runs the census stereo method at
 1/:data:`AUTO_SCALE` resolution over a wide window of both signs and takes
 the disparities of the pixels that pass the left-right check, trimmed by
-:data:`AUTO_TRIM` on each side, widened by :data:`AUTO_MARGIN`.
+:data:`AUTO_TRIM` on each side.  Structures a few pixels wide vanish at that
+size (near branches, poles), and near is the side they lose, so a check at
+1/:data:`AUTO_CHECK_SCALE` size searches those extremes widened by
+:data:`AUTO_CHECK_MARGIN` plus that window's width again above them; the
+extremes of both passes, widened by :data:`AUTO_MARGIN`, are the range.
 """
 
 from __future__ import annotations
@@ -278,10 +282,11 @@ def choose_range(matcher, I_L, I_R) -> dict:
     """The automatic range of one pair (gray float32 [0, 1] images).
 
     Returns ``{"range": (lo, hi), "found": the trimmed extremes before the
-    margin (full-size px), "scale", "window": the coarse window (full-size px),
-    "consistent": fraction of coarse pixels used, "check": the second pass's
-    window (full-size px; None when the first ran at 1/2 size or finer),
-    "seconds"}``."""
+    margin (full-size px, both passes), "scale", "window": the first pass's
+    window (full-size px), "consistent": fraction of its pixels used,
+    "check": the check's window (full-size px; None when the first pass ran
+    at 1/2 size or finer), "check_scale", "found_first", "found_check": each
+    pass's extremes, "seconds"}``."""
     t0 = time.perf_counter()
     Hi, Wi = I_L.shape
     s = coarse_scale(I_L.shape)
