@@ -311,6 +311,8 @@ def choose_range(matcher, I_L, I_R) -> dict:
             found_check = tuple(float(q) for q in np.quantile(d2, [AUTO_TRIM, 1.0 - AUTO_TRIM]))
             found = (min(found[0], found_check[0]), max(found[1], found_check[1]))
     lo, hi = _with_margin(*found)
+    if found[0] >= 0:  # no negative disparity found: the margin stops at 0 (a parallel rig's are >= 0)
+        lo = max(lo, 0)
     # within what the image allows: fewer levels than the width, some pixel with a match
     wcrop = Wi - 2 * matcher.margin
     lo = max(lo, -(wcrop - 1))

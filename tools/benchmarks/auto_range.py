@@ -6,6 +6,7 @@ range; one JSON line per pair, appended to OUT.jsonl as it is measured (a
 rerun skips the pairs OUT.jsonl already holds) and printed.
 
     MEM_GIB=2 python tools/benchmarks/auto_range.py census|WEIGHTS OUT.jsonl [family,...]
+    python tools/benchmarks/auto_range.py table OUT.jsonl    # the per-family table (markdown)
 
 Families: kitti2012, kitti2015, middlebury, middeval3, eth3d (every labeled
 pair :func:`mccnn_cl.evaluation.datasets.discover` finds; the stated range is
@@ -20,6 +21,56 @@ from mccnn_cl import StereoMatcher
 from mccnn_cl.opencl.context import ClContext
 from mccnn_cl.evaluation.datasets import discover, to_gray_u8 as to_gray
 from mccnn_cl.evaluation.scoring import default_range
+
+NAMES = {"kitti2012": "KITTI 2012", "kitti2015": "KITTI 2015", "middlebury": "Middlebury 2001–2006",
+         "middeval3": "MiddEval3 (quarter)", "eth3d": "ETH3D two-view"}
+
+
+def table(rows):
+    """Markdown: one line per family, then the whole set."""
+    def rng(a, b):
+        return f"{a}–{b}" if a != b else f"{a}"
+    out = ["| family (pairs) | stated range | auto range (levels) | error, stated | error, auto | worst pair Δ "
+           "| CPU s stated | CPU s auto (coarse passes) | GT outside the auto range |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for fam in NAMES:
+        rs = [r for r in rows if r["family"] == fam]
+        if not rs:
+            continue
+        n = len(rs)
+        his = sorted({r["stated"][1] for r in rs})
+        stated = f"0 … {rng(his[0], his[-1])}"
+        lv = [r["auto"][1] - r["auto"][0] + 1 for r in rs]
+        w = max(rs, key=lambda r: abs(r["err_auto"] - r["err_stated"]))
+        metric = "3-px" if fam.startswith("kitti") else "bad-2"
+        outside = [r["outside"] for r in rs]
+        out.append(f"| {NAMES[fam]} ({n}) | {stated} | {min(r['auto'][0] for r in rs)} … "
+                   f"{max(r['auto'][1] for r in rs)} ({min(lv)}–{max(lv)}) "
+                   f"| {sum(r['err_stated'] for r in rs) / n:.2f} % ({metric}) "
+                   f"| {sum(r['err_auto'] for r in rs) / n:.2f} % "
+                   f"| {w['err_auto'] - w['err_stated']:+.2f} ({w['pair'].split('/')[-1]}) "
+                   f"| {sum(r['cpu_stated'] for r in rs):.1f} | {sum(r['cpu_auto'] for r in rs):.1f} "
+                   f"({sum(r['cpu_coarse'] for r in rs):.1f}) "
+                   f"| {sum(outside) / n:.3f} % mean, {max(outside):.2f} % max; "
+                   f"{sum(o > 0 for o in outside)} of {n} pairs |")
+    cs, ca = sum(r["cpu_stated"] for r in rows), sum(r["cpu_auto"] for r in rows)
+    ws, wa = sum(r["t_stated"] for r in rows), sum(r["t_auto"] for r in rows)
+    out.append(f"\n{len(rows)} pairs: CPU s {cs:.1f} stated, {ca:.1f} auto ({100 * ca / cs:.0f} %), coarse passes "
+               f"{sum(r['cpu_coarse'] for r in rows):.1f}; wall s {ws:.1f} / {wa:.1f}; pairs within 0.3 points: "
+               f"{sum(abs(r['err_auto'] - r['err_stated']) <= 0.3 for r in rows)}, worse by more: "
+               f"{sum(r['err_auto'] - r['err_stated'] > 0.3 for r in rows)}")
+    for r in rows:
+        d = r["err_auto"] - r["err_stated"]
+        if abs(d) > 0.3 or r["outside"] > 0.1:
+            out.append(f"exception {r['pair']}: {r['stated']} -> {r['auto']}, {r['err_stated']:.2f} -> "
+                       f"{r['err_auto']:.2f} ({d:+.2f}), GT {r['gt_min']:.1f} … {r['gt_max']:.1f}, outside "
+                       f"{r['outside']:.3f} % (below {r['below']:.3f}, above {r['above']:.3f})")
+    return "\n".join(out)
+
+
+if len(sys.argv) > 2 and sys.argv[1] == "table":
+    print(table([json.loads(line) for line in Path(sys.argv[2]).read_text().splitlines() if line.strip()]))
+    sys.exit(0)
 
 SD = Path(os.environ.get("MCCNN_SHARED_DATA", Path(__file__).resolve().parents[2] / ".." / "shared" / "data"))
 FAMILIES = ("kitti2012", "kitti2015", "middlebury", "middeval3", "eth3d")
