@@ -33,7 +33,8 @@ the disparities of the pixels that pass the left-right check, trimmed by
 size (near branches, poles), and near is the side they lose, so a check at
 1/:data:`AUTO_CHECK_SCALE` size searches those extremes widened by
 :data:`AUTO_CHECK_MARGIN` plus that window's width again above them; the
-extremes of both passes, widened by :data:`AUTO_MARGIN`, are the range.
+extremes of both passes, widened by :data:`AUTO_MARGIN` below and
+:data:`AUTO_MARGIN_NEAR` above, are the range.
 """
 
 from __future__ import annotations
@@ -57,9 +58,10 @@ AUTO_SCALE = 4
 AUTO_WINDOW = (0.25, 0.5)
 #: Fraction of the coarse pass's consistent pixels left out at each end.
 AUTO_TRIM = 0.0005
-#: Margin added on each side of the range found: max(AUTO_MARGIN[0] px,
-#: AUTO_MARGIN[1] x the span).
+#: Margin added below the range found (the far side): max(AUTO_MARGIN[0] px,
+#: AUTO_MARGIN[1] x the span); above it (the near side) AUTO_MARGIN_NEAR.
 AUTO_MARGIN = (8, 0.2)
+AUTO_MARGIN_NEAR = (16, 0.2)
 #: The check: a second pass at 1/AUTO_CHECK_SCALE size (when the first ran at
 #: 1/4 or smaller) over the first pass's extremes widened by
 #: max(AUTO_CHECK_MARGIN[0] px, AUTO_CHECK_MARGIN[1] x the span) on each side,
@@ -272,10 +274,10 @@ def _coarse_pass(matcher, I_L, I_R, s, window):
     return np.float32(s) * d[ok], (float(ok.mean()) if ok.size else 0.0)
 
 
-def _with_margin(lo, hi, margin=None):
-    px, frac = AUTO_MARGIN if margin is None else margin
-    m = max(px, frac * (hi - lo))
-    return math.floor(lo - m), math.ceil(hi + m)
+def _with_margin(lo, hi, below, above):
+    """``(lo, hi)`` widened by max(px, frac x the span) below and above (``(px, frac)`` each)."""
+    return (math.floor(lo - max(below[0], below[1] * (hi - lo))),
+            math.ceil(hi + max(above[0], above[1] * (hi - lo))))
 
 
 def choose_range(matcher, I_L, I_R) -> dict:
@@ -302,7 +304,7 @@ def choose_range(matcher, I_L, I_R) -> dict:
         # the check: 1/AUTO_CHECK_SCALE size over the first extremes with AUTO_CHECK_MARGIN,
         # plus AUTO_CHECK_WIDEN x that width above (within the first pass's window)
         s2 = AUTO_CHECK_SCALE
-        c_lo, c_hi = _with_margin(*found, AUTO_CHECK_MARGIN)
+        c_lo, c_hi = _with_margin(*found, AUTO_CHECK_MARGIN, AUTO_CHECK_MARGIN)
         w_lo = max(c_lo, lo_c * s) // s2
         w_hi = -(-min(c_hi + AUTO_CHECK_WIDEN * (c_hi - c_lo), hi_c * s) // s2)
         check = (int(w_lo * s2), int(w_hi * s2))
@@ -310,7 +312,7 @@ def choose_range(matcher, I_L, I_R) -> dict:
         if d2.size >= 16:
             found_check = tuple(float(q) for q in np.quantile(d2, [AUTO_TRIM, 1.0 - AUTO_TRIM]))
             found = (min(found[0], found_check[0]), max(found[1], found_check[1]))
-    lo, hi = _with_margin(*found)
+    lo, hi = _with_margin(*found, AUTO_MARGIN, AUTO_MARGIN_NEAR)
     if found[0] >= 0:  # no negative disparity found: the margin stops at 0 (a parallel rig's are >= 0)
         lo = max(lo, 0)
     # within what the image allows: fewer levels than the width, some pixel with a match
