@@ -357,7 +357,10 @@ def done_line(job, result) -> str:
     report), valid fraction, seconds."""
     from .cli.common import _range_text
     lo, hi = result.min_disp, result.min_disp + result.max_disp - 1
-    levels = f"{result.max_disp} disparities" if (lo == 0 and result.auto is None) else _range_text(lo, hi, result.auto)
+    if lo == 0 and result.auto is None:
+        levels = f"{result.max_disp} disparities"
+    else:
+        levels = _range_text(lo, hi, result.auto)
     fin = np.isfinite(result.disparity)
     return (f"{job.out}: {result.disparity.shape[1]}x{result.disparity.shape[0]}, {levels}, "
             f"{fin.mean():.1%} valid, {result.seconds:.2f} s")

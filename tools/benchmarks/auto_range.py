@@ -30,8 +30,8 @@ def table(rows):
     """Markdown: one line per family, then the whole set."""
     def rng(a, b):
         return f"{a}–{b}" if a != b else f"{a}"
-    out = ["| family (pairs) | stated range | auto range (levels) | error, stated | error, auto | Δ per pair (min … max) "
-           "| CPU s stated | CPU s auto (coarse passes) | GT outside the auto range |",
+    out = ["| family (pairs) | stated range | auto range (levels) | error, stated | error, auto "
+           "| Δ per pair (min … max) | CPU s stated | CPU s auto (coarse passes) | GT outside the auto range |",
            "|---|---|---|---|---|---|---|---|---|"]
     for fam in NAMES:
         rs = [r for r in rows if r["family"] == fam]
@@ -56,7 +56,8 @@ def table(rows):
     cs, ca = sum(r["cpu_stated"] for r in rows), sum(r["cpu_auto"] for r in rows)
     ws, wa = sum(r["t_stated"] for r in rows), sum(r["t_auto"] for r in rows)
     loads = [r["load"] for r in rows]
-    out.append(f"\n{len(rows)} pairs (load average {min(loads):.1f}–{max(loads):.1f}): CPU s {cs:.1f} stated, {ca:.1f} auto ({100 * ca / cs:.0f} %), coarse passes "
+    out.append(f"\n{len(rows)} pairs (load average {min(loads):.1f}–{max(loads):.1f}): CPU s {cs:.1f} stated, "
+               f"{ca:.1f} auto ({100 * ca / cs:.0f} %), coarse passes "
                f"{sum(r['cpu_coarse'] for r in rows):.1f}; wall s {ws:.1f} / {wa:.1f}; pairs within 0.3 points: "
                f"{sum(abs(r['err_auto'] - r['err_stated']) <= 0.3 for r in rows)}, worse by more: "
                f"{sum(r['err_auto'] - r['err_stated'] > 0.3 for r in rows)}")
