@@ -95,6 +95,7 @@ class PairResult:
     labels: np.ndarray | None = None
     where: str = ""
     min_disp: int = 0
+    auto: dict | None = None  # the automatic range's report (--disp-range auto)
 
 
 @dataclass
@@ -102,6 +103,7 @@ class Summary:
     done: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
     failed: list = field(default_factory=list)   # (name, reason, is_input_error)
+    ranges: dict = field(default_factory=dict)   # name -> (min, max) searched
 
     def report(self, out=None) -> None:
         out = out or sys.stdout
@@ -303,45 +305,65 @@ def plan_outputs(jobs, args):
 
 # -- one pair -----------------------------------------------------------------
 
-def default_max_disp(args, calib):
-    """D, the number of levels: ``--max-disp`` (or ``--disp-range``'s), else the
-    calibration's ndisp, else 228.  A batch searches one stated range for every
-    pair: ``--disp-range auto`` is refused (it chooses per pair; match those one at
-    a time)."""
+def batch_range(args, calib):
+    """The range every pair of the batch searches, from one parse of the
+    options: ``(M, D)`` (``--min-disp``/``--max-disp`` or ``--disp-range
+    MIN:MAX``; D by default the calibration's ndisp, else 228), or ``"auto"``
+    (``--disp-range auto``: each pair gets its own range from the coarse
+    passes, :func:`mccnn_cl.disprange.choose_range`)."""
     from .cli.common import _range_request
     request = _range_request(args)
     if request == "auto":
-        raise InputError("--disp-range auto chooses a range per pair and runs one pair at a time; "
-                         "give a batch a stated range (--min-disp M --max-disp D, or --disp-range MIN:MAX)")
-    max_disp = request[1]
-    if max_disp is not None:
-        return max_disp
-    return calib.ndisp if (calib is not None and calib.ndisp) else 228
-
-
-def min_disp(args) -> int:
-    """M, the range's first disparity (``--min-disp`` or ``--disp-range``'s; 0 by default)."""
-    from .cli.common import _range_request
-    request = _range_request(args)
-    return 0 if request == "auto" else int(request[0] or 0)
+        return "auto"
+    low, levels = request
+    if levels is None:
+        levels = calib.ndisp if (calib is not None and calib.ndisp) else 228
+    return int(low or 0), int(levels)
 
 
 def compute_pair(job, matcher_for, max_disp, want_confidence) -> PairResult:
-    """Read and match one pair; ``matcher_for(max_disp)`` gives the (kept) matcher."""
-    from .cli.common import _gray
+    """Read and match one pair; ``matcher_for(max_disp)`` gives the (kept)
+    matcher, ``max_disp`` D or ``"auto"`` (the pair's own range, chosen here;
+    the result's ``min_disp``/``max_disp`` are that range and ``auto`` what the
+    coarse passes found)."""
+    from .cli.common import _auto_output_range, _gray
     from .io import read_image
     from .validate import check_pair, patch_size
     left_img, right_img = read_image(job.left), read_image(job.right)
     matcher = matcher_for(max_disp)
-    check_pair(left_img, right_img, max_disp, patch_size(matcher.weights), (job.left, job.right),
-               min_disparity=matcher.min_disparity)
+    names, patch = (job.left, job.right), patch_size(matcher.weights)
+    auto = rng = None
+    if max_disp == "auto":
+        check_pair(left_img, right_img, 1, patch, names)
+    else:
+        check_pair(left_img, right_img, max_disp, patch, names, min_disparity=matcher.min_disparity)
     t0 = time.perf_counter()
-    res = matcher.compute(_gray(left_img), _gray(right_img), confidence=want_confidence)
+    gray_l, gray_r = _gray(left_img), _gray(right_img)
+    if max_disp == "auto":
+        auto = matcher.choose_range(gray_l, gray_r)
+        rng = _auto_output_range(job.out, auto)
+        lo, levels = rng[0], rng[1] - rng[0] + 1
+    else:
+        lo, levels = matcher.min_disparity, max_disp
+    res = matcher.compute(gray_l, gray_r, confidence=want_confidence, disparity_range=rng)
     seconds = time.perf_counter() - t0
     if want_confidence:
-        return PairResult(res.disparity, max_disp, seconds, res.confidence, res.labels,
-                          min_disp=matcher.min_disparity)
-    return PairResult(res, max_disp, seconds, min_disp=matcher.min_disparity)
+        return PairResult(res.disparity, levels, seconds, res.confidence, res.labels, min_disp=lo, auto=auto)
+    return PairResult(res, levels, seconds, min_disp=lo, auto=auto)
+
+
+def done_line(job, result) -> str:
+    """The line said for a matched pair: size, range (with the automatic range's
+    report), valid fraction, seconds."""
+    from .cli.common import _range_text
+    lo, hi = result.min_disp, result.min_disp + result.max_disp - 1
+    if lo == 0 and result.auto is None:
+        levels = f"{result.max_disp} disparities"
+    else:
+        levels = _range_text(lo, hi, result.auto)
+    fin = np.isfinite(result.disparity)
+    return (f"{job.out}: {result.disparity.shape[1]}x{result.disparity.shape[0]}, {levels}, "
+            f"{fin.mean():.1%} valid, {result.seconds:.2f} s")
 
 
 def write_pair(job, result, args, calib) -> None:
@@ -404,6 +426,7 @@ def run_batch(args) -> int:
     summary = Summary(skipped=[j.name for j in skipped])
     weights = _load_weights(args)
     want = args.confidence is not None or args.labels is not None
+    rng = batch_range(args, calib)
     matchers, ctx = {}, None
 
     def matcher_for(max_disp):
@@ -412,14 +435,15 @@ def run_batch(args) -> int:
             from .opencl.context import ClContext
             if ctx is None:
                 ctx = ClContext(args.device)
-            matchers[max_disp] = _make_matcher(args, max_disp, weights, ctx=ctx, min_disparity=min_disp(args))
+            low = 0 if max_disp == "auto" else rng[0]
+            matchers[max_disp] = _make_matcher(args, max_disp, weights, ctx=ctx, min_disparity=low)
         return matchers[max_disp]
 
     from tqdm import tqdm
     with tqdm(total=len(todo), unit="pair", desc="matching", disable=None) as bar:
         for job in todo:
             try:
-                result = compute_pair(job, matcher_for, default_max_disp(args, calib), want)
+                result = compute_pair(job, matcher_for, "auto" if rng == "auto" else rng[1], want)
                 write_pair(job, result, args, calib)
             except (KeyboardInterrupt, SystemExit):
                 raise
@@ -429,10 +453,9 @@ def run_batch(args) -> int:
                 bar.write(f"{job.name}: failed: {reason}")
             else:
                 summary.done.append(job.name)
-                if args.verbose:
-                    fin = np.isfinite(result.disparity)
-                    bar.write(f"{job.out}: {result.disparity.shape[1]}x{result.disparity.shape[0]}, "
-                              f"{result.max_disp} disparities, {fin.mean():.1%} valid, {result.seconds:.2f} s")
+                summary.ranges[job.name] = (result.min_disp, result.min_disp + result.max_disp - 1)
+                if args.verbose or result.auto is not None:  # an automatic range is always said
+                    bar.write(done_line(job, result))
             bar.update(1)
     summary.report()
     if summary.done:

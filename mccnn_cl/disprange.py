@@ -29,17 +29,23 @@ is 0.  With M = 0 none of this runs (the method is unchanged, bit for bit).
 The automatic range (:func:`choose_range`) runs the census stereo method at
 1/:data:`AUTO_SCALE` resolution over a wide window of both signs and takes
 the disparities of the pixels that pass the left-right check, trimmed by
-:data:`AUTO_TRIM` on each side, widened by :data:`AUTO_MARGIN`.
+:data:`AUTO_TRIM` on each side.  Structures a few pixels wide vanish at that
+size (near branches, poles), and near is the side they lose, so a check at
+1/:data:`AUTO_CHECK_SCALE` size searches those extremes widened by
+:data:`AUTO_CHECK_MARGIN` plus that window's width again above them; the
+extremes of both passes, widened by :data:`AUTO_MARGIN` below and
+:data:`AUTO_MARGIN_NEAR` above, are the range.
 """
 
 from __future__ import annotations
 
 import math
 import time
+import warnings
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, InputWarning
 
 #: Cost of a cell whose left or right pixel is padding: the largest value of
 #: every matching cost (census, paper, acrt: [0, 1]; fst: -cos in [-1, 1]).
@@ -52,8 +58,18 @@ AUTO_SCALE = 4
 AUTO_WINDOW = (0.25, 0.5)
 #: Fraction of the coarse pass's consistent pixels left out at each end.
 AUTO_TRIM = 0.0005
-#: Margin added on each side: max(AUTO_MARGIN[0] px, AUTO_MARGIN[1] x the span).
-AUTO_MARGIN = (16, 0.2)
+#: Margin added below the range found (the far side): max(AUTO_MARGIN[0] px,
+#: AUTO_MARGIN[1] x the span); above it (the near side) AUTO_MARGIN_NEAR.
+AUTO_MARGIN = (8, 0.2)
+AUTO_MARGIN_NEAR = (16, 0.2)
+#: The check: a second pass at 1/AUTO_CHECK_SCALE size (when the first ran at
+#: 1/4 or smaller) over the first pass's extremes widened by
+#: max(AUTO_CHECK_MARGIN[0] px, AUTO_CHECK_MARGIN[1] x the span) on each side,
+#: with that window's width again added above it (nearer): where thin near
+#: structures lost at 1/4 size lie.
+AUTO_CHECK_SCALE = 2
+AUTO_CHECK_MARGIN = (16, 0.2)
+AUTO_CHECK_WIDEN = 1
 
 
 def check_min_disparity(value) -> int:
@@ -235,39 +251,70 @@ def coarse_scale(shape) -> int:
     return s
 
 
-def choose_range(matcher, I_L, I_R) -> dict:
-    """The automatic range of one pair (gray float32 [0, 1] images).
-
-    Returns ``{"range": (lo, hi), "found": the trimmed extremes before the
-    margin (full-size px), "scale", "window": the coarse window (full-size px),
-    "consistent": fraction of coarse pixels used, "seconds"}``."""
+def _coarse_pass(matcher, I_L, I_R, s, window):
+    """The census stereo method at 1/s size over ``window`` (coarse px): the
+    disparities (full-size px) of the pixels that pass the left-right check,
+    and the fraction of such pixels."""
     import cv2
 
-    t0 = time.perf_counter()
     Hi, Wi = I_L.shape
-    s = coarse_scale(I_L.shape)
     if s > 1:
         size = (Wi // s, Hi // s)
         L = cv2.resize(I_L, size, interpolation=cv2.INTER_AREA)
         R = cv2.resize(I_R, size, interpolation=cv2.INTER_AREA)
     else:
         L, R = I_L, I_R
-    wc = L.shape[1]
-    lo_c, hi_c = -int(wc * AUTO_WINDOW[0]), int(wc * AUTO_WINDOW[1])
     coarse = matcher._coarse_matcher()
-    res = coarse.compute(L, R, confidence=True, disparity_range=(lo_c, hi_c))
+    with warnings.catch_warnings():  # a pass over a window that leaves most pixels out looks "swapped":
+        warnings.simplefilter("ignore", InputWarning)  # the full-size match says what applies
+        res = coarse.compute(L, R, confidence=True, disparity_range=window)
     m = coarse.margin
     d = res.disparity[m:-m, m:-m]
     ok = (res.labels[m:-m, m:-m] == 0) & np.isfinite(d)
-    used = float(ok.mean()) if ok.size else 0.0
-    if ok.sum() >= 16:
-        q_lo, q_hi = np.quantile(d[ok], [AUTO_TRIM, 1.0 - AUTO_TRIM])
+    return np.float32(s) * d[ok], (float(ok.mean()) if ok.size else 0.0)
+
+
+def _with_margin(lo, hi, below, above):
+    """``(lo, hi)`` widened by max(px, frac x the span) below and above (``(px, frac)`` each)."""
+    return (math.floor(lo - max(below[0], below[1] * (hi - lo))),
+            math.ceil(hi + max(above[0], above[1] * (hi - lo))))
+
+
+def choose_range(matcher, I_L, I_R) -> dict:
+    """The automatic range of one pair (gray float32 [0, 1] images).
+
+    Returns ``{"range": (lo, hi), "found": the trimmed extremes before the
+    margin (full-size px, both passes), "scale", "window": the first pass's
+    window (full-size px), "consistent": fraction of its pixels used,
+    "check": the check's window (full-size px; None when the first pass ran
+    at 1/2 size or finer), "check_scale", "found_first", "found_check": each
+    pass's extremes, "seconds"}``."""
+    t0 = time.perf_counter()
+    Hi, Wi = I_L.shape
+    s = coarse_scale(I_L.shape)
+    wc = Wi // s
+    lo_c, hi_c = -int(wc * AUTO_WINDOW[0]), int(wc * AUTO_WINDOW[1])
+    d, used = _coarse_pass(matcher, I_L, I_R, s, (lo_c, hi_c))
+    if d.size >= 16:
+        found = tuple(float(q) for q in np.quantile(d, [AUTO_TRIM, 1.0 - AUTO_TRIM]))
     else:  # nothing consistent: the whole coarse window
-        q_lo, q_hi = lo_c, hi_c
-    lo, hi = s * float(q_lo), s * float(q_hi)
-    found = (lo, hi)
-    margin = max(AUTO_MARGIN[0], AUTO_MARGIN[1] * (hi - lo))
-    lo, hi = math.floor(lo - margin), math.ceil(hi + margin)
+        found = (float(lo_c * s), float(hi_c * s))
+    first, check, found_check = found, None, None
+    if s >= 2 * AUTO_CHECK_SCALE and d.size >= 16:
+        # the check: 1/AUTO_CHECK_SCALE size over the first extremes with AUTO_CHECK_MARGIN,
+        # plus AUTO_CHECK_WIDEN x that width above (within the first pass's window)
+        s2 = AUTO_CHECK_SCALE
+        c_lo, c_hi = _with_margin(*found, AUTO_CHECK_MARGIN, AUTO_CHECK_MARGIN)
+        w_lo = max(c_lo, lo_c * s) // s2
+        w_hi = -(-min(c_hi + AUTO_CHECK_WIDEN * (c_hi - c_lo), hi_c * s) // s2)
+        check = (int(w_lo * s2), int(w_hi * s2))
+        d2, _ = _coarse_pass(matcher, I_L, I_R, s2, (int(w_lo), int(w_hi)))
+        if d2.size >= 16:
+            found_check = tuple(float(q) for q in np.quantile(d2, [AUTO_TRIM, 1.0 - AUTO_TRIM]))
+            found = (min(found[0], found_check[0]), max(found[1], found_check[1]))
+    lo, hi = _with_margin(*found, AUTO_MARGIN, AUTO_MARGIN_NEAR)
+    if found[0] >= 0:  # no negative disparity found: the margin stops at 0 (a parallel rig's are >= 0)
+        lo = max(lo, 0)
     # within what the image allows: fewer levels than the width, some pixel with a match
     wcrop = Wi - 2 * matcher.margin
     lo = max(lo, -(wcrop - 1))
@@ -275,4 +322,6 @@ def choose_range(matcher, I_L, I_R) -> dict:
     if hi <= lo:
         hi = lo + 1
     return {"range": (int(lo), int(hi)), "found": found, "scale": s, "window": (lo_c * s, hi_c * s),
-            "consistent": used, "seconds": time.perf_counter() - t0}
+            "consistent": used, "check": check, "check_scale": AUTO_CHECK_SCALE if check else None,
+            "found_first": first, "found_check": found_check,
+            "seconds": time.perf_counter() - t0}

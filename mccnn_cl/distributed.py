@@ -38,7 +38,7 @@ import threading
 
 import numpy as np
 
-from .batch import Job, PairResult, Summary, compute_pair, default_max_disp, describe_failure, write_pair
+from .batch import Job, PairResult, Summary, batch_range, compute_pair, describe_failure, done_line, write_pair
 from .errors import InputError
 
 log = logging.getLogger(__name__)
@@ -63,7 +63,7 @@ def matcher_config(cost="cnn", weights=None, device=None, memory_limit=None, vol
 
 
 def _key(config, max_disp):
-    return json.dumps(config, sort_keys=True, default=str), int(max_disp)
+    return json.dumps(config, sort_keys=True, default=str), (max_disp if max_disp == "auto" else int(max_disp))
 
 
 def worker_index():
@@ -91,7 +91,8 @@ def worker_device(spec=None, index=None):
 
 
 def _matcher(config, max_disp):
-    """This worker's kept matcher for ``config`` and ``max_disp`` (built on first use)."""
+    """This worker's kept matcher for ``config`` and ``max_disp`` (D, or "auto":
+    each pair its own range; built on first use)."""
     key = _key(config, max_disp)
     matcher = _MATCHERS.get(key)
     if matcher is None:
@@ -103,7 +104,8 @@ def _matcher(config, max_disp):
             info, reason = worker_device(config["device"], worker_index())
             log.info("worker %s: %s (%s)", worker_index(), info, reason)
             ctx = _CONTEXTS[dev_key] = ClContext(info.handle)
-        kwargs = dict(max_disparity=int(max_disp), device=ctx, cost=config["cost"],
+        kwargs = dict(max_disparity=max_disp if max_disp == "auto" else int(max_disp), device=ctx,
+                      cost=config["cost"],
                       volume_dtype=config["volume_dtype"], **config["hyper"])
         if config.get("min_disparity"):
             kwargs["min_disparity"] = config["min_disparity"]
@@ -263,10 +265,10 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
 
     from .io import read_image
     workers = max(1, n_workers(client))
-    if config.get("min_disparity"):
+    if config.get("min_disparity") or max_disp == "auto":
         if split_tiles:
             raise InputError("row tiles over several workers search disparities from 0: "
-                             "--split-tiles cannot be combined with --min-disp")
+                             "--split-tiles cannot be combined with --min-disp or --disp-range auto")
         split_tiles = False  # a range not starting at 0 runs whole pairs (StereoMatcher.compute's frame)
     if split_tiles is None:
         split_tiles = len(jobs) < workers
@@ -373,10 +375,10 @@ def run(args, single: bool) -> int:
         if not args.memory_limit > 0:
             raise InputError(f"--memory-limit must be a positive number of MiB, got {args.memory_limit:g}")
         limit = int(args.memory_limit * 2**20)
-    from .batch import min_disp
+    rng = batch_range(args, calib)
     config = matcher_config(args.cost, args.weights, args.device, limit, args.volume_dtype,
-                            min_disparity=min_disp(args), **_hyperparameters(args.hyper))
-    max_disp = default_max_disp(args, calib)
+                            min_disparity=0 if rng == "auto" else rng[0], **_hyperparameters(args.hyper))
+    max_disp = "auto" if rng == "auto" else rng[1]
     want = args.confidence is not None or args.labels is not None
     summary = Summary(skipped=[j.name for j in skipped])
     if todo:
@@ -397,10 +399,9 @@ def run(args, single: bool) -> int:
                         continue
                     write_pair(job, outcome, args, calib)
                     summary.done.append(job.name)
-                    if args.verbose or single:
-                        fin = np.isfinite(outcome.disparity)
-                        _say(f"{job.out}: {outcome.disparity.shape[1]}x{outcome.disparity.shape[0]}, "
-                             f"{outcome.max_disp} disparities, {fin.mean():.1%} valid, {outcome.where}")
+                    summary.ranges[job.name] = (outcome.min_disp, outcome.min_disp + outcome.max_disp - 1)
+                    if args.verbose or single or outcome.auto is not None:  # an automatic range is always said
+                        _say(f"{done_line(job, outcome)}, {outcome.where}")
         finally:
             if cluster is not None:
                 cluster.close()

@@ -121,7 +121,7 @@ class StereoResult:
     ``margin``: m, the offset of the cropped domain in the image.
     ``disparity_range``: ``(min, max)``, the disparities searched (inclusive;
     chosen per pair with ``max_disparity="auto"``), and ``auto``: what the
-    automatic range's coarse pass found (:func:`mccnn_cl.disprange.choose_range`),
+    automatic range's coarse passes found (:func:`mccnn_cl.disprange.choose_range`),
     None otherwise.  With a minimum disparity M != 0 every intermediate is
     in the image's frame as with M = 0 (volumes ``[D][H-2m][W-2m]``, level k
     = disparity M + k, NaN where the right pixel is outside the image; maps
@@ -178,7 +178,7 @@ class StereoMatcher:
         :attr:`params` shows the result.
     max_disparity : int or "auto"
         D, the number of disparity levels (disparities M .. M+D-1); 228 =
-        KITTI.  "auto": chosen per pair by a coarse pass
+        KITTI.  "auto": chosen per pair by coarse passes
         (:func:`mccnn_cl.disprange.choose_range`).
     device : None, str or ClContext
         OpenCL device spec (see :func:`mccnn_cl.opencl.context.select_device`) or a context.

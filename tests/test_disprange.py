@@ -290,6 +290,53 @@ def test_auto_finds_negative_range(ctx, shared_data):
     assert lo < 0 and np.mean((g[v] < lo) | (g[v] > hi)) < 0.005, (lo, hi, np.nanmin(g), np.nanmax(g))
 
 
+def _thin_bars(H=160, W=320, db=6, df=40, w=6, seed=0):
+    """A textured background at disparity db with vertical bars w px wide at df
+    in front (every 40 columns): 1.5 px wide at 1/4 size, 3 px at 1/2."""
+    rng = np.random.default_rng(seed)
+    B = cv2.GaussianBlur(rng.random((H, W + df)).astype(np.float32), (0, 0), 1.5)
+    B = (B - B.min()) / (B.max() - B.min())
+    F = cv2.GaussianBlur(rng.random((H, W)).astype(np.float32), (0, 0), 1.0)
+    F = 0.6 + 0.4 * (F - F.min()) / (F.max() - F.min())
+    L, R = B[:, :W].copy(), B[:, db:db + W].copy()  # L(x) = R(x - db)
+    for c in range(df + 20, W - 10, 40):
+        L[:, c:c + w] = F[:, c:c + w]
+        R[:, c - df:c - df + w] = F[:, c:c + w]  # L(x) = R(x - df) on the bars
+    return L, R
+
+
+def test_auto_check_keeps_thin_near_structures(ctx, monkeypatch):
+    """Thin near bars vanish at 1/4 size: the first pass alone (the rule without
+    the check) ends its range below them; the 1/2-size check brings them in."""
+    from mccnn_cl import disprange
+
+    db, df = 6, 40
+    L, R = _thin_bars(db=db, df=df)
+    m = StereoMatcher(cost="census", max_disparity="auto", device=ctx)
+    info = m.choose_range(L, R)
+    assert info["scale"] == 4 and info["check"] is not None
+    assert info["found_first"][1] < df - 20  # the first pass does not see the bars
+    assert info["range"][0] <= db and info["range"][1] >= df, info
+    monkeypatch.setattr(disprange, "AUTO_CHECK_SCALE", 4)  # no check: the first pass's range
+    alone = m.choose_range(L, R)
+    assert alone["check"] is None and alone["range"][1] < df, alone
+
+
+@pytest.mark.full_data
+def test_auto_covers_forest(ctx, shared_data):
+    """ETH3D forest_1s: thin near branches (ground truth up to 61 px, the bulk
+    below 23) that the 1/4-size pass loses; the chosen range holds them."""
+    from mccnn_cl.evaluation.datasets import load_eth3d, to_gray_u8
+
+    p = load_eth3d(shared_data / "eth3d/two_view_training/forest_1s")
+    m = StereoMatcher(cost="census", max_disparity="auto", device=ctx)
+    info = m.choose_range(to_gray_u8(p.left), to_gray_u8(p.right))
+    lo, hi = info["range"]
+    g = p.disp[np.isfinite(p.disp)]
+    assert np.mean(g > info["found_first"][1] + 16) > 0.02  # what the first pass alone would cut
+    assert np.mean((g < lo) | (g > hi)) < 0.001, (lo, hi)
+
+
 # -- bad input ----------------------------------------------------------------------
 def test_bad_ranges_api(ctx):
     rng = np.random.default_rng(1)

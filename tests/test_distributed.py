@@ -122,6 +122,52 @@ def test_unpartnered_names_refused(kitti, reference, cluster, tmp_path, capsys):
         assert not out.exists() or not os.listdir(out)
 
 
+def test_auto_range_per_pair(kitti, cluster, tmp_path, capsys):
+    """--disp-range auto in a batch: each pair gets its own range, said on a line per pair; each
+    map is StereoMatcher(max_disparity="auto")'s of the pair alone; the Dask path writes the same
+    bytes; --resume skips complete pairs; a PNG batch refuses only the pair with negative disparities."""
+    from mccnn_cl import StereoMatcher
+    from mccnn_cl.io import read_pfm
+    s = 40  # "shifted": the left image's first s columns and the right's last s dropped (d - s)
+    L, R = (read_image(kitti / f"image_{i}/{FRAMES[0]}_10.png") for i in (2, 3))
+    pairs = {"plain": (L, R), "shifted": (L[:, s:], R[:, :-s])}
+    for side in ("l", "r"):
+        (tmp_path / side).mkdir()
+    for name, (left, right) in pairs.items():
+        write_image(tmp_path / "l" / f"{name}.png", left)
+        write_image(tmp_path / "r" / f"{name}.png", right)
+    args = ["match", "-l", str(tmp_path / "l"), "-r", str(tmp_path / "r"), "--cost", "census", "--disp-range", "auto"]
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(args + ["--output-dir", str(a)]) == 0
+    so = capsys.readouterr().out
+    ranges = {}
+    for name, (left, right) in pairs.items():
+        res = StereoMatcher(cost="census", max_disparity="auto").compute(_gray(left), _gray(right), timings=True)
+        lo, hi = ranges[name] = res.disparity_range
+        assert f"{name}.pfm: {left.shape[1]}x{left.shape[0]}, disparities {lo}..{hi} (auto: coarse pass" in so
+        np.testing.assert_array_equal(read_pfm(a / f"{name}.pfm"), np.where(np.isfinite(res.disparity),
+                                                                             res.disparity, np.inf))
+    assert ranges["shifted"][0] < 0 and ranges["plain"] != ranges["shifted"]
+    assert main(args + ["--output-dir", str(b), "--scheduler", cluster.scheduler.address]) == 0
+    so = capsys.readouterr().out
+    assert files(a) == files(b)  # byte for byte
+    assert all(f"{n}.pfm: " in so and f"disparities {lo}..{hi} (auto: " in so for n, (lo, hi) in ranges.items())
+    before = (a / "plain.pfm").stat().st_mtime_ns
+    os.unlink(a / "shifted.pfm")
+    assert main(args + ["--output-dir", str(a), "--resume"]) == 0
+    assert "done 1, skipped 1" in capsys.readouterr().out
+    assert files(a) == files(b) and (a / "plain.pfm").stat().st_mtime_ns == before
+    # a KITTI 16-bit PNG: the plain pair's range starts at 0 at the lowest; the shifted pair is refused
+    c = tmp_path / "c"
+    assert main(args + ["--output-dir", str(c), "--format", "png"]) == 2
+    so = capsys.readouterr().out
+    assert "failed shifted:" in so and "negative disparities" in so and os.listdir(c) == ["plain.png"]
+    assert f"disparities {max(ranges['plain'][0], 0)}..{ranges['plain'][1]} (auto: " in so
+    assert main(args + ["--output-dir", str(tmp_path / "d"), "--scheduler", cluster.scheduler.address,
+                        "--split-tiles"]) == 2
+    assert "--disp-range auto" in capsys.readouterr().err
+
+
 def test_pairing_by_wildcard_text(tmp_path):
     (tmp_path / "cam").mkdir()
     for n in ("L0001.png", "R0001.png", "L0002.png", "R0002.png"):

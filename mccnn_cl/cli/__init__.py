@@ -76,7 +76,8 @@ def _range_options(p):
                    help="smallest disparity searched, negative allowed: disparities M..M+D-1 with D = "
                         "--max-disp (default 0)")
     p.add_argument("--disp-range", default=None, metavar="auto|MIN:MAX",
-                   help="'auto': a coarse pass chooses the range per pair (printed); or MIN:MAX inclusive "
+                   help="'auto': coarse passes choose the range of each pair, in batches too (printed); "
+                        "or MIN:MAX inclusive "
                         "(write --disp-range=-32:95 when MIN is negative); replaces --min-disp/--max-disp")
 
 

@@ -39,6 +39,7 @@ from .common import (  # noqa: F401 (re-exported: the commands' helpers)
     _make_matcher,
     _hyperparameters,
     _check_pair,
+    _auto_output_range,
     _range_request,
     _range_text,
     _check_outputs,
@@ -139,13 +140,7 @@ def cmd_match(args):
             auto = None
             if request == "auto":
                 auto = matchers[key].choose_range(gray_l, gray_r)
-                lo, hi = auto["range"]
-                if out.lower().endswith(".png"):  # the format holds no negative disparity
-                    if auto["found"][0] < 0:  # the scene's own, not the margin's
-                        raise InputError(f"{out}: the automatic range {lo}..{hi} holds the pair's negative "
-                                         f"disparities (down to {auto['found'][0]:.0f}), which a KITTI 16-bit PNG "
-                                         "cannot store; write .pfm or .npy")
-                    lo = max(lo, 0)  # only the margin went below 0
+                lo, hi = _auto_output_range(out, auto)  # a PNG holds no negative disparity
             else:
                 lo, hi = min_disp, min_disp + max_disp - 1
             range_line = _range_text(lo, hi, auto)

@@ -137,8 +137,25 @@ def _range_request(args):
 def _range_text(lo, hi, auto=None) -> str:
     text = f"disparities {lo}..{hi}"
     if auto is not None:
-        text += f" (auto: coarse pass at 1/{auto['scale']} size, {auto['seconds']:.2f} s)"
+        passes = (f"passes at 1/{auto['scale']} and 1/{auto['check_scale']}" if auto.get("check")
+                  else f"pass at 1/{auto['scale']}")
+        text += f" (auto: coarse {passes} size, {auto['seconds']:.2f} s)"
     return text
+
+
+def _auto_output_range(out, auto):
+    """The range to search for ``out`` given the automatic range's report: a
+    KITTI 16-bit PNG holds no negative disparity, so its range starts at 0 at
+    the lowest (only the margin went below 0), and a pair whose own disparities
+    are negative is refused for it (InputError)."""
+    lo, hi = auto["range"]
+    if str(out).lower().endswith(".png"):
+        if auto["found"][0] < 0:  # the scene's own, not the margin's
+            raise InputError(f"{out}: the automatic range {lo}..{hi} holds the pair's negative "
+                             f"disparities (down to {auto['found'][0]:.0f}), which a KITTI 16-bit PNG "
+                             "cannot store; write .pfm or .npy")
+        lo = max(lo, 0)
+    return lo, hi
 
 
 def _check_outputs(paths, force, inputs=(), taken=None):
