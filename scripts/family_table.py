@@ -4,7 +4,8 @@ Each method is ``LABEL=SPEC``: ``sgbm`` (OpenCV StereoSGBM), ``census`` (the cen
 the stereo method with its default settings), or a network (a shipped name, a weights ``.npz``, a
 published ``.t7``/``.pt``) run with the stereo settings it carries; ``SPEC@ARCH/DATASET`` runs it
 with the authors' table ``mccnn_cl.settings.AUTHORS[(ARCH, DATASET)]`` instead (e.g.
-``kitti-fst@mccnn-fst/mb``).  Every (method, pair) result is appended to ``--out`` as one JSON line
+``kitti-fst@mccnn-fst/mb``), and ``SPEC[@ARCH/DATASET]+KEY=VALUE,KEY=VALUE`` overrides single
+settings (e.g. ``general-fst+blur_sigma=3,cbca_iterations=2``).  Every (method, pair) result is appended to ``--out`` as one JSON line
 (the :func:`mccnn_cl.evaluation.scoring.evaluate_pair` record plus ``method``), and pairs already there are
 skipped, so an interrupted run continues where it stopped.  ``--summary`` prints the per-family
 means of the records as a Markdown table (each family's metrics; seconds per pair).
@@ -31,16 +32,30 @@ def _select(refs, patterns):
     return [r for r in refs if any(fnmatch.fnmatchcase(r.key, p) for p in patterns)]
 
 
+def _value(text):
+    """A setting's value from its text: int, float, or the text itself."""
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
 def _matcher(spec, D, ctx):
     from mccnn_cl.pipeline import StereoMatcher
     from mccnn_cl.settings import authors_settings
     if spec == "census":
         return StereoMatcher(max_disparity=D, cost="census", device=ctx)
+    spec, _, overrides = spec.partition("+")
     weights, _, table = spec.partition("@")
     extra = {}
     if table:
         arch, ds = table.split("/")
         extra = authors_settings(arch, ds)
+    for item in filter(None, overrides.split(",")):
+        key, _, value = item.partition("=")
+        extra[key] = _value(value)
     return StereoMatcher(max_disparity=D, weights=weights, device=ctx, **extra)
 
 
