@@ -115,3 +115,29 @@ def check_settings(weights=None, overrides=None, source: str = "weights"):
                         + ", ".join(Hyperparameters.names()))
     settings.update(overrides)
     return Hyperparameters(**settings)
+
+
+def parse_settings(items, option: str = "--set") -> dict:
+    """``["sgm_pi2=64", "interpolation=code"]`` -> ``{"sgm_pi2": 64, "interpolation": "code"}``:
+    ints, floats, true/false and none where the text is one, else the text.  ``option``
+    names the flag in the error for an item without ``=``."""
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        name, value = name.strip(), value.strip()
+        if not sep or not name:
+            raise InputError(f"{option} expects NAME=VALUE, got {item!r}")
+        low = value.lower()
+        if low in ("true", "false"):
+            out[name] = low == "true"
+        elif low in ("none", "null"):
+            out[name] = None
+        else:
+            try:
+                out[name] = int(value)
+            except ValueError:
+                try:
+                    out[name] = float(value)
+                except ValueError:
+                    out[name] = value
+    return out

@@ -32,18 +32,9 @@ def _select(refs, patterns):
     return [r for r in refs if any(fnmatch.fnmatchcase(r.key, p) for p in patterns)]
 
 
-def _value(text):
-    """A setting's value from its text: int, float, or the text itself."""
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return text
-
-
 def _matcher(spec, D, ctx):
     from mccnn_cl.pipeline import StereoMatcher
+    from mccnn_cl.hyperparameters import parse_settings
     from mccnn_cl.settings import authors_settings
     if spec == "census":
         return StereoMatcher(max_disparity=D, cost="census", device=ctx)
@@ -53,9 +44,7 @@ def _matcher(spec, D, ctx):
     if table:
         arch, ds = table.split("/")
         extra = authors_settings(arch, ds)
-    for item in filter(None, overrides.split(",")):
-        key, _, value = item.partition("=")
-        extra[key] = _value(value)
+    extra.update(parse_settings(filter(None, overrides.split(","))))
     return StereoMatcher(max_disparity=D, weights=weights, device=ctx, **extra)
 
 

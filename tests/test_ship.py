@@ -65,3 +65,18 @@ def test_lineage_of_a_fine_tuned_network_counts_the_start_as_trained(tmp_path):
     assert training_status(meta, "middlebury/Cones", "Cones") == "held out"
     with pytest.raises(InputError, match="already"):
         ship.ship(out, tmp_path / "again.npz", "n", "paper", "d", init=shipped_models()["kitti-fst"])
+
+
+def test_ship_set_changes_single_settings_and_says_so(tmp_path, capsys):
+    out = tmp_path / "s.npz"
+    assert ship.main([shipped_models()["kitti-fst"], "-o", str(out), "--name", "s", "--settings", "mccnn-fst/mb",
+                      "--set", "cbca_iterations_after=4", "--set", "cbca_eta=5", "--description", "d"]) == 0
+    w = Weights.load(out)
+    assert w.stereo == dict(authors_settings("mccnn-fst", "mb"), cbca_iterations_after=4, cbca_eta=5)
+    assert "changed here: cbca_iterations_after=4, cbca_eta=5" in w.meta["stereo_source"]
+    for bad, says in ((["--set", "no_such_knob=1"], "unknown hyperparameter"), (["--set", "cbca_eta"], "NAME=VALUE"),
+                      (["--set", "cbca_iterations_after=-3"], "cbca_iterations_after")):
+        assert ship.main([shipped_models()["kitti-fst"], "-o", str(tmp_path / "t.npz"), "--name", "t",
+                          "--settings", "mccnn-fst/mb", "--description", "d"] + bad) == 2
+        assert says in capsys.readouterr().err
+    assert not (tmp_path / "t.npz").exists()

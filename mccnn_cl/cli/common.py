@@ -91,27 +91,10 @@ def _make_matcher(args, max_disparity, weights, progress=False, ctx=None, min_di
 
 
 def _hyperparameters(items) -> dict:
-    """``["sgm_pi2=64", "interpolation=code"]`` -> ``{"sgm_pi2": 64, "interpolation": "code"}``."""
-    out = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        name, value = name.strip(), value.strip()
-        if not sep or not name:
-            raise InputError(f"--set expects NAME=VALUE, got {item!r}")
-        low = value.lower()
-        if low in ("true", "false"):
-            out[name] = low == "true"
-        elif low in ("none", "null"):
-            out[name] = None
-        else:
-            try:
-                out[name] = int(value)
-            except ValueError:
-                try:
-                    out[name] = float(value)
-                except ValueError:
-                    out[name] = value
-    return out
+    """``--set`` values: :func:`mccnn_cl.hyperparameters.parse_settings` (one parser for every command)."""
+    from ..hyperparameters import parse_settings
+
+    return parse_settings(items, option="--set")
 
 
 def _check_pair(left, right, max_disparity, weights, names=("left", "right"), min_disparity=0):

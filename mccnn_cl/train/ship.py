@@ -11,8 +11,9 @@ before the caller's own) with where they come from (``meta["stereo_source"]``).
 The settings are one of the released code's tables
 (:func:`mccnn_cl.settings.authors_settings`), named ``architecture/dataset``
 (``mccnn-acrt/kitti2015``), or ``paper`` for the CVPR paper's KITTI values
-(the :class:`~mccnn_cl.pipeline.Hyperparameters` defaults: no overrides).
-The weights themselves are copied unchanged.
+(the :class:`~mccnn_cl.pipeline.Hyperparameters` defaults: no overrides),
+and ``--set NAME=VALUE`` changes single settings of that table (recorded in
+``stereo_source``).  The weights themselves are copied unchanged.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import argparse
 import sys
 
 from mccnn_cl.errors import InputError
+from mccnn_cl.hyperparameters import check_settings, parse_settings
 from mccnn_cl.settings import AUTHORS, authors_settings
 from mccnn_cl.models import resolve
 from mccnn_cl.weights import Weights
@@ -41,8 +43,11 @@ def settings_table(spec: str) -> tuple[dict, str]:
 
 
 def ship(src, out, name: str, settings: str, description: str, licence: str = LICENCE,
-         settings_note: str | None = None, init=None) -> Weights:
+         settings_note: str | None = None, init=None, overrides: dict | None = None) -> Weights:
     """Read ``src``, add the shipping metadata, write ``out``; returns the Weights.
+
+    ``overrides``: single settings that replace the table's (names and values
+    checked as a matcher checks them).
 
     ``init``: the weights (name or path) the run started from (its ``--init``),
     for a run whose provenance does not record them yet (:func:`.train.record_init`).
@@ -57,6 +62,13 @@ def ship(src, out, name: str, settings: str, description: str, licence: str = LI
 
         record_init(w.meta["training"], resolve(init), init)
     stereo, source = settings_table(settings)
+    if overrides:
+        stereo = dict(stereo, **overrides)
+        try:
+            check_settings(overrides=stereo)
+        except TypeError as exc:
+            raise InputError(str(exc)) from exc
+        source += "; changed here: " + ", ".join(f"{k}={v}" for k, v in overrides.items())
     w.meta.update(name=name, description=description, licence=licence, stereo=stereo,
                   stereo_source=source + (f"; {settings_note}" if settings_note else ""))
     w.save(out)
@@ -69,6 +81,8 @@ def main(argv=None) -> int:
     p.add_argument("-o", "--out", required=True, help="the file to write (e.g. mccnn_cl/models/NAME.npz)")
     p.add_argument("--name", required=True)
     p.add_argument("--settings", required=True, help="paper, or ARCH/DATASET of mccnn_cl.settings (mccnn-acrt/kitti2015)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", dest="overrides",
+                   help="change one setting of the --settings table (repeatable)")
     p.add_argument("--description", required=True)
     p.add_argument("--settings-note", default=None, help="why these settings (appended to stereo_source)")
     p.add_argument("--licence", default=LICENCE)
@@ -77,7 +91,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     try:
         ship(args.weights, args.out, args.name, args.settings, args.description, args.licence, args.settings_note,
-             args.init)
+             args.init, parse_settings(args.overrides))
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
