@@ -74,6 +74,7 @@ def test_ship_set_changes_single_settings_and_says_so(tmp_path, capsys):
     w = Weights.load(out)
     assert w.stereo == dict(authors_settings("mccnn-fst", "mb"), cbca_iterations_after=4, cbca_eta=5)
     assert "changed here: cbca_iterations_after=4, cbca_eta=5" in w.meta["stereo_source"]
+    assert "unchanged" not in w.meta["stereo_source"]
     for bad, says in ((["--set", "no_such_knob=1"], "unknown hyperparameter"), (["--set", "cbca_eta"], "NAME=VALUE"),
                       (["--set", "cbca_iterations_after=-3"], "cbca_iterations_after")):
         assert ship.main([shipped_models()["kitti-fst"], "-o", str(tmp_path / "t.npz"), "--name", "t",

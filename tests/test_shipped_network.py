@@ -45,7 +45,8 @@ def test_shipped_names_and_default():
 
 def test_general_fst_provenance():
     """general-fst: trained on every family, whole scene families held out of it (and of the kitti-fst
-    it started from), carrying the authors' fst Middlebury settings."""
+    it started from), carrying the authors' fst Middlebury settings with CBCA after SGM (chosen on training
+    pairs, docs/training.md)."""
     from mccnn_cl.evaluation.datasets import dataset_of, scene_family
     w = resolve("general-fst")
     t = w.meta["training"]
@@ -55,7 +56,8 @@ def test_general_fst_provenance():
                                                                                "eth3d"}
     assert not {scene_family(k) for k in held} & {scene_family(k) for k in trained}  # families held out whole
     assert {"kitti2015/000000", "middlebury/Cones", "middlebury/Cloth1", "eth3d/delivery_area_2s"} <= held
-    assert w.stereo == authors_settings(FST, "mb")
+    assert w.stereo == dict(authors_settings(FST, "mb"), cbca_eta=5, cbca_tau=0.03, cbca_iterations_after=4)
+    assert "cbca_iterations_after=4" in w.meta["stereo_source"]
 
 
 @pytest.mark.slow

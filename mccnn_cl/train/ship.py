@@ -39,7 +39,7 @@ def settings_table(spec: str) -> tuple[dict, str]:
         known = ", ".join(["paper"] + [f"{a}/{d}" for a, d in AUTHORS])
         raise InputError(f"unknown settings {spec!r} (known: {known})")
     return authors_settings(arch, dataset), (f"the released code's {dataset} settings for {arch} "
-                                             "(jzbontar/mc-cnn main.lua), used here unchanged")
+                                             "(jzbontar/mc-cnn main.lua)")
 
 
 def ship(src, out, name: str, settings: str, description: str, licence: str = LICENCE,
@@ -68,7 +68,9 @@ def ship(src, out, name: str, settings: str, description: str, licence: str = LI
             check_settings(overrides=stereo)
         except TypeError as exc:
             raise InputError(str(exc)) from exc
-        source += "; changed here: " + ", ".join(f"{k}={v}" for k, v in overrides.items())
+        source += " with these changed here: " + ", ".join(f"{k}={v}" for k, v in overrides.items())
+    elif settings != "paper":
+        source += ", used here unchanged"
     w.meta.update(name=name, description=description, licence=licence, stereo=stereo,
                   stereo_source=source + (f"; {settings_note}" if settings_note else ""))
     w.save(out)
