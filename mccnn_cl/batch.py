@@ -103,7 +103,6 @@ class Summary:
     done: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
     failed: list = field(default_factory=list)   # (name, reason, is_input_error)
-    ranges: dict = field(default_factory=dict)   # name -> (min, max) searched
 
     def report(self, out=None) -> None:
         out = out or sys.stdout
@@ -308,13 +307,13 @@ def plan_outputs(jobs, args):
 def batch_range(args, calib):
     """The range every pair of the batch searches, from one parse of the
     options: ``(M, D)`` (``--min-disp``/``--max-disp`` or ``--disp-range
-    MIN:MAX``; D by default the calibration's ndisp, else 228), or ``"auto"``
-    (``--disp-range auto``: each pair gets its own range from the coarse
-    passes, :func:`mccnn_cl.disprange.choose_range`)."""
+    MIN:MAX``; D by default the calibration's ndisp, else 228), or ``(0,
+    "auto")`` (``--disp-range auto``: each pair gets its own range from the
+    coarse passes, :func:`mccnn_cl.disprange.choose_range`)."""
     from .cli.common import _range_request
     request = _range_request(args)
     if request == "auto":
-        return "auto"
+        return 0, "auto"
     low, levels = request
     if levels is None:
         levels = calib.ndisp if (calib is not None and calib.ndisp) else 228
@@ -426,7 +425,7 @@ def run_batch(args) -> int:
     summary = Summary(skipped=[j.name for j in skipped])
     weights = _load_weights(args)
     want = args.confidence is not None or args.labels is not None
-    rng = batch_range(args, calib)
+    low, levels = batch_range(args, calib)
     matchers, ctx = {}, None
 
     def matcher_for(max_disp):
@@ -435,7 +434,6 @@ def run_batch(args) -> int:
             from .opencl.context import ClContext
             if ctx is None:
                 ctx = ClContext(args.device)
-            low = 0 if max_disp == "auto" else rng[0]
             matchers[max_disp] = _make_matcher(args, max_disp, weights, ctx=ctx, min_disparity=low)
         return matchers[max_disp]
 
@@ -443,7 +441,7 @@ def run_batch(args) -> int:
     with tqdm(total=len(todo), unit="pair", desc="matching", disable=None) as bar:
         for job in todo:
             try:
-                result = compute_pair(job, matcher_for, "auto" if rng == "auto" else rng[1], want)
+                result = compute_pair(job, matcher_for, levels, want)
                 write_pair(job, result, args, calib)
             except (KeyboardInterrupt, SystemExit):
                 raise
@@ -453,7 +451,6 @@ def run_batch(args) -> int:
                 bar.write(f"{job.name}: failed: {reason}")
             else:
                 summary.done.append(job.name)
-                summary.ranges[job.name] = (result.min_disp, result.min_disp + result.max_disp - 1)
                 if args.verbose or result.auto is not None:  # an automatic range is always said
                     bar.write(done_line(job, result))
             bar.update(1)

@@ -104,8 +104,7 @@ def _matcher(config, max_disp):
             info, reason = worker_device(config["device"], worker_index())
             log.info("worker %s: %s (%s)", worker_index(), info, reason)
             ctx = _CONTEXTS[dev_key] = ClContext(info.handle)
-        kwargs = dict(max_disparity=max_disp if max_disp == "auto" else int(max_disp), device=ctx,
-                      cost=config["cost"],
+        kwargs = dict(max_disparity=key[1], device=ctx, cost=config["cost"],
                       volume_dtype=config["volume_dtype"], **config["hyper"])
         if config.get("min_disparity"):
             kwargs["min_disparity"] = config["min_disparity"]
@@ -375,10 +374,9 @@ def run(args, single: bool) -> int:
         if not args.memory_limit > 0:
             raise InputError(f"--memory-limit must be a positive number of MiB, got {args.memory_limit:g}")
         limit = int(args.memory_limit * 2**20)
-    rng = batch_range(args, calib)
+    low, max_disp = batch_range(args, calib)
     config = matcher_config(args.cost, args.weights, args.device, limit, args.volume_dtype,
-                            min_disparity=0 if rng == "auto" else rng[0], **_hyperparameters(args.hyper))
-    max_disp = "auto" if rng == "auto" else rng[1]
+                            min_disparity=low, **_hyperparameters(args.hyper))
     want = args.confidence is not None or args.labels is not None
     summary = Summary(skipped=[j.name for j in skipped])
     if todo:
@@ -399,7 +397,6 @@ def run(args, single: bool) -> int:
                         continue
                     write_pair(job, outcome, args, calib)
                     summary.done.append(job.name)
-                    summary.ranges[job.name] = (outcome.min_disp, outcome.min_disp + outcome.max_disp - 1)
                     if args.verbose or single or outcome.auto is not None:  # an automatic range is always said
                         _say(f"{done_line(job, outcome)}, {outcome.where}")
         finally:
