@@ -253,8 +253,9 @@ def coarse_scale(shape) -> int:
 
 def _coarse_pass(matcher, I_L, I_R, s, window):
     """The census stereo method at 1/s size over ``window`` (coarse px): the
-    disparities (full-size px) of the pixels that pass the left-right check,
-    and the fraction of such pixels."""
+    extremes (full-size px) of the disparities of the pixels that pass the
+    left-right check, trimmed by :data:`AUTO_TRIM` at each end (None when
+    fewer than 16 pass), and the fraction of such pixels."""
     import cv2
 
     Hi, Wi = I_L.shape
@@ -271,7 +272,11 @@ def _coarse_pass(matcher, I_L, I_R, s, window):
     m = coarse.margin
     d = res.disparity[m:-m, m:-m]
     ok = (res.labels[m:-m, m:-m] == 0) & np.isfinite(d)
-    return np.float32(s) * d[ok], (float(ok.mean()) if ok.size else 0.0)
+    used = float(ok.mean()) if ok.size else 0.0
+    if ok.sum() < 16:  # too few to trust
+        return None, used
+    found = np.quantile(np.float32(s) * d[ok], [AUTO_TRIM, 1.0 - AUTO_TRIM])
+    return (float(found[0]), float(found[1])), used
 
 
 def _with_margin(lo, hi, below, above):
@@ -294,13 +299,11 @@ def choose_range(matcher, I_L, I_R) -> dict:
     s = coarse_scale(I_L.shape)
     wc = Wi // s
     lo_c, hi_c = -int(wc * AUTO_WINDOW[0]), int(wc * AUTO_WINDOW[1])
-    d, used = _coarse_pass(matcher, I_L, I_R, s, (lo_c, hi_c))
-    if d.size >= 16:
-        found = tuple(float(q) for q in np.quantile(d, [AUTO_TRIM, 1.0 - AUTO_TRIM]))
-    else:  # nothing consistent: the whole coarse window
-        found = (float(lo_c * s), float(hi_c * s))
+    extremes, used = _coarse_pass(matcher, I_L, I_R, s, (lo_c, hi_c))
+    # nothing consistent: the whole coarse window
+    found = extremes if extremes is not None else (float(lo_c * s), float(hi_c * s))
     first, check, found_check = found, None, None
-    if s >= 2 * AUTO_CHECK_SCALE and d.size >= 16:
+    if s >= 2 * AUTO_CHECK_SCALE and extremes is not None:
         # the check: 1/AUTO_CHECK_SCALE size over the first extremes with AUTO_CHECK_MARGIN,
         # plus AUTO_CHECK_WIDEN x that width above (within the first pass's window)
         s2 = AUTO_CHECK_SCALE
@@ -308,9 +311,8 @@ def choose_range(matcher, I_L, I_R) -> dict:
         w_lo = max(c_lo, lo_c * s) // s2
         w_hi = -(-min(c_hi + AUTO_CHECK_WIDEN * (c_hi - c_lo), hi_c * s) // s2)
         check = (int(w_lo * s2), int(w_hi * s2))
-        d2, _ = _coarse_pass(matcher, I_L, I_R, s2, (int(w_lo), int(w_hi)))
-        if d2.size >= 16:
-            found_check = tuple(float(q) for q in np.quantile(d2, [AUTO_TRIM, 1.0 - AUTO_TRIM]))
+        found_check, _ = _coarse_pass(matcher, I_L, I_R, s2, (int(w_lo), int(w_hi)))
+        if found_check is not None:
             found = (min(found[0], found_check[0]), max(found[1], found_check[1]))
     lo, hi = _with_margin(*found, AUTO_MARGIN, AUTO_MARGIN_NEAR)
     if found[0] >= 0:  # no negative disparity found: the margin stops at 0 (a parallel rig's are >= 0)

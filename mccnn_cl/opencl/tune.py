@@ -145,6 +145,12 @@ def _is_rules(profile, cand) -> bool:
     return all(_rules_value(profile, k) == (list(v) if isinstance(v, tuple) else v) for k, v in cand.items())
 
 
+def _candidates(profile, opt) -> list:
+    """The candidates measured for ``opt``: the rules' choice ``{}`` first, then
+    every other one (those equal to the rules' choice dropped)."""
+    return [{}] + [c for c in opt.candidates if c and not _is_rules(profile, c)]
+
+
 def _same(a, b, exact) -> bool:
     if a.shape != b.shape:
         return False
@@ -179,7 +185,7 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
     profile = ctx.profile
     choices, measured = {}, {}
     for opt in opts:
-        cands = [{}] + [c for c in opt.candidates if c and not _is_rules(profile, c)]
+        cands = _candidates(profile, opt)
         saved = dict(profile.tuned)
         times = [[] for _ in cands]
         failed = [False] * len(cands)
@@ -234,7 +240,7 @@ def tune(ctx, progress: bool = False, size=SIZE, rounds=5) -> tuple:
     if progress:
         from tqdm import tqdm
 
-        runs = sum(1 + len([c for c in o.candidates if c and not _is_rules(ctx.profile, c)]) for o in opts)
+        runs = sum(len(_candidates(ctx.profile, o)) for o in opts)
         bar = tqdm(total=rounds * runs, desc="tuning", unit="run")
     try:
         choices, measured = choose(ctx, opts, None if bar is None else (lambda: bar.update(1)), rounds)
