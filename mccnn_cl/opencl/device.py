@@ -48,7 +48,11 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: disparity; before the fused rules), ``cbca_fused`` (both passes in one
 #: launch, one work-item per plane walking it whole), ``cbca_multi`` (several
 #: iterations per launch, the same), ``cbca_multi_group_of_one``.  Network:
-#: ``network_tiles`` (register tiles; RN grows with the float vector width on CPUs);
+#: ``network_tiles`` (register tiles; RN grows with the float vector width on CPUs;
+#: CONV_RM 4 pixels x RN 16 channels per conv work-item: 4 accumulator registers of
+#: AVX-512, 8 of AVX2, whose 16 registers CONV_RM 8 overflowed: the fst conv stack took
+#: 2.63 s against 1.44-1.49 s at 4 with PoCL's AVX2 code, 1.18 against 1.21 s with its
+#: AVX-512 code, BENCHMARKS.md; ``mccnn-cl tune`` measures 4, 6 and 8);
 #: ``network_local_tiles`` (the conv stack and the L4 split as a local-memory tiled
 #: GEMM, kernels/network_conv_wg.cl) with its starting tile ``network_gemm_tile``
 #: (TM pixels x TN channels per work-group, TK terms per slice, RM x RN per
@@ -74,8 +78,8 @@ RULES = {
     "cbca_fused":              {CPU: True,  LLVMPIPE: False, GPU: False},
     "cbca_multi":              {CPU: True,  LLVMPIPE: True,  GPU: False},
     "cbca_multi_group_of_one": {CPU: True,  LLVMPIPE: True,  GPU: False},
-    "network_tiles":           {CPU: dict(TM=64, RM=8, ROWS_FASTEST=1, CONV_RM=8),
-                                LLVMPIPE: dict(TM=64, RM=8, ROWS_FASTEST=1, CONV_RM=8),
+    "network_tiles":           {CPU: dict(TM=64, RM=8, ROWS_FASTEST=1, CONV_RM=4),
+                                LLVMPIPE: dict(TM=64, RM=8, ROWS_FASTEST=1, CONV_RM=4),
                                 GPU: dict(TM=32, RM=4, RN=4, ROWS_FASTEST=0, CONV_RM=4)},
     "network_local_tiles":     {CPU: False, LLVMPIPE: False, GPU: True},
     "network_head_gemm":       {CPU: False, LLVMPIPE: False, GPU: True},

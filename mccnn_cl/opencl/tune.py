@@ -112,14 +112,38 @@ def options(ctx, size=SIZE, repeat=1) -> list:
         sec = _timed(ctx_, go, repeat)
         return sec, ctx_.from_device(go(), (H, W))
 
+    def conv_run(ctx_):
+        # the default network's conv stack (the network's larger share) on one image of the size
+        from ..costs.features import ConvStack, default_tiles
+        from ..weights import Weights
+
+        weights = Weights.load()
+        tiles = default_tiles(ctx_)
+        stack = ConvStack(ctx_, weights, int(tiles["RN"]), int(tiles["CONV_RM"]))
+        d_img = ctx_.to_device(np.ascontiguousarray(img_l[:, :, None]))
+        feat = []
+
+        def go():
+            if feat:
+                stack.give(feat.pop())
+            feat.append(stack(d_img, H, W))
+
+        sec = _timed(ctx_, go, repeat)
+        h, w = H - stack.patch + 1, W - stack.patch + 1
+        out_map = ctx_.from_device(feat[0], (h * w, stack.stride))
+        stack.release_buffers()
+        return sec, out_map
+
     units = max(ctx.profile.compute_units, 1)
     # SGM: the paired sweeps (their chunk width is fixed), or the one-direction
     # kernels at each column width (without paired sweeps the width matters)
+    conv_tiles = dict(_rules_value(ctx.profile, "network_tiles"))  # candidates vary its CONV_RM only
     sgm = [{"sgm_paired_max_units": units}] + [{"sgm_paired_max_units": 0, "sgm_cols": c} for c in (32, 64, 128)]
     opts = [
         Option("sgm", sgm, sgm_run, exact=False),
         Option("cbca_path", [{"cbca_fused": True, "cbca_multi": True}, {"cbca_fused": True, "cbca_multi": False},
                              {"cbca_fused": False, "cbca_multi": False}], cbca_run),
+        Option("network_conv", [{"network_tiles": dict(conv_tiles, CONV_RM=r)} for r in (4, 6, 8)], conv_run),
         Option("launch_local", [{"launch_local": list(t)} for t in ((64, 2, 2), (32, 4, 4), (16, 4, 4), (8, 8, 8),
                                                                     (128, 1, 1))], local_run),
     ]
