@@ -167,6 +167,8 @@ def test_input_errors(crops, tmp_path):
          ("sgm_q1 must be > 0",)),
         (("bench", "--cost", "census", "--size", "64x32", "--max-disp", 8, "--set", "cbca_tau=-0.5"),
          ("cbca_tau must be >= 0",)),
+        (("bench", "--cost", "census", "--size", "64x", "--max-disp", 8), ("--size must look like 1242x375",)),
+        (("bench", "--cost", "census", "--size", "64x0", "--max-disp", 8), ("integers >= 1", "64x0")),
         (("match", l, r, "-o", o, "--cost", "census", "--max-disp", 16, "--weights", tmp_path / "w.npz"),
          ("--weights is for --cost cnn", "census")),
         (("demo", "--cost", "census", "--weights", tmp_path / "w.npz", "-o", tmp_path / "d.png"),

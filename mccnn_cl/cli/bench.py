@@ -16,6 +16,7 @@ def run(args) -> int:
     from ..io import read_image
     from ..validate import check_pair, patch_size
     from . import commands
+    from .common import parse_size
     say = commands._say
     commands._positive("--max-disp", args.max_disp)
     commands._positive("--repeat", args.repeat)
@@ -26,12 +27,7 @@ def run(args) -> int:
         left, right = commands._gray(read_image(args.left)), commands._gray(read_image(args.right))
         what = f"{args.left} / {args.right}"
     else:
-        try:
-            w, h = (int(v) for v in args.size.lower().split("x"))
-        except ValueError:
-            raise InputError(f"--size must look like 1242x375, got {args.size!r}") from None
-        if w < 1 or h < 1:
-            raise InputError(f"--size must be positive, got {args.size!r}")
+        w, h = parse_size(args.size, 2, "1242x375", what="width x height")
         left, right = synthetic_pair(w, h, max_disp)
         what = f"synthetic textured pair {w}x{h}"
     weights = commands._load_weights(args)

@@ -29,6 +29,19 @@ def _positive(name, value):
     return value
 
 
+def parse_size(text, parts, example, least=1, what=""):
+    """An "x"-separated size of ``parts`` integers (``--size 1242x375``), each >= ``least``;
+    InputError naming ``example`` (and ``what`` the parts mean) otherwise."""
+    try:
+        size = tuple(int(v) for v in str(text).lower().split("x"))
+    except ValueError:
+        size = ()
+    if len(size) != parts or min(size) < least:
+        raise InputError(f"--size must look like {example}{f' ({what})' if what else ''}, "
+                         f"integers >= {least}, got {text!r}")
+    return size
+
+
 def _load_weights(args):
     """The Weights the matcher will use (checked now, so a bad file fails before any OpenCL work)."""
     if args.cost != "cnn":

@@ -35,16 +35,13 @@ def run(args) -> int:
     from ..opencl.context import ClContext
 
     from ..errors import InputError
+    from .common import parse_size
 
     size = tune.SIZE
     if getattr(args, "size", None):
-        try:
-            size = tuple(int(v) for v in args.size.lower().split("x"))
-        except ValueError:
-            size = ()
-        if len(size) != 3 or min(size) < 1 or size[1] < 16:
-            raise InputError(f"--size must look like 96x1242x228 (rows x columns x levels, 16 columns or more), "
-                             f"got {args.size!r}")
+        size = parse_size(args.size, 3, "96x1242x228", what="rows x columns x levels")
+        if size[1] < 16:
+            raise InputError(f"--size: 16 columns or more, got {args.size!r}")
     rounds = getattr(args, "rounds", 5)
     if rounds < 1:
         raise InputError(f"--rounds must be >= 1, got {rounds}")
