@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Install OpenCL implementations and write one .icd file per implementation.
 #
-#   bash scripts/opencl_impls.sh [--no-install] [--env] [--dir DIR] [pocl|intel|oclgrind|rusticl|all]...
+#   bash scripts/opencl_impls.sh [--no-install] [--env] [--dir DIR] [pocl|pocl-avx2|intel|oclgrind|rusticl|all]...
 #
 # For each implementation named (default: pocl) it installs it if missing
 # (idempotent), writes DIR/<impl>.icd holding the absolute path of that
@@ -24,6 +24,7 @@
 #     env $(bash scripts/opencl_impls.sh --env rusticl) .venv/bin/python -m pytest ...
 #
 #   pocl     Debian's PoCL          apt-get install pocl-opencl-icd
+#   pocl-avx2  the same PoCL building AVX2 code (POCL_KERNELLIB_NAME=avx2): a Zen 3's code on any AVX2 CPU
 #   intel    Intel CPU runtime      pip install intel-opencl-rt intel-cmplr-lib-rt  (into .venv)
 #   oclgrind Oclgrind simulator     apt-get install oclgrind
 #   rusticl  Mesa Rusticl/llvmpipe  apt-get install mesa-opencl-icd
@@ -40,10 +41,10 @@ while [ $# -gt 0 ]; do
         --env) PRINT_ENV=1 ;;
         --dir) DIR="$2"; shift ;;
         --dir=*) DIR="${1#--dir=}" ;;
-        pocl|intel|oclgrind|rusticl) IMPLS+=("$1") ;;
-        all) IMPLS+=(pocl intel oclgrind rusticl) ;;
+        pocl|pocl-avx2|intel|oclgrind|rusticl) IMPLS+=("$1") ;;
+        all) IMPLS+=(pocl pocl-avx2 intel oclgrind rusticl) ;;
         -h|--help) sed -n '2,35p' "$0"; exit 0 ;;
-        *) echo "opencl_impls.sh: unknown argument '$1' (pocl|intel|oclgrind|rusticl|all|--no-install|--env|--dir DIR)" >&2; exit 2 ;;
+        *) echo "opencl_impls.sh: unknown argument '$1' (pocl|pocl-avx2|intel|oclgrind|rusticl|all|--no-install|--env|--dir DIR)" >&2; exit 2 ;;
     esac
     shift
 done
@@ -73,7 +74,7 @@ find_system_lib() {  # find_system_lib SONAME -> absolute path or nothing
 
 lib_path() {  # lib_path IMPL -> absolute path of the ICD library, or nothing
     case "$1" in
-        pocl) find_system_lib libpocl.so.2 ;;
+        pocl|pocl-avx2) find_system_lib libpocl.so.2 ;;
         rusticl) find_system_lib libRusticlOpenCL.so.1 ;;
         oclgrind) [ -e /usr/lib/oclgrind/liboclgrind-rt-icd.so ] && echo /usr/lib/oclgrind/liboclgrind-rt-icd.so; return 0 ;;
         intel)
@@ -89,7 +90,7 @@ lib_path() {  # lib_path IMPL -> absolute path of the ICD library, or nothing
 
 install_impl() {
     case "$1" in
-        pocl) apt_install pocl-opencl-icd ;;
+        pocl|pocl-avx2) apt_install pocl-opencl-icd ;;
         oclgrind) apt_install oclgrind ;;
         rusticl) apt_install mesa-opencl-icd ;;
         intel)
@@ -101,13 +102,16 @@ install_impl() {
 impl_env() {  # the implementation's own variables besides OCL_ICD_VENDORS
     case "$1" in
         rusticl) echo "RUSTICL_ENABLE=llvmpipe" ;;
+        # Debian's PoCL building AVX2 code on any x86-64 CPU that has AVX2 (the
+        # kernel library and LLVM CPU of a Zen 3; device pthread-haswell-...)
+        pocl-avx2) echo "POCL_KERNELLIB_NAME=avx2" ;;
         oclgrind) printf '%s\n' OCLGRIND_DATA_RACES=1 OCLGRIND_CHECK_API=1 PYOPENCL_NO_CACHE=1 ;;
     esac
 }
 
 hint() {
     case "$1" in
-        pocl) echo "apt-get install pocl-opencl-icd" ;;
+        pocl|pocl-avx2) echo "apt-get install pocl-opencl-icd" ;;
         oclgrind) echo "apt-get install oclgrind" ;;
         rusticl) echo "apt-get install mesa-opencl-icd" ;;
         intel) echo "$VENV/bin/pip install intel-opencl-rt intel-cmplr-lib-rt" ;;

@@ -4,7 +4,7 @@
 #
 #   bash scripts/test_impls.sh [IMPL...] [-- PYTEST_ARGS...]
 #
-# IMPL: pocl, intel, rusticl, oclgrind (default: intel rusticl).  Each is
+# IMPL: pocl, pocl-avx2, intel, rusticl, oclgrind (default: intel rusticl).  Each is
 # installed if missing (scripts/opencl_impls.sh; intel goes into .venv), then
 #     .venv/bin/python -m pytest --cl-impl IMPL -m "not oclgrind" PYTEST_ARGS
 # runs the suite on it (tests/conftest.py isolates it and checks the

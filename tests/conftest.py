@@ -56,6 +56,9 @@ POISON = np.float32(-1.2345e30)
 # OCLGRIND_DATA_RACES=1 ...) comes from ``scripts/opencl_impls.sh --env``.
 CL_IMPLS = {
     "pocl": {"platform": "Portable Computing Language"},
+    # PoCL made to build AVX2 code (POCL_KERNELLIB_NAME=avx2): the code a Zen 3
+    # or Haswell-class CPU runs, on whatever x86-64 machine has AVX2
+    "pocl-avx2": {"platform": "Portable Computing Language", "device": "haswell"},
     # Intel's CPU runtime always returns a build log, which pyopencl reports as
     # a CompilerWarning: filtered for this implementation only.
     "intel": {"platform": "Intel(R) OpenCL", "filterwarnings": ["ignore::pyopencl.CompilerWarning"]},
@@ -84,6 +87,7 @@ KNOWN_GAPS: dict = {
     },
     "oclgrind": {},
     "pocl": {},
+    "pocl-avx2": {},
 }
 
 # Oclgrind's API checker reports one clGetDeviceInfo(CL_INVALID_VALUE) when
@@ -229,6 +233,10 @@ def ctx(request):
             pytest.fail(f"--cl-impl {impl}: the context runs on platform {got!r}, not {want!r} "
                         f"(was pyopencl used before pytest_configure? OCL_ICD_VENDORS="
                         f"{os.environ.get('OCL_ICD_VENDORS')})")
+        dev = CL_IMPLS[impl].get("device")
+        if dev and dev not in c.device.name.lower():
+            pytest.fail(f"--cl-impl {impl}: the device is {c.device.name!r}, whose name lacks {dev!r} "
+                        f"(the implementation's variables: {_impls_script(impl, '--env').split()})")
     yield c
     c.close()
 

@@ -77,5 +77,11 @@ def test_per_dataset_offsets_and_augmentation(pairs):
         assert on[sel].min() >= n_lo - 1e-9 and on[sel].max() <= n_hi + 1e-9
     with pytest.raises(InputError, match="integer mode"):
         crop_sampler(TrainConfig(arch="fst", sampler="crop", family_offsets=True), pairs, 9)
+    paper = crop_sampler(TrainConfig(arch="paper", sampler="crop", subpixel=True, family_offsets=True), pairs, 9)
+    assert paper.pair_off == [(1, 4, 8), (0.5, 1.5, 18), (0.5, 1.5, 18), (0.5, 1.5, 18)]
+
+
+def test_arch_without_per_dataset_offsets_is_refused(pairs, monkeypatch):
+    monkeypatch.delitem(FAMILY_OFFSETS, "paper")
     with pytest.raises(InputError, match="per-dataset offsets"):
         crop_sampler(TrainConfig(arch="paper", sampler="crop", subpixel=True, family_offsets=True), pairs, 9)
