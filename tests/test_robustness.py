@@ -6,6 +6,7 @@ run to seconds on PoCL.
 """
 
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -373,6 +374,8 @@ def test_docs_error_examples_run_as_written(tmp_path, shared_data):
         got = p.stderr.strip()
         assert p.returncode == 2 or "--device" in cmd, (cmd, p.returncode, got)
         if "..." in want:  # "..." stands for the machine-dependent rest
+            # so do PoCL's CPU device names (pthread-skylake-avx512-..., pthread-haswell-... on a Zen 3)
+            got, want = (re.sub(r"pthread-[\w.-]+", "pthread-CPU", t) for t in (got, want))
             assert got.startswith(want.split("...")[0].rstrip()), (cmd, got, want)
         else:
             assert got == want, (cmd, got, want)
