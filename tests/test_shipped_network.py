@@ -36,7 +36,7 @@ def _on_device(ctx, cost, left, right, D, ref):
 
 def test_shipped_names_and_default():
     models = shipped_models()
-    assert {"general-fst", "kitti-fst", "kitti-paper"} <= set(models)
+    assert {"general-fst", "general-paper", "kitti-fst", "kitti-paper"} <= set(models)
     assert Weights.load().architecture == FST  # the default: general-fst (README, model card)
     assert Weights.load().meta["name"] == "general-fst"
     assert resolve("kitti-paper").architecture == PAPER
@@ -58,6 +58,22 @@ def test_general_fst_provenance():
     assert {"kitti2015/000000", "middlebury/Cones", "middlebury/Cloth1", "eth3d/delivery_area_2s"} <= held
     assert w.stereo == dict(authors_settings(FST, "mb"), cbca_eta=5, cbca_tau=0.03, cbca_iterations_after=4)
     assert "cbca_iterations_after=4" in w.meta["stereo_source"]
+
+
+def test_general_paper_provenance():
+    """general-paper: the paper's network fine-tuned from kitti-paper on every family with general-fst's
+    held-out families; its lineage (kitti-paper v1) saw two held-out Middlebury scenes, Cloth3 and Reindeer
+    (MODEL_CARD.md), and no other held-out pair; kitti-paper's acrt KITTI 2015 settings."""
+    from mccnn_cl.evaluation.datasets import dataset_of, scene_family
+    w = resolve("general-paper")
+    assert w.architecture == PAPER
+    t = w.meta["training"]
+    held, run = set(t["held_out"]), set(t["trained_on_this_run"])
+    assert t["init"]["name"] == "kitti-paper" and held == set(resolve("general-fst").meta["training"]["held_out"])
+    assert {dataset_of(k) for k in run} == {"kitti", "middlebury", "middeval3", "eth3d"}
+    assert not {scene_family(k) for k in held} & {scene_family(k) for k in run}  # this run: families held out whole
+    assert held & set(t["trained_on"]) == {"middlebury/Cloth3", "middlebury/Reindeer"}  # the lineage's
+    assert w.stereo == authors_settings("mccnn-acrt", "kitti2015")
 
 
 @pytest.mark.slow

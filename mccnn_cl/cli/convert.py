@@ -93,10 +93,13 @@ def _summary(meta) -> str:
     if isinstance(training, dict) and isinstance(training.get("trained_on"), dict):
         pairs = training["trained_on"]
         kinds = sorted({str(k).split("/")[0] for k in pairs})
-        held = training.get("held_out") or []
+        held = [k for k in (training.get("held_out") or []) if k not in pairs]
+        seen = [k for k in (training.get("held_out") or []) if k in pairs]
         text = f"trained with mccnn_cl on {len(pairs)} pairs ({', '.join(kinds)})"
         if held:
             text += f", held out {', '.join(map(str, held))}"
+        if seen:  # held out of the last run, but trained on earlier in the lineage (its --init)
+            text += f" (the run also held out {', '.join(map(str, seen))}, which its starting weights had seen)"
         if training.get("finished_utc"):
             text += f"; finished {training['finished_utc']}"
         return text
