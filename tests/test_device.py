@@ -120,3 +120,21 @@ def test_no_device_type_test_outside_the_profile():
             if pattern.search(line):
                 found.append(f"{rel}:{no}: {line.strip()}")
     assert not found, "\n".join(found)
+
+
+def test_head_tile_follows_the_vector_registers():
+    """CPUs without AVX-512 code get the head's RM at most NARROW_HEAD_RM (PoCL names the LLVM CPU
+    it builds for); AVX-512 code keeps the rules' RM; a tuned RM wins either way; GPUs are untouched."""
+    from mccnn_cl.opencl.device import NARROW_HEAD_RM, RULES
+    wide = DeviceProfile.of(fake_device("pthread-skylake-avx512-AMD EPYC", T.CPU), cl)
+    narrow = DeviceProfile.of(fake_device("pthread-haswell-AMD EPYC", T.CPU), cl)
+    zen4 = DeviceProfile.of(fake_device("pthread-znver4-AMD EPYC 9654", T.CPU), cl)
+    gpu = DeviceProfile.of(fake_device("NVIDIA H200", T.GPU), cl)
+    assert wide.wide_vectors and zen4.wide_vectors and not narrow.wide_vectors
+    assert not DeviceProfile.of(DEVICES["llvmpipe"], cl).wide_vectors  # 256-bit code
+    assert wide.network_tiles()["RM"] == RULES["network_tiles"]["cpu"]["RM"] > NARROW_HEAD_RM
+    assert narrow.network_tiles()["RM"] == NARROW_HEAD_RM
+    assert narrow.network_tiles()["CONV_RM"] == RULES["network_tiles"]["cpu"]["CONV_RM"]
+    assert gpu.network_tiles()["RM"] == RULES["network_tiles"]["gpu"]["RM"]
+    narrow.tuned["network_tiles"] = {"RM": 8}
+    assert narrow.network_tiles()["RM"] == 8

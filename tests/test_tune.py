@@ -229,3 +229,28 @@ def test_wrong_in_any_round_never_chosen(ctx):
     opt = tune.Option("sgm_cols", [{"sgm_cols": 32}, {"sgm_cols": other}], run)
     choices, measured = tune.choose(ctx, [opt], rounds=3)
     assert choices == {"sgm_cols": other} and measured["sgm_cols"]["candidates"][1][1] is None
+
+
+def test_tile_row_tuned_by_two_options(ctx, cache):
+    """Two options tune different sizes of one tile row (network_tiles: the conv's CONV_RM, the
+    head's RM): each candidate names only its size, the choices add up, and the profile returns the
+    rules' row with the tuned sizes over it (from the cache too)."""
+    rules = tune._rules_value(ctx.profile, "network_tiles")
+    conv_other, head_other = (6 if rules["CONV_RM"] != 6 else 4), (4 if rules["RM"] != 4 else 8)
+
+    def timed(key, fast):
+        def run(c):
+            t = c.profile.network_tiles()
+            return (0.5 if t[key] == fast else 1.0), np.zeros(3)
+        return run
+
+    opts = [tune.Option("conv", [{"network_tiles": {"CONV_RM": v}} for v in (rules["CONV_RM"], conv_other)],
+                        timed("CONV_RM", conv_other)),
+            tune.Option("head", [{"network_tiles": {"RM": v}} for v in (rules["RM"], head_other)],
+                        timed("RM", head_other))]
+    assert [len(tune._candidates(ctx.profile, o)) for o in opts] == [2, 2]  # the rules' own value counted once
+    choices, _ = tune.choose(ctx, opts)
+    assert choices == {"network_tiles": {"CONV_RM": conv_other, "RM": head_other}}
+    tune.store(ctx.device, choices, {})
+    tiles = ClContext(ctx.device).profile.network_tiles()
+    assert tiles == dict(rules, CONV_RM=conv_other, RM=head_other, RN=tiles["RN"])

@@ -90,6 +90,15 @@ RULES = {
     "census_cost_launch":      {CPU: (0, (16, 1, 1)), LLVMPIPE: (0, (16, 1, 1)), GPU: (1, None)},
 }
 
+#: The head's RM (cells per work-item, x RN 16 channels of accumulators) on CPUs without 32 wide
+#: vector registers: the paper network's head on a 400 x 200 pair at D 64 took 22.3 s at RM 8 and
+#: 16.8 s at 4 with PoCL's AVX2 code, 12.2 and 13.4 s with its AVX-512 code (BENCHMARKS.md).
+NARROW_HEAD_RM = 4
+#: LLVM CPU names (as PoCL puts them in its device names) whose code has AVX-512
+AVX512_LLVM_CPUS = ("avx512", "cascadelake", "cooperlake", "cannonlake", "icelake", "tigerlake", "rocketlake",
+                    "sapphirerapids", "emeraldrapids", "graniterapids", "znver4", "znver5", "x86-64-v4", "knl",
+                    "knm")
+
 #: Declared facts per class: (loop_limit or None, slow_compiler).
 DECLARED = {CPU: (None, False), LLVMPIPE: (LLVMPIPE_LOOP_LIMIT, True), GPU: (None, False)}
 
@@ -147,10 +156,15 @@ class DeviceProfile:
 
     def rule(self, option: str):
         """This device's value of one :data:`RULES` row: the tuned one
-        (:mod:`mccnn_cl.tune`) when there is one, else the column's."""
-        if option in self.tuned:
-            return self.tuned[option]
-        return RULES[option][self.kind]
+        (:mod:`mccnn_cl.tune`) when there is one, else the column's; a tuned
+        tile row (a dict) holds only the sizes tuned, over the column's."""
+        base = RULES[option][self.kind]
+        if option not in self.tuned:
+            return base
+        value = self.tuned[option]
+        if isinstance(value, dict) and isinstance(base, dict):  # a tile row: the tuned sizes over the rules'
+            return {**base, **value}
+        return value
 
     def rule_source(self, option: str) -> str:
         """"tuned" or "rules": where :meth:`rule`'s value of ``option`` comes from."""
@@ -190,11 +204,32 @@ class DeviceProfile:
         return "multi" if (self.rule("cbca_multi") if multi is None else multi) else "fused"
 
     def network_tiles(self) -> dict:
-        """Starting register tiles of the network kernels (refined against the kernel limits by the costs)."""
+        """Starting register tiles of the network kernels (refined against the kernel limits by the costs).
+        On a CPU without 32 wide vector registers (:attr:`wide_vectors`) the head's RM is at most
+        :data:`NARROW_HEAD_RM` unless tuned: its RM x 16 accumulators overflow AVX2's 16 registers."""
         tiles = dict(self.rule("network_tiles"))
         if "RN" not in tiles:
             tiles["RN"] = 16 if self.vector_width >= 16 else 8 if self.vector_width >= 8 else 4
+        if self.is_cpu and not self.wide_vectors and "RM" not in self.tuned.get("network_tiles", {}):
+            tiles["RM"] = min(int(tiles["RM"]), NARROW_HEAD_RM)
         return tiles
+
+    @property
+    def wide_vectors(self) -> bool:
+        """A CPU whose kernels get AVX-512 code (32 registers of 16 floats). PoCL names its CPU
+        device after the LLVM CPU it builds for (``pthread-skylake-avx512-...``,
+        ``pthread-haswell-...`` on a Zen 3 or with ``POCL_KERNELLIB_NAME=avx2``); other CPU
+        runtimes build for the host, whose flags say."""
+        name = self.name.lower()
+        if name.startswith(("pthread-", "cpu-", "basic-")):
+            return any(k in name for k in AVX512_LLVM_CPUS)
+        if "llvmpipe" in name:  # "llvmpipe (LLVM 15.0.6, 256 bits)": its vector width
+            return "512 bits" in name
+        try:
+            with open("/proc/cpuinfo") as f:
+                return any(line.startswith("flags") and " avx512f" in line for line in f)
+        except OSError:
+            return False
 
     def local_tile(self, path_rule: str, tile_rule: str, choice=None):
         """A GPU-shaped path's tile, or None when the path is not taken:

@@ -134,16 +134,33 @@ def options(ctx, size=SIZE, repeat=1) -> list:
         stack.release_buffers()
         return sec, out_map
 
+    def head_run(ctx_):
+        # the fully connected head of the shipped paper network (general-paper), whose cells per
+        # second do not depend on the image's size: a small pair, HEAD_SIZE
+        from ..costs.registry import make_cost
+        from ..models import resolve
+
+        h, w, d = (min(a, b) for a, b in zip(HEAD_SIZE, (H, W, D)))  # no larger than the tuning size
+        cost = make_cost(ctx_, resolve("general-paper"))
+        left = np.ascontiguousarray(img_l[:h, :w] * np.float32(255))
+        right = np.ascontiguousarray(img_r[:h, :w] * np.float32(255))
+        vh, vw = h - cost.patch + 1, w - cost.patch + 1  # the volume's domain (patch centres)
+        buf = ctx_.empty(4 * d * vh * vw, "tuning head output")
+        sec = _timed(ctx_, lambda: cost(left, right, d, out=buf), repeat)
+        got = ctx_.from_device(buf, (d, vh, vw))
+        buf.release()
+        return sec, got
+
     units = max(ctx.profile.compute_units, 1)
     # SGM: the paired sweeps (their chunk width is fixed), or the one-direction
     # kernels at each column width (without paired sweeps the width matters)
-    conv_tiles = dict(_rules_value(ctx.profile, "network_tiles"))  # candidates vary its CONV_RM only
     sgm = [{"sgm_paired_max_units": units}] + [{"sgm_paired_max_units": 0, "sgm_cols": c} for c in (32, 64, 128)]
     opts = [
         Option("sgm", sgm, sgm_run, exact=False),
         Option("cbca_path", [{"cbca_fused": True, "cbca_multi": True}, {"cbca_fused": True, "cbca_multi": False},
                              {"cbca_fused": False, "cbca_multi": False}], cbca_run),
-        Option("network_conv", [{"network_tiles": dict(conv_tiles, CONV_RM=r)} for r in (4, 6, 8)], conv_run),
+        Option("network_conv", [{"network_tiles": {"CONV_RM": r}} for r in (4, 6, 8)], conv_run),
+        Option("network_head", [{"network_tiles": {"RM": r}} for r in (4, 8)], head_run),
         Option("launch_local", [{"launch_local": list(t)} for t in ((64, 2, 2), (32, 4, 4), (16, 4, 4), (8, 8, 8),
                                                                     (128, 1, 1))], local_run),
     ]
@@ -152,21 +169,44 @@ def options(ctx, size=SIZE, repeat=1) -> list:
     return opts
 
 
+#: (rows, columns, levels) of the head's option: the paper network's head costs ~0.5 MFLOP per cell,
+#: so the tuning size would take seconds per run; a cell costs the same at any size
+HEAD_SIZE = (24, 400, 64)
+
 #: The least relative margin by which a candidate must beat the rules' own
 #: to replace it, whatever the measured noise.
 MARGIN = 0.03
 
 
-def _rules_value(profile, name):
-    from .device import RULES
+def _merge(tuned: dict, cand: dict) -> None:
+    """Apply a candidate's rows to ``tuned``: a tile row (a dict) adds its sizes
+    to the sizes already tuned in that row (several options tune one row, each
+    its own sizes), other rows are replaced."""
+    for k, v in cand.items():
+        if isinstance(v, dict) and isinstance(tuned.get(k), dict):
+            tuned[k] = {**tuned[k], **v}
+        else:
+            tuned[k] = v
 
-    v = RULES[name][profile.kind]
+
+def _rules_value(profile, name):
+    """The value the device gets untuned (the rules' column; for the network tiles, as
+    :meth:`~mccnn_cl.opencl.device.DeviceProfile.network_tiles` adjusts it to the device)."""
+    from dataclasses import replace
+
+    bare = replace(profile, tuned={})
+    v = bare.network_tiles() if name == "network_tiles" else bare.rule(name)
     return list(v) if isinstance(v, tuple) else v
 
 
 def _is_rules(profile, cand) -> bool:
-    """The candidate sets every row to the rules' own value (the rules' choice)."""
-    return all(_rules_value(profile, k) == (list(v) if isinstance(v, tuple) else v) for k, v in cand.items())
+    """The candidate sets every row (every size of a tile row) to the rules' own value (the rules' choice)."""
+    def same(k, v):
+        base = _rules_value(profile, k)
+        if isinstance(v, dict) and isinstance(base, dict):
+            return all(base.get(kk) == vv for kk, vv in v.items())
+        return base == (list(v) if isinstance(v, tuple) else v)
+    return all(same(k, v) for k, v in cand.items())
 
 
 def _candidates(profile, opt) -> list:
@@ -224,7 +264,7 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
                         continue
                     profile.tuned.clear()
                     profile.tuned.update(choices)
-                    profile.tuned.update(cands[j])
+                    _merge(profile.tuned, cands[j])
                     try:
                         sec, output = opt.run(ctx)
                         ok = _same(output, reference, opt.exact)
@@ -246,13 +286,13 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
         if best[0] is None:  # the rules' own choice failed: the fastest that ran is taken
             good = [(s, j) for j, s in enumerate(best) if s is not None]
             if good:
-                choices.update(cands[min(good)[1]])
+                _merge(choices, cands[min(good)[1]])
             continue
         others = [(s, j) for j, s in enumerate(best) if j > 0 and s is not None]
         if others:
             fastest, j = min(others)
             if fastest * (1 + spread) < best[0]:
-                choices.update(cands[j])
+                _merge(choices, cands[j])
     return choices, measured
 
 
