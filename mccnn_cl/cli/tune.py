@@ -27,6 +27,10 @@ def describe_choices(device) -> list:
     lines = [head]
     for name in ("sgm_paired_max_units", "sgm_cols", "cbca_fused", "cbca_multi", "launch_local"):
         lines.append(f"  {name:22s} {profile.rule(name)!s:14s} ({profile.rule_source(name)})")
+    tiles, mine = profile.network_tiles(), profile.tuned.get("network_tiles", {})
+    for key, what in (("CONV_RM", "conv pixels per work-item"), ("RM", "head cells per work-item")):
+        label = f"network_tiles {key}"
+        lines.append(f"  {label:22s} {tiles[key]!s:14s} ({'tuned' if key in mine else 'rules'}), {what}")
     return lines
 
 
