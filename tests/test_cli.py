@@ -318,6 +318,18 @@ def test_bench_and_demo_census(tmp_path):
     assert img.shape[1] == 2 * 718 + 6 and img.shape[0] > 2 * 496  # 2 x 2 tiles at 1x
 
 
+def test_demo_twice_replaces_its_own_picture(tmp_path):
+    """`bash scripts/demo.sh` run again: the default picture (mccnn_demo.png, the demo's own) is
+    replaced; a picture named with -o still needs --force."""
+    cmd = [sys.executable, "-m", "mccnn_cl", "demo", "--cost", "census"]
+    for _ in range(2):
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=180, cwd=tmp_path)
+        assert p.returncode == 0, p.stderr
+        assert "wrote mccnn_demo.png" in p.stdout and (tmp_path / "mccnn_demo.png").stat().st_size > 0
+    p = subprocess.run(cmd + ["-o", "mccnn_demo.png"], capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    assert_one_line_error(p.returncode, p.stderr, 2, "exists", "--force")
+
+
 @pytest.mark.slow
 def test_demo_with_shipped_weights(tmp_path):
     """The README's first command: the shipped network on the bundled (held-out) Adirondack pair."""

@@ -195,9 +195,9 @@ def build_parser() -> argparse.ArgumentParser:
                         description="Match the bundled demo pair (MiddEval3 Adirondack, 718x496, held out of "
                                     "training) with the shipped weights, compare with OpenCV SGBM and the "
                                     "ground truth, and write a colour picture.")
-    dm.add_argument("-o", "--output", default=DEMO_OUTPUT, metavar="OUT.png",
-                    help=f"picture to write (default {DEMO_OUTPUT})")
-    dm.add_argument("--force", action="store_true", help="overwrite OUT.png if it exists")
+    dm.add_argument("-o", "--output", default=None, metavar="OUT.png",
+                    help=f"picture to write (default {DEMO_OUTPUT}, which a later demo replaces)")
+    dm.add_argument("--force", action="store_true", help="overwrite an OUT.png given with -o if it exists")
     _matcher_options(dm, "default: 73 (the demo's ndisp)")
 
     a = sub.add_parser("adapt", parents=[verbose], help="fine-tune a network to your camera without ground truth",

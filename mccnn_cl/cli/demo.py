@@ -81,10 +81,11 @@ def run(args) -> int:
     from ..validate import check_pair, patch_size
     from ..weights import default_weights_path
     say = commands._say
-    out = args.output
+    from . import DEMO_OUTPUT
+    out = args.output or DEMO_OUTPUT  # the default picture is the demo's own: a second run replaces it
     if not out.lower().endswith((".png", ".jpg", ".jpeg", ".bmp")):
         raise InputError(f"{out}: the demo writes a picture; use a .png or .jpg name")
-    commands._check_outputs([out], args.force)
+    commands._check_outputs([out], args.force or args.output is None)
     with ExitStack() as stack:
         pair = load_demo_pair(stack.enter_context(demo_dir()))
     max_disp = args.max_disp or pair.ndisp
