@@ -254,3 +254,20 @@ def test_tile_row_tuned_by_two_options(ctx, cache):
     tune.store(ctx.device, choices, {})
     tiles = ClContext(ctx.device).profile.network_tiles()
     assert tiles == dict(rules, CONV_RM=conv_other, RM=head_other, RN=tiles["RN"])
+
+
+def test_short_runs_are_timed_several_times(ctx):
+    """A run of a few milliseconds is repeated until the round's runs last LEAST_SECONDS (at most
+    MAX_RUNS), and the best is kept; a long run is timed `repeat` times."""
+    import time as _time
+    calls = []
+
+    def short():
+        calls.append(1)
+        _time.sleep(0.004 if len(calls) != 3 else 0.03)  # one slow run: not the one kept
+
+    best = tune._timed(ctx, short, 1)
+    assert 0.004 <= best < 0.02 and 1 + 5 <= len(calls) <= 1 + tune.MAX_RUNS
+    calls.clear()
+    tune._timed(ctx, lambda: (calls.append(1), _time.sleep(0.12)), 2)
+    assert len(calls) == 1 + 2

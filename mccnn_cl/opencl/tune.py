@@ -59,15 +59,25 @@ def _inputs(ctx, size):
     return img_l, img_r, vol
 
 
+#: A candidate's timed runs in one round last at least this long (a few milliseconds'
+#: run is timed several times, so a scheduler hiccup does not decide for it), and at most
+#: MAX_RUNS of them
+LEAST_SECONDS = 0.1
+MAX_RUNS = 20
+
+
 def _timed(ctx, fn, repeat):
+    """Best time of ``fn`` (queue finished) after a warm-up: ``repeat`` runs, more
+    while they add up to less than :data:`LEAST_SECONDS` (at most :data:`MAX_RUNS`)."""
     fn()
     ctx.finish()
-    best = float("inf")
-    for _ in range(repeat):
+    best, spent, runs = float("inf"), 0.0, 0
+    while runs < max(1, int(repeat)) or (spent < LEAST_SECONDS and runs < MAX_RUNS):
         t = time.perf_counter()
         fn()
         ctx.finish()
-        best = min(best, time.perf_counter() - t)
+        dt = time.perf_counter() - t
+        best, spent, runs = min(best, dt), spent + dt, runs + 1
     return best
 
 
