@@ -93,8 +93,9 @@ def _summary(meta) -> str:
     if isinstance(training, dict) and isinstance(training.get("trained_on"), dict):
         pairs = training["trained_on"]
         kinds = sorted({str(k).split("/")[0] for k in pairs})
-        held = [k for k in (training.get("held_out") or []) if k not in pairs]
-        seen = [k for k in (training.get("held_out") or []) if k in pairs]
+        held_out = training.get("held_out") or []
+        held = [k for k in held_out if k not in pairs]
+        seen = [k for k in held_out if k in pairs]
         text = f"trained with mccnn_cl on {len(pairs)} pairs ({', '.join(kinds)})"
         if held:
             text += f", held out {', '.join(map(str, held))}"

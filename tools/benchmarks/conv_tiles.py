@@ -26,6 +26,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", ".."))
 
 from mccnn_cl.benchmark import synthetic_pair  # noqa: E402
+from mccnn_cl.cli.common import parse_size  # noqa: E402
 from mccnn_cl.opencl.context import ClContext  # noqa: E402
 from mccnn_cl.pipeline import StereoMatcher  # noqa: E402
 
@@ -41,12 +42,12 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     ctx = ClContext(None)
     print(f"device: {ctx.device.name}; other choices: {ctx.profile.tuned or 'the rules table'}")
-    w, h = (int(v) for v in args.size.split("x"))
+    w, h = parse_size(args.size, 2, "1242x375", what="width x height")
     left, right = synthetic_pair(w, h, args.disp)
-    base = ctx.profile.network_tiles()
+    others = dict(ctx.profile.tuned.get("network_tiles", {}))  # sizes tuned on this device stay
     runs = []
     for rm in args.values:
-        ctx.profile.tuned["network_tiles"] = dict(base, **{args.key: int(rm)})
+        ctx.profile.tuned["network_tiles"] = {**others, args.key: int(rm)}  # over the rules' row
         m = StereoMatcher(args.weights, max_disparity=args.disp, device=ctx)
         runs.append((rm, m, m.compute(left, right)))  # warm-up: programs built, buffers touched
     ref = runs[0][2]
