@@ -111,7 +111,8 @@ def rate_table(matcher, shape, groups, total, sgbm_time, vol, say=print):
     one pass, as the fused kernel does; a round of 0 iterations moves
     nothing): the left reference's two rounds and the right reference's
     round after SGM (its first round is the left one, shifted); per SGM
-    call, per reference; the right-reference volume, read + write; each
+    call, per reference; the right-reference volume, read + write (the pipeline
+    mirrors the cost volume in place and back, 4 V, to hold one volume less); each
     WTA, one read."""
     p = matcher.params
     nref = 2 if p.right_reference == "aggregated" else 1

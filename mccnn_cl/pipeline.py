@@ -62,8 +62,8 @@ class MemoryPlan:
     """Device memory use of one :meth:`StereoMatcher.compute` call (bytes).
 
     ``volume_bytes``: one D x H x W float32 cost volume of the whole image;
-    ``volumes``: volumes alive at once (3 with the aggregated right
-    reference, 2 with the derived one); ``peak_bytes``: estimated peak of
+    ``volumes``: volumes alive at once (2: the aggregated right reference
+    mirrors the left volume in place); ``peak_bytes``: estimated peak of
     device buffers (an upper bound); ``budget``: the ``memory_limit`` it was
     planned for; ``tiles``: ``(core_start, core_stop, start, stop)`` row
     ranges of the cost volume's domain (one tile covering every row: the
@@ -280,7 +280,7 @@ class StereoMatcher:
 
     def release_buffers(self) -> None:
         """Free the device volumes kept from the last :meth:`compute` (up to
-        three, ``memory_plan(shape).peak_bytes`` at most).  They are kept so
+        two, ``memory_plan(shape).peak_bytes`` at most).  They are kept so
         that the next call of the same size reuses them: on CPU devices a fresh
         volume's first write costs several times a pass over it (first-touch
         page mapping; ~0.6 s per call on the KITTI pair on PoCL).  Calls of
@@ -465,8 +465,12 @@ class StereoMatcher:
         C_CBCA = rec("C_CBCA", self._cbca(C_CNN, arms_L, arms_R, D, H, W, p.cbca_iterations, arm), vol, self.vdtype)
         if p.right_reference == "aggregated":
             # The right reference's first CBCA is this one, shifted: its support
-            # regions are the left ones moved by -d (docs/method.md, 5.)
-            C_R = rec("right_volume", self.right_ref.volume(C_CBCA, D, H, W, out=self._take_volume(D, H, W)))
+            # regions are the left ones moved by -d (docs/method.md, 5.).  Its
+            # volume is C_CBCA mirrored in place, run to D_R first and mirrored
+            # back, so that two volumes are alive at once, not three.
+            C_R = rec("right_volume", self.right_ref.volume(C_CBCA, D, H, W))
+            D_R = rec("D_R", self._right_reference(C_R, J_L, J_R, rec), crop, np.int32)
+            rec("right_volume", self.right_ref.volume(C_R, D, H, W))  # C_CBCA again
         C_SGM = rec("C_SGM", self.sgm(C_CBCA, d_J_L, d_J_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                       p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
                                       p.sgm_outside_large, out=self._take_volume(D, H, W)), vol, self.vdtype)
@@ -475,8 +479,6 @@ class StereoMatcher:
         D_L = rec("D_L", self.wta.left(C, D, H, W), crop, np.int32)
         if p.right_reference == "derived":
             D_R = rec("D_R", self.wta.right(C, D, H, W), crop, np.int32)
-        else:
-            D_R = rec("D_R", self._right_reference(C_R, J_L, J_R, rec), crop, np.int32)
         labels = rec("labels", self.lr_check(D_L, D_R, D, H, W, p.lr_threshold), crop, np.int32)
         D_INT = rec("D_INT", self.interpolate(D_L, labels, H, W, p.interpolation), crop, np.int32)
         D_SE = rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp), crop)
@@ -516,7 +518,8 @@ class StereoMatcher:
         the mirrored right-reference volume after its first CBCA (``C_R``, the
         shifted, mirrored C_CBCA; network not rerun) through SGM, CBCA and the
         left WTA with the mirrored right and left images as (left, right); the
-        map is mirrored back."""
+        map is mirrored back.  ``C_R`` is read, not changed, and stays the
+        caller's."""
         p, ctx, D = self.params, self.ctx, rec.range[1]
         H, W = J_L.shape
         d_K_L = ctx.to_device(np.ascontiguousarray(J_R[:, ::-1]))  # mirrored right image
@@ -526,7 +529,6 @@ class StereoMatcher:
         C_R_SGM = rec("C_R_SGM", self.sgm(C_R, d_K_L, d_K_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                           p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
                                           p.sgm_outside_large, out=self._take_volume(D, H, W)))
-        self._pool.give(C_R)
         C_R = rec("C_R", self._cbca(C_R_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm),
                   (D, H, W), self.vdtype)
         D_R = self.right_ref.mirror(self.wta.left(C_R, D, H, W), H, W)
@@ -574,7 +576,7 @@ class StereoMatcher:
         m = self.margin
         H, W = Hi - 2 * m, Wi - 2 * m
         row = D * W * self.vdtype.itemsize                 # one volume row, bytes
-        nvol = 3 if self.params.right_reference == "aggregated" else 2
+        nvol = 2  # the cost volume (CBCA in place; mirrored in place for the right reference) and SGM's output
         maps = MAP_BUFFERS * Hi * Wi * 4                    # images, arms, disparity maps
         for stage in (self.cbca, self.sgm):  # CBCA's rings, SGM's vertical path state
             maps += stage.scratch_bytes(D, W, self.params)

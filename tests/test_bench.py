@@ -7,7 +7,7 @@ from mccnn_cl.benchmark import GROUPS, STAGE_GROUP, group_timings, stage_group, 
 from mccnn_cl.pipeline import StereoMatcher
 
 
-@pytest.mark.parametrize("kw", [{}, {"right_reference": "derived"}, {"memory_limit": 3 << 20, "tile_overlap": 8}])
+@pytest.mark.parametrize("kw", [{}, {"right_reference": "derived"}, {"memory_limit": 2 << 20, "tile_overlap": 8}])
 def test_every_timed_stage_has_a_group(ctx, kw):
     left, right = synthetic_pair(120, 90, 16)
     res = StereoMatcher(cost="census", max_disparity=16, device=ctx, **kw).compute(left, right, timings=True)

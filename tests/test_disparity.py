@@ -234,20 +234,31 @@ def test_census_volume_with_stages(ctx, cones):
     np.testing.assert_array_equal(DL, ref.wta_left(C))
 
 
-@pytest.mark.parametrize("D,H,W", [(16, 37, 53), (20, 3, 11), (1, 1, 9)])
+@pytest.mark.parametrize("D,H,W", [(16, 37, 53), (20, 3, 11), (1, 1, 9), (31, 2, 32), (40, 3, 97), (33, 2, 65)])
 def test_right_reference_volume_and_mirror(ctx, D, H, W):
-    """The mirrored right-reference volume is C_R mirrored left to right (exact
-    copies, NaN exactly at d > x), and its left WTA mirrored back is D^R."""
+    """The mirrored right-reference volume, made in place, is C_R mirrored left
+    to right (exact copies, NaN exactly at d > x), its left WTA mirrored back
+    is D^R, and a second call gives C_L back (its invalid cells as NaN).  The
+    invalid cells hold finite values before the call (the kernel must write
+    them), and the sizes cover lines with no, some and only whole 16-cell
+    blocks, odd and even segment lengths and a middle cell."""
     rng = np.random.default_rng(D * W)
     C = random_volume(rng, D, H, W, levels=5)
+    C_dirty = C.copy()
+    C_dirty[np.isnan(C_dirty)] = POISON  # invalid cells with a finite value
     rr = RightReference(ctx)
-    out = rr.volume(ctx.to_device(C), D, H, W, out=poisoned(ctx, D * H * W * 4))
-    CRm = ctx.from_device(out, (D, H, W))
+    d_c = ctx.to_device(C_dirty, writable=True)
+    assert rr.volume(d_c, D, H, W) is d_c
+    CRm = ctx.from_device(d_c, (D, H, W))
     expect = ref.right_cost_volume(C)[:, :, ::-1]
     np.testing.assert_array_equal(np.isnan(CRm), np.isnan(expect))
     np.testing.assert_array_equal(CRm[~np.isnan(CRm)], expect[~np.isnan(expect)])
     for d in range(D):
         assert np.isnan(CRm[d, :, :min(d, W)]).all() and not np.isnan(CRm[d, :, d:]).any()
-    dl = WinnerTakeAll(ctx).left(out, D, H, W)
+    dl = WinnerTakeAll(ctx).left(d_c, D, H, W)
     back = rr.mirror(dl, H, W, out=poisoned(ctx, H * W * 4, I32_POISON, np.int32))
     np.testing.assert_array_equal(ctx.from_device(back, (H, W), np.int32), ref.wta_right(C))
+    rr.volume(d_c, D, H, W)  # and back: C_L, NaN where invalid
+    again = ctx.from_device(d_c, (D, H, W))
+    np.testing.assert_array_equal(np.isnan(again), np.isnan(C))
+    np.testing.assert_array_equal(again[~np.isnan(C)], C[~np.isnan(C)])

@@ -49,12 +49,15 @@ def test_half_roundtrip_and_nan(ctx):
     rng = np.random.default_rng(0)
     C = half_volume(rng, 5, 7, 11)
     rr = RightReference(ctx, half=True)
-    d_in = ctx.to_device(C)
-    out = poisoned(ctx, C.nbytes, F16_POISON, np.float16)
-    rr.volume(d_in, 5, 7, 11, out=out)
-    got = ctx.from_device(out, C.shape, np.float16)
+    dirty = C.copy()
+    dirty[np.isnan(dirty)] = F16_POISON  # invalid cells the kernel must set to NaN
+    d_in = ctx.to_device(dirty, writable=True)
+    rr.volume(d_in, 5, 7, 11)  # in place
+    got = ctx.from_device(d_in, C.shape, np.float16)
     expected = ref.right_cost_volume(C.astype(np.float32))[:, :, ::-1].astype(np.float16)
     np.testing.assert_array_equal(got, expected)  # NaN positions included
+    rr.volume(d_in, 5, 7, 11)  # and back
+    np.testing.assert_array_equal(ctx.from_device(d_in, C.shape, np.float16), C)
 
 
 @pytest.mark.parametrize("levels", [None, 8])
@@ -237,7 +240,8 @@ def test_pipeline_half_storage(ctx, shared_data):
     a = full.compute(left, right, return_intermediates=True)
     b = half.compute(left, right, return_intermediates=True)
     assert b.plan.volume_bytes * 2 == a.plan.volume_bytes
-    assert b.peak_device_bytes < 0.6 * a.peak_device_bytes
+    # the volumes alive at once (a.plan.volumes) take half the bytes; the other buffers do not change
+    assert a.peak_device_bytes - b.peak_device_bytes >= a.plan.volumes * b.plan.volume_bytes
     for name in ("C_CNN", "C_CBCA", "C_SGM", "C", "C_R"):
         assert b.intermediates[name].dtype == np.float16 and a.intermediates[name].dtype == np.float32
     np.testing.assert_array_equal(b.intermediates["C_CNN"], a.intermediates["C_CNN"].astype(np.float16))

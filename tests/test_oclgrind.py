@@ -307,14 +307,22 @@ def case_disparity(ctx, rng, chk):
         chk.close(f"WTA left D={D} {H}x{W}", ctx.from_device(d_l, (H, W), np.int32), DL)
         chk.close(f"WTA right D={D} {H}x{W}", ctx.from_device(d_r, (H, W), np.int32), DR)
         # right reference: mirrored C_R (exact copy of cells), WTA on it, mirrored back
-        d_crm = _poisoned(ctx, D * H * W * 4)
-        rr.volume(d_C, D, H, W, out=d_crm)
+        d_crm = ctx.to_device(C, writable=True)
+        rr.volume(d_crm, D, H, W)  # in place
         chk.close(f"right-reference volume D={D} {H}x{W}", ctx.from_device(d_crm, (D, H, W)),
                   ref.right_cost_volume(C)[:, :, ::-1])
         d_back = _poisoned(ctx, n, np.int32)
         rr.mirror(wta.left(d_crm, D, H, W), H, W, out=d_back)
         chk.close(f"mirrored WTA of C_R D={D} {H}x{W}", ctx.from_device(d_back, (H, W), np.int32), DR)
         lab = ref.lr_check(DL, DR, D)
+        if (D, H, W) == (5, 4, 13):  # the mirroring's 16-cell path too (lines of >= 32 cells), there and back
+            C2 = _volume(rng, 3, 2, 71)
+            d_c2 = ctx.to_device(C2, writable=True)
+            rr.volume(d_c2, 3, 2, 71)
+            chk.close("right-reference volume D=3 2x71", ctx.from_device(d_c2, (3, 2, 71)),
+                      ref.right_cost_volume(C2)[:, :, ::-1])
+            rr.volume(d_c2, 3, 2, 71)
+            chk.close("right-reference volume back D=3 2x71", ctx.from_device(d_c2, (3, 2, 71)), C2)
         chk.close(f"LR check D={D} {H}x{W}", ctx.from_device(d_lab, (H, W), np.int32), lab)
         for directions in ("paper", "code"):
             d_int = _poisoned(ctx, n, np.int32)

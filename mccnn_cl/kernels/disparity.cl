@@ -117,38 +117,49 @@ __kernel void disparity_lr_check(
 }
 
 /* The right-reference volume, mirrored so that it follows the left-reference
- * conventions of every stage (cell (d, y, x) valid iff d <= x):
- *   out(d, y, x) = C_R(d, y, W-1-x) = C_L(d, y, W-1-x+d)   for d <= x,
+ * conventions of every stage (cell (d, y, x) valid iff d <= x), made in place
+ * from C_L:
+ *   C_R'(d, y, x) = C_R(d, y, W-1-x) = C_L(d, y, W-1-x+d)   for d <= x,
  *   NaN otherwise (x + d >= W in the unmirrored right volume).
  * Cell (d, y, x) then compares the mirrored right image at x with the
  * mirrored left image at x - d, so running the stereo method on it with the
  * mirrored images as (left, right) treats the right image as the reference;
- * disparity_mirror maps the resulting map back.  One work-item per 16
- * consecutive x of one (d, y) line: a chunk whose cells are all valid reads
- * 16 contiguous source cells and reverses them in registers (Intel's CPU
- * runtime did not vectorise the per-cell kernel: 278 ms on KITTI against
- * PoCL's 42); other chunks go cell by cell.  Global size (ceil(W / 16), H, D). */
+ * disparity_mirror maps the resulting map back.
+ *
+ * On each (d, y) line this reverses the cells d .. W-1 (cell d + i swaps with
+ * cell W-1-i) and sets the cells 0 .. d-1, invalid on both sides, to NaN; so
+ * a second call turns C_R' back into C_L (its invalid cells as NaN), and the
+ * pipeline needs no third volume for the right reference.  Work-item k of a
+ * line swaps the pairs i = 16k .. 16k+15 (i < (W-d) / 2), by two 16-cell
+ * loads reversed in registers when all 16 pairs are whole (the two blocks
+ * cannot overlap then), else cell by cell, and sets the cells 16k .. 16k+15
+ * below d to NaN; each cell has one owner, so no two work-items touch the
+ * same cell.  Global size (ceil(W / 16), H, D). */
 __kernel void disparity_right_volume(
-    __global const vol_t *cost, /* C_L, D x H x W */
-    __global vol_t *out,        /* out: mirrored C_R, D x H x W */
-    const int D,                /* disparity levels */
-    const int H,                /* rows */
-    const int W)                /* columns */
+    __global vol_t *cost, /* in: C_L, out: mirrored C_R; D x H x W */
+    const int D,          /* disparity levels */
+    const int H,          /* rows */
+    const int W)          /* columns */
 {
-    const int x0 = get_global_id(0) * 16;
+    const int k0 = get_global_id(0) * 16;
     const int y = get_global_id(1);
     const int d = get_global_id(2);
-    if (x0 >= W || y >= H || d >= D)
+    if (k0 >= W || y >= H || d >= D)
         return;
-    const int n = min(16, W - x0);
-    __global vol_t *o = out + VIDX(d, y, x0, H, W);
-    if (n == 16 && x0 >= d) { /* source cells W-16-x0+d .. W-1-x0+d, all in the row */
-        const float16 v = VOL_LOAD16(cost + VIDX(d, y, W - 16 - x0 + d, H, W));
-        vol_store16_partial(v.sFEDCBA9876543210, o, 16);
+    __global vol_t *line = cost + VIDX(d, y, 0, H, W);
+    for (int x = k0; x < min(k0 + 16, min(d, W)); ++x) /* below d: invalid */
+        VOL_SET(line, x, INVALID_COST);
+    const int npairs = (W - d) / 2; /* pairs on the line */
+    if (k0 + 16 <= npairs) {
+        const float16 a = VOL_LOAD16(line + d + k0);
+        const float16 b = VOL_LOAD16(line + W - 16 - k0);
+        vol_store16_partial(b.sFEDCBA9876543210, line + d + k0, 16);
+        vol_store16_partial(a.sFEDCBA9876543210, line + W - 16 - k0, 16);
     } else {
-        for (int i = 0; i < n; ++i) {
-            const int x = x0 + i;
-            VOL_SET(o, i, d <= x ? VOL_GET(cost, VIDX(d, y, W - 1 - x + d, H, W)) : INVALID_COST);
+        for (int i = k0; i < npairs; ++i) {
+            const float a = VOL_GET(line, d + i);
+            VOL_SET(line, d + i, VOL_GET(line, W - 1 - i));
+            VOL_SET(line, W - 1 - i, a);
         }
     }
 }

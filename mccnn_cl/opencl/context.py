@@ -441,12 +441,13 @@ class ClContext:
         return int(kernel.get_work_group_info(self.cl.kernel_work_group_info.WORK_GROUP_SIZE, self.device))
 
     # -- buffers -------------------------------------------------------
-    def to_device(self, array: np.ndarray):
-        """Copy a host array to a new read-only buffer (C-contiguous)."""
+    def to_device(self, array: np.ndarray, writable: bool = False):
+        """Copy a host array to a new read-only buffer (C-contiguous); read-write
+        with ``writable`` (for kernels that work in place)."""
         a = np.ascontiguousarray(array)
         self.check_alloc(a.nbytes, "input buffer")
         mf = self.cl.mem_flags
-        buf = self._buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+        buf = self._buffer(self.context, (mf.READ_WRITE if writable else mf.READ_ONLY) | mf.COPY_HOST_PTR, hostbuf=a)
         self.memory.add(buf, max(a.nbytes, 1))
         return buf
 

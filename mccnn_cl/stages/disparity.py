@@ -66,25 +66,26 @@ class RightReference:
     """The right image as the reference, from the left-reference volume (the
     network is never rerun).
 
-    ``volume(d_cost, D, H, W)``: the right-reference volume mirrored left to
-    right, out(d, y, x) = C_L(d, y, W-1-x+d) (NaN for d > x), which follows
-    the left-reference conventions, so the cross arms, CBCA, SGM and WTA
-    stages run on it unchanged with the mirrored right and left images as
-    (left, right).  ``mirror(d_map, H, W)`` mirrors an int32 map back.
+    ``volume(d_cost, D, H, W)``: turns C_L into the right-reference volume
+    mirrored left to right, in place: C_R'(d, y, x) = C_L(d, y, W-1-x+d) (NaN
+    for d > x), which follows the left-reference conventions, so the cross
+    arms, CBCA, SGM and WTA stages run on it unchanged with the mirrored right
+    and left images as (left, right).  The mapping is its own inverse on the
+    valid cells: a second call gives C_L back (its invalid cells d > x as
+    NaN), so the pipeline holds no third volume for it.  ``mirror(d_map, H,
+    W)`` mirrors an int32 map back.
     """
 
     def __init__(self, ctx, half: bool = False):
         self.ctx = ctx
-        self.vbytes = volume_bytes(half)
         self.k_volume = ctx.kernel("disparity.cl", "disparity_right_volume", VOL_HALF=int(half))
         self.k_mirror = ctx.kernel("disparity.cl", "disparity_mirror")
 
-    def volume(self, d_cost, D, H, W, out=None):
-        if out is None:
-            out = self.ctx.empty(D * H * W * self.vbytes, "right-reference cost volume")
-        launch(self.ctx, "right-reference volume", self.k_volume, (-(-W // 16), H, D), d_cost, out,
+    def volume(self, d_cost, D, H, W):
+        """Mirror ``d_cost`` (D x H x W) in place, C_L <-> C_R'; returns it."""
+        launch(self.ctx, "right-reference volume", self.k_volume, (-(-W // 16), H, D), d_cost,
                np.int32(D), np.int32(H), np.int32(W))
-        return out
+        return d_cost
 
     def mirror(self, d_map, H, W, out=None):
         if out is None:
