@@ -195,16 +195,28 @@ def test_devices_lines_name_the_source(cache, ctx):
 
 @pytest.mark.slow
 def test_tune_command(cache):
-    """`mccnn-cl tune` end to end: choices written, then listed by `devices`."""
+    """`mccnn-cl tune` end to end: choices written, then listed by `devices`; the
+    default method's kernel binaries stored, so that a new process builds no
+    program (its first call would otherwise build those the tuning had measured)."""
     import subprocess
     import sys
 
-    env = dict(os.environ, MCCNN_CACHE_DIR=str(cache), MCCNN_TUNE="on")
+    env = dict(os.environ, MCCNN_CACHE_DIR=str(cache), MCCNN_TUNE="on", MCCNN_BINARY_CACHE="on")
     # a small size and 2 rounds: the default KITTI-like size takes ~30-70 s here
-    p = subprocess.run([sys.executable, "-m", "mccnn_cl", "tune", "--no-binaries", "--size", "32x400x64",
+    p = subprocess.run([sys.executable, "-m", "mccnn_cl", "tune", "--size", "32x400x64",
                         "--rounds", "2"], env=env, capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr
     assert "written to" in p.stdout and "wrong/failed" not in p.stdout
+    assert "kernel binaries of the default method stored" in p.stdout
+    probe = ("import numpy as np; from mccnn_cl.opencl.context import ClContext; "
+             "from mccnn_cl.pipeline import StereoMatcher; ctx = ClContext(None); "
+             "rng = np.random.default_rng(1); left = rng.random((40, 320), dtype=np.float32); "
+             "[StereoMatcher(cost=c, device=ctx).compute(left, np.roll(left, -2, axis=1)) for c in ('cnn', 'census')]; "
+             "print(ctx.builds, ctx.binary_loads)")
+    q = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=900)
+    assert q.returncode == 0, q.stderr
+    builds, loads = map(int, q.stdout.split()[-2:])
+    assert builds == 0 and loads > 10, q.stdout
     assert json.load(open(tune.cache_path(ClContext(None).device)))["size"] == [32, 400, 64]
     bad = subprocess.run([sys.executable, "-m", "mccnn_cl", "tune", "--size", "96x1242"], env=env,
                          capture_output=True, text=True)

@@ -65,7 +65,10 @@ def run(args) -> int:
 
         if binaries.enabled():
             t1 = time.perf_counter()
-            ctx.save_binaries = True
+            # a new context: the tuning's context already holds the programs it measured,
+            # which would be reused unsaved (and it chose its tiles before the choices existed)
+            bctx = ClContext(args.device)
+            bctx.save_binaries = True
             from ..pipeline import StereoMatcher
 
             import numpy as np
@@ -74,7 +77,7 @@ def run(args) -> int:
             left = rng.random((40, 320), dtype=np.float32)
             right = np.roll(left, -3, axis=1)
             for cost in ("cnn", "census"):  # a small pair: the kernels built lazily too
-                StereoMatcher(cost=cost, device=ctx).compute(left, right)
+                StereoMatcher(cost=cost, device=bctx).compute(left, right)
             print(f"kernel binaries of the default method stored under {binaries.cache_root()} "
                   f"({time.perf_counter() - t1:.0f} s)")
     return 0

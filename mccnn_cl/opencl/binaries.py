@@ -5,8 +5,8 @@ source and costs ~0.2 s per program (14 programs for the fst method: ~2.5 s
 of a KITTI pair's first call on 2 loaded cores); a program made from its
 binary costs ~0.02 s.  Fetching a binary from PoCL compiles every kernel of
 the program once more (seconds per program), so binaries are saved only when
-asked (:attr:`mccnn_cl.opencl.context.ClContext.save_binaries`: ``mccnn-cl tune`` and
-``mccnn-cl warmup`` set it), and loaded whenever present.
+asked (:attr:`mccnn_cl.opencl.context.ClContext.save_binaries`: ``mccnn-cl tune`` sets
+it for a run of the default method after tuning), and loaded whenever present.
 
 A binary's file name is a hash of everything its build depends on: the
 package version, the platform (name, version), the device (name, driver
