@@ -45,6 +45,22 @@ def test_census_random(ctx, Hi, Wi, D, shape):
         assert np.isnan(C[d, :, :d]).all() and not np.isnan(C[d, :, d:]).any()
 
 
+def test_census_every_count_is_the_correctly_rounded_quotient(ctx):
+    """Every Hamming count 0..80 occurs (the right image is the left one with a growing share
+    of its pixels inverted, row by row) and each cost is exactly float32(count) / float32(80):
+    the kernel must not use a division that OpenCL lets be inexact (NVIDIA's is 1 ulp off)."""
+    rng = np.random.default_rng(80)
+    H, W = 60, 60
+    left = rng.random((H, W), dtype=np.float32)
+    right = np.where(rng.random((H, W)) < np.linspace(0, 1, H)[:, None], 1 - left, left).astype(np.float32)
+    C = run_census(ctx, left, right, 3)
+    expect = ref.census_cost(left, right, 3)
+    counts = np.round(expect[~np.isnan(expect)] * 80).astype(int)
+    assert set(counts.tolist()) == set(range(81))
+    same_nan(C, expect)
+    np.testing.assert_array_equal(np.float32(counts) / np.float32(80), expect[~np.isnan(expect)])
+
+
 def test_census_real(ctx, shared_data):
     d = shared_data / "middlebury" / "Tsukuba"
     left = cv2.imread(str(d / "im0.png"), cv2.IMREAD_GRAYSCALE)[100:141, 150:211].astype(np.float32) / 255
