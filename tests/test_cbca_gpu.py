@@ -290,6 +290,8 @@ def test_stereo_matcher_with_the_gpu_profile(ctx, shared_data, monkeypatch, dtyp
 
     left, right = kitti_crop(shared_data, 150, 300, 37, 83)
     D, half = 21, dtype == "float16"
+    # the CPU column for the baseline, also on a GPU (whose own profile is the gpu column)
+    monkeypatch.setattr(ctx, "profile", DeviceProfile.of(fake_device("Some CPU", cl.device_type.CPU, 2, 16), cl))
     cpu = StereoMatcher(cost="census", max_disparity=D, device=ctx, volume_dtype=dtype)
     cpu.sgm = SGM(ctx, half=half, paired=False)
     if half:

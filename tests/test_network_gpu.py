@@ -402,6 +402,8 @@ def test_stereo_matcher_with_the_gpu_profile(ctx, shared_data, monkeypatch):
 
     left, right = kitti_crop(shared_data, 150, 300, 41, 97)
     D = 24
+    # the CPU column for the baseline, also on a GPU (whose own profile is the gpu column)
+    monkeypatch.setattr(ctx, "profile", DeviceProfile.of(fake_device("Some CPU", cl.device_type.CPU, 2, 16), cl))
     cpu = StereoMatcher(max_disparity=D, device=ctx)
     assert cpu.cost.volume_path == "pairs" and cpu.cost.stack.path == "register"
     cpu.sgm = SGM(ctx, paired=False)
