@@ -89,6 +89,19 @@ def test_pack_data_copies_the_files_the_check_reads(tmp_path, shared_data):
     assert gpucheck.find_data(tmp_path / "data") == (tmp_path / "data").resolve()
 
 
+def test_budget_must_be_positive(capsys):
+    assert gpucheck.main(["--cpu", "--budget", "0", "--out", "unused.md"]) == 2
+    assert "--budget must be a positive number" in capsys.readouterr().out
+
+
+def test_tests_read_the_bundled_crops_beside_a_packed_copy(tmp_path, shared_data):
+    """A --pack-data copy holds the benches' files only: the tests then get no MCCNN_DATA
+    (they read tests/data); a whole shared-data folder is handed to them."""
+    gpucheck.pack_data(shared_data, tmp_path)
+    assert not all((tmp_path / f).is_file() for f in gpucheck.FULL_DATA_FILES)
+    assert all((shared_data / f).is_file() for f in gpucheck.FULL_DATA_FILES)
+
+
 def test_speed_scale():
     """--cpu budgets scale with the measured speed: 1 at or above the reference
     machine's rate, its ratio below, at most MAX_SCALE."""

@@ -82,6 +82,11 @@ DATA_FILES = ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/im
               "middlebury/Cones/im0.png", "middlebury/Cones/im1.png")
 
 
+#: Files that tell a whole shared-data folder (the tests then read it through MCCNN_DATA)
+#: from a --pack-data copy (the tests then read their bundled crops, tests/data).
+FULL_DATA_FILES = ("middlebury/Tsukuba/im0.png", "kitti2015/training/image_2/000001_10.png")
+
+
 def _run(cmd, limit, env=None):
     """(return code or None when killed at ``limit`` s, output, seconds)."""
     t0 = time.perf_counter()
@@ -310,6 +315,10 @@ def main(argv=None) -> int:
     ap.add_argument("--data", help="shared-data folder (default: $MCCNN_DATA, ../shared/data, "
                                    "shared/data, .gpucheck/data)")
     ap.add_argument("--pack-data", metavar="DST", help="only copy the data files the check reads to DST")
+    ap.add_argument("--budget", type=float, default=None, metavar="SECONDS",
+                    help="the whole check's time budget (set-up excluded); every fixed budget (tune, tests, "
+                         "one test group, one bench) shrinks or grows in proportion (default: %.0f s on a GPU, "
+                         "%.0f s with --cpu, before the --cpu speed scaling)" % (TOTAL_BUDGET_S, CPU_TOTAL_BUDGET_S))
     ap.add_argument("--env-note", default="", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
@@ -338,19 +347,31 @@ def main(argv=None) -> int:
     say(f"gpu_check: checking {spec} = {info}")
     env = dict(os.environ)
     data = find_data(args.data)
-    if data is not None:
-        env["MCCNN_DATA"] = str(data)
-    else:
-        say("gpu_check: no shared data found: the tests that read real images will fail (see --pack-data)")
+    if data is None:
+        say("gpu_check: no shared data found: the benches on real images are left out (see --pack-data)")
+    if data is not None and all((data / f).is_file() for f in FULL_DATA_FILES):
+        env["MCCNN_DATA"] = str(data)  # the tests read the whole shared data ...
+    else:  # ... else their bundled crops (tests/data): a --pack-data copy holds the benches' files only
+        env.pop("MCCNN_DATA", None)
     test_budget, total_budget, group_limit = ((CPU_TEST_BUDGET_S, CPU_TOTAL_BUDGET_S, CPU_GROUP_LIMIT_S) if args.cpu
                                               else (TEST_BUDGET_S, TOTAL_BUDGET_S, GROUP_LIMIT_S))
     scale, note = 1.0, ""
+    if args.budget is not None:
+        if not args.budget > 0:
+            say(f"gpu_check: --budget must be a positive number of seconds, got {args.budget:g}")
+            return 2
+        scale = args.budget / total_budget
+        note = f"--budget {args.budget:g} s: budgets x {scale:.2f}"
+        if not args.cpu:
+            say(f"gpu_check: {note}")
     if args.cpu:
-        scale, gflops = speed_scale()
-        note = (f"numpy GEMM {gflops:.0f} GFLOP/s against {CPU_REFERENCE_GFLOPS:.0f} on the machine the budgets "
-                f"were set on: budgets x {scale:.2f}")
+        speed, gflops = speed_scale()
+        scale *= speed
+        note = (note + "; " if note else "") + (
+            f"numpy GEMM {gflops:.0f} GFLOP/s against {CPU_REFERENCE_GFLOPS:.0f} on the machine the budgets "
+            f"were set on: budgets x {speed:.2f}")
         say(f"gpu_check: speed: {note}")
-    tune_row = run_tune(spec, TUNE_LIMIT_S * scale, env, say)
+    tune_row = run_tune(spec, TUNE_LIMIT_S * min(scale, MAX_SCALE), env, say)
     test_rows = run_tests(spec, test_budget * scale, env, say, group_limit * scale)
     with tempfile.TemporaryDirectory(prefix="gpu-check-") as tmp:
         bench_rows = run_benches(spec, bench_plan(args.cpu, data, Path(tmp)), 1 if args.cpu else 3, env, say,
