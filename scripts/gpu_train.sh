@@ -13,7 +13,15 @@
 #   GPU_TRAIN_DEVICE  torch device (default cuda; with no CUDA device the
 #                     script stops with one line); "cpu" rehearses the whole
 #                     run on the CPU with a small recipe and .venv/bin/python
-#   GPU_TRAIN_DATA    data folder (default .gpu_data)
+#   GPU_TRAIN_DATA    data folder (default .gpu_data; when it is missing and
+#                     DATA.tar.xz exists, that archive is unpacked into it)
+#   GPU_TRAIN_SET     kitti (default: the 11 KITTI pairs, as above) or
+#                     families: every packed pair but general-fst's held-out
+#                     scene families (tools/pack_gpu_families.py packs them:
+#                     `bash scripts/pack_gpu_data.sh --families`, carry
+#                     [".gpu_data.tar.xz"]), with general-fst's mixed-data
+#                     choices (dataset balance, family augmentation and offsets)
+#   GPU_TRAIN_NAME    run folder name (default gpu_ARCH; two runs at once need two)
 #   GPU_TRAIN_ARGS    extra trainer flags, appended (they override the recipe's)
 #   PYTHON            interpreter (default .venv/bin/python if it has torch, else python3)
 # mccnn_cl is made importable without network: already importable, else
@@ -27,12 +35,16 @@ ARCH=${1:-fst}
 MINUTES=${2:-8}
 DEV=${GPU_TRAIN_DEVICE:-cuda}
 DATA=${GPU_TRAIN_DATA:-.gpu_data}
+SET=${GPU_TRAIN_SET:-kitti}
 export PYTHONUNBUFFERED=1  # the log is whole even when the device tool stops the command at its limit
 say() { echo "gpu_train: $*"; }
 die() { echo "gpu_train: $*" >&2; exit "${2:-2}"; }
 
 case "$ARCH" in fst|acrt|paper) ;; *) die "ARCH must be fst, acrt or paper, got '$ARCH'" ;; esac
 [[ "$MINUTES" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "MINUTES must be a number, got '$MINUTES'"
+case "$SET" in kitti|families) ;; *) die "GPU_TRAIN_SET must be kitti or families, got '$SET'" ;; esac
+NAME=${GPU_TRAIN_NAME:-gpu_$ARCH}
+[[ "$NAME" =~ ^[A-Za-z0-9._-]+$ ]] || die "GPU_TRAIN_NAME must be letters, digits, '.', '_' or '-', got '$NAME'"
 
 if [ -n "${PYTHON:-}" ]; then
     PY=$PYTHON
@@ -49,6 +61,11 @@ if [[ "$DEV" == cuda* ]]; then
         SMI=$( (nvidia-smi -L 2>/dev/null | head -1) || true)
         die "no CUDA device for torch $("$PY" -c 'import torch; print(torch.__version__)' 2>/dev/null) (nvidia-smi: ${SMI:-none}); this is for a GPU machine — rehearse on the CPU with GPU_TRAIN_DEVICE=cpu" 3
     fi
+fi
+if [ ! -d "$DATA" ] && [ -f "$DATA.tar.xz" ]; then
+    mkdir -p "$DATA.part" && tar -xJf "$DATA.tar.xz" -C "$DATA.part" && mv "$DATA.part" "$DATA" || \
+        die "cannot unpack $DATA.tar.xz"
+    say "unpacked $DATA.tar.xz into $DATA"
 fi
 [ -d "$DATA" ] || die "no data at $DATA: run scripts/pack_gpu_data.sh first (and carry [\".gpu_data\"] to the GPU machine)"
 
@@ -74,6 +91,14 @@ case "$ARCH" in
     acrt) RECIPE+=(--negatives 2) ;;    # fc head runs per example
     paper) RECIPE+=(--negatives 1) ;;
 esac
+if [ "$SET" = kitti ]; then
+    PAIRS=(--include 'kitti*' --holdout kitti2015/000000 middlebury/Cones)
+else   # the pack holds no pair of general-fst's held-out families (docs/training.md) but these
+    # four, one per dataset, for validation; general-fst's mixed-data choices
+    PAIRS=(--include '*' --holdout kitti2015/000000 middlebury/Cones middlebury/trainingQ/Piano
+           eth3d/delivery_area_1l)
+    RECIPE+=(--augment-preset family --family-offsets --balance dataset --max-per-pair 200000)
+fi
 if [ "$DEV" = cpu ]; then   # rehearsal: the same path, a recipe 2 CPU cores get through in a minute
     RECIPE+=(--crops-per-step 2 --crop 31 31 --per-crop 256 --steps-per-epoch 50
              --val-pixels 300 --val-examples 400 --calibrate-steps 5 --threads 2)
@@ -81,12 +106,12 @@ fi
 # shellcheck disable=SC2206
 EXTRA=(${GPU_TRAIN_ARGS:-})
 
-if [ -n "${OUT:-}" ]; then RUN="$OUT/gpu_$ARCH"; else RUN="runs/gpu_$ARCH"; fi
+if [ -n "${OUT:-}" ]; then RUN="$OUT/$NAME"; else RUN="runs/$NAME"; fi
 rm -rf "$RUN"
 mkdir -p "$RUN"
 
 run() {
-    say "$(date -u +%FT%TZ), arch $ARCH, $MINUTES min, device $DEV, python $PY ($HOW), run folder $RUN"
+    say "$(date -u +%FT%TZ), arch $ARCH, set $SET, $MINUTES min, device $DEV, python $PY ($HOW), run folder $RUN"
     if [[ "$DEV" == cuda* ]]; then
         nvidia-smi --query-gpu=name,memory.total,memory.used,driver_version --format=csv 2>/dev/null || say "nvidia-smi not found"
     else
@@ -103,7 +128,7 @@ if dev.startswith("cuda"):
           f"{p.multi_processor_count} SMs")
 EOF
     local t0=$SECONDS
-    local cmd=("${RUN_TRAIN[@]}" --data "$DATA" --include 'kitti*' --holdout kitti2015/000000 middlebury/Cones
+    local cmd=("${RUN_TRAIN[@]}" --data "$DATA" "${PAIRS[@]}"
                --arch "$ARCH" "${RECIPE[@]}" --device "$DEV" --fit-minutes "$MINUTES" --no-progress
                --out "$RUN" ${EXTRA[@]+"${EXTRA[@]}"})
     echo "+ $(printf "%q " "${cmd[@]}")"

@@ -13,8 +13,19 @@
 # No calibration files: training does not read them.  Prints the pairs found
 # and the folder's size, and fails when that is 50 MiB or more (the device
 # tool carries 64 MiB in all, the working tree included).
+#   bash scripts/pack_gpu_data.sh --families [ARGS]
+# packs every family instead (tools/pack_gpu_families.py: training pairs but
+# general-fst's held-out families, one validation pair per dataset, gray
+# images, ground truth rounded to 1/32 px) into .gpu_data.tar.xz, for
+# GPU_TRAIN_SET=families bash scripts/gpu_train.sh.
 set -euo pipefail
 REPO=$(cd "$(dirname "$0")/.." && pwd)
+if [ "${1:-}" = --families ]; then
+    shift
+    PY=python3
+    [ -x "$REPO/.venv/bin/python" ] && PY=$REPO/.venv/bin/python
+    exec "$PY" "$REPO/tools/pack_gpu_families.py" "$@"
+fi
 DATA=${1:-$REPO/../shared/data}
 DEST=${2:-$REPO/.gpu_data}
 LIMIT_MIB=50

@@ -116,6 +116,46 @@ def test_gpu_train_checks_its_arguments(tmp_path):
     for args, what in ((["nope"], "ARCH must be"), (["fst", "soon"], "MINUTES must be")):
         r = _gpu_train(args, tmp_path)
         assert r.returncode == 2 and what in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    for env, what in (({"GPU_TRAIN_SET": "all"}, "GPU_TRAIN_SET must be"),
+                      ({"GPU_TRAIN_NAME": "a/b"}, "GPU_TRAIN_NAME must be")):
+        r = _gpu_train(["fst", "1"], tmp_path, **env)
+        assert r.returncode == 2 and what in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+@pytest.mark.full_data
+def test_pack_families_gives_an_archive_discover_reads(small_data, tmp_path):
+    """tools/pack_gpu_families.py (pack_gpu_data.sh --families): held-out pairs stay out
+    but the validation ones, images are stored gray with the pixels training reads, ground
+    truth within half a step of the original; the unpacked folder is a layout discover reads."""
+    import tarfile
+
+    from mccnn_cl.io import read_pfm
+
+    out = tmp_path / "pack.tar.xz"
+    r = subprocess.run(["bash", str(REPO / "scripts" / "pack_gpu_data.sh"), "--families", "--data", str(small_data),
+                        "--out", str(out), "--holdout", "kitti2015/000000", "middlebury/Cones", "middlebury/Tsukuba",
+                        "--val", "middlebury/Cones"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "2 training pairs" in r.stdout and "1 validation pairs" in r.stdout, r.stdout
+    dest = tmp_path / "unpacked"
+    with tarfile.open(out) as tar:
+        tar.extractall(dest)
+    keys = sorted(ref.key for ref in discover(dest, labeled=True))
+    assert keys == ["kitti2012/000000", "kitti2015/000001", "middlebury/Cones"]
+    a = {ref.key: ref for ref in discover(small_data, labeled=True)}
+    b = {ref.key: ref for ref in discover(dest, labeled=True)}
+    for key in keys:
+        pa, pb = a[key].load(), b[key].load()
+        assert pb.left.ndim == 2
+        for x, y in zip(pa.gray(), pb.gray()):
+            np.testing.assert_array_equal(x, y)
+        np.testing.assert_array_equal(np.isnan(pa.disp), np.isnan(pb.disp))
+        assert np.nanmax(np.abs(pa.disp - pb.disp)) <= 1 / 64
+    g = read_pfm(dest / "middlebury" / "Cones" / "disp0GT.pfm")
+    assert np.array_equal(g[np.isfinite(g)] * 32, np.round(g[np.isfinite(g)] * 32))
+    r = subprocess.run(["bash", str(REPO / "scripts" / "pack_gpu_data.sh"), "--families", "--data", str(small_data),
+                        "--out", str(out), "--val", "eth3d/nowhere"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "eth3d/nowhere" in r.stderr
 
 
 def test_plan_fits_the_budget():
