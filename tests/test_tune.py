@@ -178,6 +178,31 @@ def test_real_candidates_agree(ctx, cache):
     assert set(choices) <= set().union(*(c for o in opts for c in o.candidates))
 
 
+@pytest.mark.slow
+def test_gpu_candidates_agree(ctx, cache, monkeypatch):
+    """A GPU-shaped device's options (a profile built for a GPU, run on this device):
+    SGM's and CBCA's work-group paths against the CPU-shaped kernels, the conv GEMM's
+    tiles, launch_local; every candidate computes the rules' result, so the tuner on a
+    GPU has more than the rules to choose from and nothing wrong among it."""
+    import pyopencl as cl
+
+    import helpers
+    from mccnn_cl.opencl.device import DeviceProfile
+
+    gpu = helpers.fake_device("Some GPU", cl.device_type.GPU, 8, 1, global_mem=1 << 34, max_alloc=1 << 32,
+                              max_work_group=1024)
+    monkeypatch.setattr(ctx, "profile", DeviceProfile.of(gpu, cl))
+    opts = tune.options(ctx, size=(12, 80, 24), repeat=1)
+    assert [o.name for o in opts] == ["sgm", "cbca_path", "network_gemm", "launch_local"]
+    choices, measured = tune.choose(ctx, opts)
+    for name, res in measured.items():
+        results = res["candidates"]
+        assert results[0][0] == {} and len(results) > 1, name
+        assert all(s is not None for _, s in results), f"{name}: a candidate disagreed with the rules: {results}"
+    assert set(choices) <= {"sgm_stage", "sgm_paired_max_units", "sgm_cols", "cbca_workgroup", "network_gemm_tile",
+                            "launch_local"}
+
+
 def test_devices_lines_name_the_source(cache, ctx):
     from mccnn_cl.cli.tune import describe_choices
 

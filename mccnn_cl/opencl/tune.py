@@ -18,8 +18,11 @@ Every :class:`~mccnn_cl.opencl.context.ClContext` loads its device's choices
 (:meth:`DeviceProfile.rule <mccnn_cl.opencl.device.DeviceProfile.rule>` returns
 them) unless ``MCCNN_TUNE=off``.  A device never tuned uses the rules: the
 first use does not tune (``mccnn-cl tune`` does, in about a minute on 2 CPU
-cores).  The choices tuned are the CPU-shaped paths' (devices of the
-``cpu`` and ``llvmpipe`` columns); GPU-shaped devices keep the rules.
+cores).  On devices of the ``cpu`` and ``llvmpipe`` columns the choices tuned
+are the CPU-shaped paths' sizes; on the others (GPUs) each GPU-shaped path
+(SGM's and CBCA's work-groups) is measured against the CPU-shaped one it
+replaces, with the conv GEMM's tile and the work-group size left to
+``launch_local``.
 """
 
 from __future__ import annotations
@@ -82,9 +85,9 @@ def _timed(ctx, fn, repeat):
 
 
 def options(ctx, size=SIZE, repeat=1) -> list:
-    """The choices tuned on ``ctx``'s device (none on GPU-shaped devices)."""
-    if not ctx.profile.is_cpu:
-        return []
+    """The choices tuned on ``ctx``'s device: the CPU-shaped paths' sizes on CPU-shaped
+    devices (:func:`_cpu_options`), the GPU-shaped paths against the CPU-shaped ones and
+    their sizes on the others (:func:`_gpu_options`)."""
     H, W, D = size
     img_l, img_r, vol = _inputs(ctx, size)
     d_l, d_r, d_vol = ctx.to_device(img_l), ctx.to_device(img_r), ctx.to_device(vol)
@@ -92,9 +95,9 @@ def options(ctx, size=SIZE, repeat=1) -> list:
     out = ctx.empty(4 * D * H * W, "tuning output")
 
     def sgm_run(ctx_):
-        from ..stages.sgm import SGM
+        from ..stages.sgm_select import make_sgm
 
-        sgm = SGM(ctx_)
+        sgm = make_sgm(ctx_)
         sec = _timed(ctx_, lambda: sgm(d_vol, d_l, d_r, D, H, W, out=out), repeat)
         return sec, ctx_.from_device(out, (D, H, W))
 
@@ -161,18 +164,44 @@ def options(ctx, size=SIZE, repeat=1) -> list:
         buf.release()
         return sec, got
 
+    runs = dict(sgm=sgm_run, cbca=cbca_run, local=local_run, conv=conv_run, head=head_run)
+    return _cpu_options(ctx, runs) if ctx.profile.is_cpu else _gpu_options(ctx, runs)
+
+
+def _launch_local(run):
+    return Option("launch_local", [{"launch_local": list(t)} for t in ((64, 2, 2), (32, 4, 4), (16, 4, 4), (8, 8, 8),
+                                                                       (128, 1, 1))], run)
+
+
+def _gpu_options(ctx, runs) -> list:
+    """GPU-shaped devices: each GPU-shaped path (the rules' gpu column) against the
+    CPU-shaped one it replaces, and the conv GEMM's tile.  Every candidate computes
+    the rules' result (SGM to rounding: the one-direction kernels sum in the work-group
+    path's order, the tiles and CBCA's short passes bit for bit)."""
+    return [
+        Option("sgm", [{"sgm_stage": "lines", "sgm_paired_max_units": 0, "sgm_cols": c} for c in (32, 64, 128)],
+               runs["sgm"], exact=False),
+        Option("cbca_path", [{"cbca_workgroup": False}], runs["cbca"]),
+        Option("network_gemm", [{"network_gemm_tile": t} for t in (dict(TM=128, RM=8), dict(TM=32, RM=2),
+                                                                   dict(TN=32, RN=2), dict(TK=32))], runs["conv"]),
+        _launch_local(runs["local"]),
+    ]
+
+
+def _cpu_options(ctx, runs) -> list:
+    """CPU-shaped devices: SGM's sweeps and column width, CBCA's kernels, the register
+    tiles of the conv stack and of the head, the work-group size left to launch_local."""
     units = max(ctx.profile.compute_units, 1)
     # SGM: the paired sweeps (their chunk width is fixed), or the one-direction
     # kernels at each column width (without paired sweeps the width matters)
     sgm = [{"sgm_paired_max_units": units}] + [{"sgm_paired_max_units": 0, "sgm_cols": c} for c in (32, 64, 128)]
     opts = [
-        Option("sgm", sgm, sgm_run, exact=False),
+        Option("sgm", sgm, runs["sgm"], exact=False),
         Option("cbca_path", [{"cbca_fused": True, "cbca_multi": True}, {"cbca_fused": True, "cbca_multi": False},
-                             {"cbca_fused": False, "cbca_multi": False}], cbca_run),
-        Option("network_conv", [{"network_tiles": {"CONV_RM": r}} for r in (4, 6, 8)], conv_run),
-        Option("network_head", [{"network_tiles": {"RM": r}} for r in (4, 8)], head_run),
-        Option("launch_local", [{"launch_local": list(t)} for t in ((64, 2, 2), (32, 4, 4), (16, 4, 4), (8, 8, 8),
-                                                                    (128, 1, 1))], local_run),
+                             {"cbca_fused": False, "cbca_multi": False}], runs["cbca"]),
+        Option("network_conv", [{"network_tiles": {"CONV_RM": r}} for r in (4, 6, 8)], runs["conv"]),
+        Option("network_head", [{"network_tiles": {"RM": r}} for r in (4, 8)], runs["head"]),
+        _launch_local(runs["local"]),
     ]
     if ctx.profile.loop_limit is not None:  # llvmpipe: the paired sweeps refuse to run under its limit
         opts[0].candidates = opts[0].candidates[1:]
