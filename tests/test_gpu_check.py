@@ -94,12 +94,19 @@ def test_budget_must_be_positive(capsys):
     assert "--budget must be a positive number" in capsys.readouterr().out
 
 
-def test_tests_read_the_bundled_crops_beside_a_packed_copy(tmp_path, shared_data):
+def test_tests_read_the_bundled_crops_beside_a_packed_copy(tmp_path):
     """A --pack-data copy holds the benches' files only: the tests then get no MCCNN_DATA
     (they read tests/data); a whole shared-data folder is handed to them."""
-    gpucheck.pack_data(shared_data, tmp_path)
-    assert not all((tmp_path / f).is_file() for f in gpucheck.FULL_DATA_FILES)
-    assert all((shared_data / f).is_file() for f in gpucheck.FULL_DATA_FILES)
+    packed, full = tmp_path / "packed", tmp_path / "full"
+    for root, files in ((packed, gpucheck.DATA_FILES), (full, gpucheck.DATA_FILES + gpucheck.FULL_DATA_FILES)):
+        for rel in files:
+            (root / rel).parent.mkdir(parents=True, exist_ok=True)
+            (root / rel).write_bytes(b"")
+    base = {"MCCNN_DATA": "/elsewhere", "PATH": "/bin"}
+    assert gpucheck.tests_env(packed, base) == {"PATH": "/bin"}
+    assert gpucheck.tests_env(None, base) == {"PATH": "/bin"}
+    assert gpucheck.tests_env(full, base) == {"MCCNN_DATA": str(full), "PATH": "/bin"}
+    assert base["MCCNN_DATA"] == "/elsewhere"  # the caller's environment is not changed
 
 
 def test_speed_scale():

@@ -87,6 +87,7 @@ def test_random_odd_size_every_group_size(ctx, D):
     assert np.abs(got[valid] - cost[valid]).max() > 0.5
 
 
+@pytest.mark.gpu_check
 def test_default_group_size(ctx):
     """The default size: within the kernel's limit, covering D when it can."""
     rng = np.random.default_rng(3)
@@ -101,6 +102,7 @@ def test_default_group_size(ctx):
     check_reference(got, cost, sgm(cost, img_l, img_r))
 
 
+@pytest.mark.gpu_check
 def test_variants_and_parameters(ctx):
     """Both penalty variants, P2 = Pi1 Pi2, the outside-the-image choice, other
     q1, q2, v and tau_so, at group sizes 4 and 16."""
@@ -133,6 +135,7 @@ def test_largest_group_size_on_many_levels(ctx):
     check_all(ctx, cost, blocky_image(rng, H, W), blocky_image(rng, H, W), sizes=(128, 7))
 
 
+@pytest.mark.gpu_check
 def test_kitti_crop_against_reference_and_sgm(ctx, shared_data):
     """A real KITTI crop (AD costs, D = 30 over 70 columns), both penalty
     variants and the outside-the-image choice."""
@@ -180,6 +183,7 @@ def test_allocates_output_and_reuses_stage(ctx):
     assert SGMWorkGroup.scratch_bytes(33, 40) == 0
 
 
+@pytest.mark.gpu_check
 def test_bad_input(ctx):
     cost = np.zeros((2, 3, 4), np.float32)
     d_cost = ctx.to_device(cost)
@@ -206,6 +210,7 @@ def workgroup_sgm(ctx, monkeypatch):
     monkeypatch.setitem(RULES["sgm_stage"], ctx.profile.kind, "workgroup")
 
 
+@pytest.mark.gpu_check
 def test_stereo_matcher_with_the_workgroup_stage(ctx, shared_data, workgroup_sgm):
     """StereoMatcher with the GPU path forced runs SGMWorkGroup; its disparity
     map and every volume equal, bit for bit, the run with SGM's one-direction

@@ -43,7 +43,7 @@ REPO = Path(__file__).resolve().parents[1]
 #: chosen to take ~200 s on a loaded 2-core CPU, far less on a GPU), selected
 #: by marker: ``gpu_check`` where a module's subset is run.
 TEST_GROUPS = (
-    ("SGM, work-group per line (GPU layout)", ["tests/test_sgm_wg.py"], ()),
+    ("SGM, work-group per line (GPU layout)", ["tests/test_sgm_wg.py", "-m", "gpu_check"], ()),
     ("SGM, CPU-shaped kernels", ["tests/test_sgm.py", "-m", "gpu_check"], ()),
     ("census", ["tests/test_census.py"], ()),
     ("network fst", ["tests/test_fst.py"], ()),
@@ -85,6 +85,18 @@ DATA_FILES = ("kitti2015/training/image_2/000000_10.png", "kitti2015/training/im
 #: Files that tell a whole shared-data folder (the tests then read it through MCCNN_DATA)
 #: from a --pack-data copy (the tests then read their bundled crops, tests/data).
 FULL_DATA_FILES = ("middlebury/Tsukuba/im0.png", "kitti2015/training/image_2/000001_10.png")
+
+
+def tests_env(data, base) -> dict:
+    """The tests' environment: MCCNN_DATA names ``data`` when it is a whole shared-data
+    folder; beside a --pack-data copy (the benches' files only) or no data the tests
+    read their bundled crops (tests/data), so MCCNN_DATA is removed."""
+    env = dict(base)
+    if data is not None and all((Path(data) / f).is_file() for f in FULL_DATA_FILES):
+        env["MCCNN_DATA"] = str(data)
+    else:
+        env.pop("MCCNN_DATA", None)
+    return env
 
 
 def _run(cmd, limit, env=None):
@@ -345,14 +357,10 @@ def main(argv=None) -> int:
     spec, info = target
     say(f"gpu_check: OpenCL devices: " + "; ".join(f"{d.platform_index}:{d.device_index} {d}" for d, _ in devs))
     say(f"gpu_check: checking {spec} = {info}")
-    env = dict(os.environ)
     data = find_data(args.data)
     if data is None:
         say("gpu_check: no shared data found: the benches on real images are left out (see --pack-data)")
-    if data is not None and all((data / f).is_file() for f in FULL_DATA_FILES):
-        env["MCCNN_DATA"] = str(data)  # the tests read the whole shared data ...
-    else:  # ... else their bundled crops (tests/data): a --pack-data copy holds the benches' files only
-        env.pop("MCCNN_DATA", None)
+    env = tests_env(data, os.environ)
     test_budget, total_budget, group_limit = ((CPU_TEST_BUDGET_S, CPU_TOTAL_BUDGET_S, CPU_GROUP_LIMIT_S) if args.cpu
                                               else (TEST_BUDGET_S, TOTAL_BUDGET_S, GROUP_LIMIT_S))
     scale, note = 1.0, ""
