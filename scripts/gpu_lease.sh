@@ -8,18 +8,29 @@
 #                 (docs/portability.md, "GPU paths and the GPU check")
 #   there:        bash scripts/gpu_lease.sh [CHECK_SECONDS] [TRAIN_MINUTES]
 #                 (carry [".gpucheck", ".gpu_data.tar.xz"])
-# CHECK_SECONDS (default 150): gpu_check.sh --budget.  TRAIN_MINUTES (default 5):
-# each trainer's --fit-minutes; the two runs share the GPU:
-#   fam_scratch  fst from He init, GPU_TRAIN_SET=families (scripts/gpu_train.sh)
-#   fam_init     the same, fine-tuned from the shipped kitti-fst (--init kitti-fst)
+# CHECK_SECONDS (default 150): gpu_check.sh --budget (0: no check).  TRAIN_MINUTES
+# (default 5): each trainer's --fit-minutes; the runs share the GPU.  GPU_LEASE_RUNS
+# lists them, ';'-separated NAME|ARCH|TRAINER-FLAGS, all GPU_TRAIN_SET=families
+# (scripts/gpu_train.sh); the default:
+#   fam_scratch|fst|                    fst from He init
+#   fam_init|fst|--init kitti-fst       fst fine-tuned from the shipped kitti-fst
+# (e.g. "fam_paper|paper|--init general-paper" for the accurate network).
 # What comes back ($OUT, else runs/gpu_lease; the device tool returns 8 files):
-# gpu_check_report.md, gpu_check.log and per run weights.npz, history.json, log.txt.
+# gpu_check_report.md, gpu_check.log and per run weights.npz, history.json, log.txt
+# (two runs with the check, at most two more without it).
 # GPU_TRAIN_DEVICE=cpu rehearses the whole call on the CPU (gpu_check --cpu, small recipe).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 CHECK_S=${1:-150}
 MIN=${2:-5}
 DEST=${OUT:-runs/gpu_lease}
+RUNS=${GPU_LEASE_RUNS:-"fam_scratch|fst|;fam_init|fst|--init kitti-fst"}
+IFS=';' read -r -a RUN_LIST <<< "$RUNS"
+for r in "${RUN_LIST[@]}"; do
+    IFS='|' read -r name arch _ <<< "$r"
+    [[ "$name" =~ ^[A-Za-z0-9._-]+$ ]] && [[ "$arch" =~ ^(fst|acrt|paper)$ ]] || {
+        echo "gpu_lease: GPU_LEASE_RUNS entry '$r' is not NAME|fst, acrt or paper|FLAGS" >&2; exit 2; }
+done
 WORK=$(mktemp -d /tmp/gpu_lease.XXXXXX)
 mkdir -p "$DEST"
 export PYTHONUNBUFFERED=1
@@ -35,10 +46,12 @@ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>/dev/null
 
 CPU=()
 [ "${GPU_TRAIN_DEVICE:-cuda}" = cpu ] && CPU=(--cpu)
-say "gpu_check --budget $CHECK_S ${CPU[*]}"
-timeout $((CHECK_S + 45)) bash scripts/gpu_check.sh "${CPU[@]}" --budget "$CHECK_S" --data .gpucheck/data \
-    --out "$DEST/gpu_check_report.md" > "$DEST/gpu_check.log" 2>&1
-say "gpu_check exit status $? (report: gpu_check_report.md)"
+if [ "$CHECK_S" != 0 ]; then
+    say "gpu_check --budget $CHECK_S ${CPU[*]}"
+    timeout $((CHECK_S + 45)) bash scripts/gpu_check.sh "${CPU[@]}" --budget "$CHECK_S" --data .gpucheck/data \
+        --out "$DEST/gpu_check_report.md" > "$DEST/gpu_check.log" 2>&1
+    say "gpu_check exit status $? (report: gpu_check_report.md)"
+fi
 
 # unpack the data once, before the two trainers start (each would otherwise try)
 if [ ! -d .gpu_data ] && [ -f .gpu_data.tar.xz ]; then
@@ -46,9 +59,9 @@ if [ ! -d .gpu_data ] && [ -f .gpu_data.tar.xz ]; then
         && mv .gpu_data.part .gpu_data && say "unpacked .gpu_data.tar.xz"
 fi
 LIMIT=$(python3 -c "print(int(float('$MIN') * 60 + 60))")
-train() {   # NAME EXTRA-ARGS
-    GPU_TRAIN_SET=families GPU_TRAIN_NAME=$1 GPU_TRAIN_ARGS=$2 OUT=$WORK \
-        timeout "$LIMIT" bash scripts/gpu_train.sh fst "$MIN" > "$WORK/$1.out" 2>&1
+train() {   # NAME ARCH EXTRA-ARGS
+    GPU_TRAIN_SET=families GPU_TRAIN_NAME=$1 GPU_TRAIN_ARGS=$3 OUT=$WORK \
+        timeout "$LIMIT" bash scripts/gpu_train.sh "$2" "$MIN" > "$WORK/$1.out" 2>&1
     local rc=$?
     say "$1 exit status $rc"
     mkdir -p "$DEST/$1"
@@ -58,8 +71,10 @@ train() {   # NAME EXTRA-ARGS
     [ -f "$WORK/$1/history.json" ] && cp "$WORK/$1/history.json" "$DEST/$1/"
     cp "$WORK/$1.out" "$DEST/$1/log.txt"
 }
-say "training fam_scratch and fam_init, $MIN min each, at once"
-train fam_scratch "" &
-train fam_init "--init kitti-fst" &
+say "training ${#RUN_LIST[@]} runs at once, $MIN min each: $RUNS"
+for r in "${RUN_LIST[@]}"; do
+    IFS='|' read -r name arch flags <<< "$r"
+    train "$name" "$arch" "$flags" &
+done
 wait
 say "done; back: $(cd "$DEST" && find . -type f | sort | tr '\n' ' ')"
