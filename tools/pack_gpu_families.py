@@ -35,10 +35,14 @@ from mccnn_cl.evaluation.datasets import to_gray_u8  # noqa: E402
 from mccnn_cl.io import read_image, read_pfm, write_pfm  # noqa: E402
 from mccnn_cl.train.train import _matches  # noqa: E402
 
-#: The held-out scene families of general-fst (docs/training.md): never packed for training.
-HOLDOUT = ("kitti2015/000000", "middlebury/Cones", "middlebury/Cloth*", "middlebury/Baby*", "middlebury/Reindeer",
-           "middlebury/trainingQ/Piano*", "middlebury/trainingQ/Adirondack", "eth3d/delivery_area_*",
-           "eth3d/terrace_*")
+def general_fst_held_out() -> list:
+    """The pairs the shipped general-fst was held out from (its training record): by default
+    never packed for training."""
+    from mccnn_cl.models import resolve
+
+    return list(resolve("general-fst").meta["training"]["held_out"])
+
+
 #: Held-out pairs packed for validation: one per dataset.
 VAL = ("kitti2015/000000", "middlebury/Cones", "middlebury/trainingQ/Piano", "eth3d/delivery_area_1l")
 
@@ -85,7 +89,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", default=str(REPO.parent / "shared" / "data"))
     ap.add_argument("--out", default=str(REPO / ".gpu_data.tar.xz"))
-    ap.add_argument("--holdout", nargs="*", default=list(HOLDOUT))
+    ap.add_argument("--holdout", nargs="*", default=None,
+                    help="pairs (keys or patterns) not packed for training (default: general-fst's held-out pairs)")
     ap.add_argument("--val", nargs="*", default=list(VAL))
     ap.add_argument("--step", type=int, default=32, help="ground truth rounded to 1/STEP px (default %(default)s)")
     ap.add_argument("--limit-mib", type=float, default=50.0)
@@ -94,8 +99,9 @@ def main(argv=None) -> int:
     if not data.is_dir():
         print(f"pack_gpu_families: no data folder at {data}", file=sys.stderr)
         return 2
+    holdout = general_fst_held_out() if args.holdout is None else args.holdout
     refs = discover(data, labeled=True)
-    train = [r for r in refs if not _matches(r.key, args.holdout)]
+    train = [r for r in refs if not _matches(r.key, holdout)]
     val = [r for r in refs if r.key in set(args.val)]
     missing = sorted(set(args.val) - {r.key for r in val})
     if missing:
