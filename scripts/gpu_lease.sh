@@ -15,9 +15,21 @@
 #   fam_scratch|fst|                    fst from He init
 #   fam_init|fst|--init kitti-fst       fst fine-tuned from the shipped kitti-fst
 # (e.g. "fam_paper|paper|--init general-paper" for the accurate network).
+# Evaluation on the GPU (optional), through scripts/family_table.py on --device gpu,
+# one call per entry, each cut at the deadline (GPU_LEASE_DEADLINE seconds after the
+# start, default 560):
+#   GPU_LEASE_EVAL        ';'-separated SET|LABEL=SPEC ...: run while the trainers train
+#   GPU_LEASE_EVAL_AFTER  the same, after them; {RUN} in a SPEC is the runs' folder
+#                         (e.g. "heldout|p=b{RUN}/fam_paper/weights.npz@mccnn-acrt/mb")
+# SET: "train" (GPU_LEASE_TRAIN_PAIRS, default 3 training pairs per dataset, from
+# .gpu_data: where settings are chosen) or "heldout" (every pair of .gpu_eval, packed
+# apart from the training data by
+#   python -m tools.pack_gpu_families --holdout '*' --val $(cat runs/heldout.txt) --out .gpu_eval.tar.xz
+# and carried as .gpu_eval.tar.xz).  Records: eval_train.jsonl, eval_heldout.jsonl, eval.log.
 # What comes back ($OUT, else runs/gpu_lease; the device tool returns 8 files):
-# gpu_check_report.md, gpu_check.log and per run weights.npz, history.json, log.txt
-# (two runs with the check, at most two more without it).
+# gpu_check_report.md, gpu_check.log, per run weights.npz, history.json, log.txt, and
+# the evaluation's three files (one run with the check and the evaluation, two
+# runs with the check, at most two more without it).
 # GPU_TRAIN_DEVICE=cpu rehearses the whole call on the CPU (gpu_check --cpu, small recipe).
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -31,6 +43,9 @@ for r in "${RUN_LIST[@]}"; do
     [[ "$name" =~ ^[A-Za-z0-9._-]+$ ]] && [[ "$arch" =~ ^(fst|acrt|paper)$ ]] || {
         echo "gpu_lease: GPU_LEASE_RUNS entry '$r' is not NAME|fst, acrt or paper|FLAGS" >&2; exit 2; }
 done
+T_START=$SECONDS
+DEADLINE=${GPU_LEASE_DEADLINE:-560}
+TRAIN_PAIRS=${GPU_LEASE_TRAIN_PAIRS:-"kitti2015/e00002 kitti2015/e00004 kitti2015/e00006 middlebury/Books middlebury/Moebius middlebury/Rocks1 middlebury/trainingQ/Jadeplant middlebury/trainingQ/Playroom middlebury/trainingQ/Shelves eth3d/electro_1s eth3d/facade_1s eth3d/playground_1l"}
 WORK=$(mktemp -d /tmp/gpu_lease.XXXXXX)
 mkdir -p "$DEST"
 export PYTHONUNBUFFERED=1
@@ -48,7 +63,10 @@ CPU=()
 [ "${GPU_TRAIN_DEVICE:-cuda}" = cpu ] && CPU=(--cpu)
 if [ "$CHECK_S" != 0 ]; then
     say "gpu_check --budget $CHECK_S ${CPU[*]}"
-    timeout $((CHECK_S + 45)) bash scripts/gpu_check.sh "${CPU[@]}" --budget "$CHECK_S" --data .gpucheck/data \
+    TUNE=()   # GPU_LEASE_TUNE_SECONDS: mccnn-cl tune's own limit, on top of the check's budget
+    [ -n "${GPU_LEASE_TUNE_SECONDS:-}" ] && TUNE=(--tune-seconds "$GPU_LEASE_TUNE_SECONDS")
+    timeout $((CHECK_S + 45 + ${GPU_LEASE_TUNE_SECONDS:-0})) bash scripts/gpu_check.sh "${CPU[@]}" ${TUNE[@]+"${TUNE[@]}"} \
+        --budget "$CHECK_S" --data .gpucheck/data \
         --out "$DEST/gpu_check_report.md" > "$DEST/gpu_check.log" 2>&1
     say "gpu_check exit status $? (report: gpu_check_report.md)"
 fi
@@ -58,6 +76,28 @@ if [ ! -d .gpu_data ] && [ -f .gpu_data.tar.xz ]; then
     rm -rf .gpu_data.part && mkdir -p .gpu_data.part && tar -xJf .gpu_data.tar.xz -C .gpu_data.part \
         && mv .gpu_data.part .gpu_data && say "unpacked .gpu_data.tar.xz"
 fi
+if [ -n "${GPU_LEASE_EVAL:-}${GPU_LEASE_EVAL_AFTER:-}" ] && [ ! -d .gpu_eval ] && [ -f .gpu_eval.tar.xz ]; then
+    rm -rf .gpu_eval.part && mkdir -p .gpu_eval.part && tar -xJf .gpu_eval.tar.xz -C .gpu_eval.part \
+        && mv .gpu_eval.part .gpu_eval && say "unpacked .gpu_eval.tar.xz"
+fi
+evaluate() {   # ';'-separated SET|LABEL=SPEC entries, one after another, each cut at the deadline
+    local entries
+    IFS=';' read -r -a entries <<< "$1"
+    for e in "${entries[@]}"; do
+        local set=${e%%|*} method=${e#*|} left=$((DEADLINE - (SECONDS - T_START)))
+        method=${method//\{RUN\}/$WORK}
+        local data=.gpu_data pairs=($TRAIN_PAIRS)
+        [ "$set" = heldout ] && { data=.gpu_eval; pairs=('*'); }
+        [ "$left" -gt 10 ] || { say "eval $set $method: not run (deadline)"; continue; }
+        say "eval $set $method (at most $left s)"
+        timeout "$left" "${PY_EVAL[@]}" scripts/family_table.py --device "${GPU_LEASE_EVAL_DEVICE:-gpu}" \
+            --data "$data" --pairs "${pairs[@]}" --methods "$method" --out "$DEST/eval_$set.jsonl" \
+            >> "$DEST/eval.log" 2>&1
+        say "eval $set ${method%%=*}: exit status $?"
+    done
+}
+PY_EVAL=(python3)
+[ -x .venv/bin/python ] && PY_EVAL=(.venv/bin/python)
 LIMIT=$(python3 -c "print(int(float('$MIN') * 60 + 60))")
 train() {   # NAME ARCH EXTRA-ARGS
     GPU_TRAIN_SET=families GPU_TRAIN_NAME=$1 GPU_TRAIN_ARGS=$3 OUT=$WORK \
@@ -76,5 +116,7 @@ for r in "${RUN_LIST[@]}"; do
     IFS='|' read -r name arch flags <<< "$r"
     train "$name" "$arch" "$flags" &
 done
+[ -n "${GPU_LEASE_EVAL:-}" ] && evaluate "$GPU_LEASE_EVAL"
 wait
+[ -n "${GPU_LEASE_EVAL_AFTER:-}" ] && evaluate "$GPU_LEASE_EVAL_AFTER"
 say "done; back: $(cd "$DEST" && find . -type f | sort | tr '\n' ' ')"

@@ -43,6 +43,9 @@ REPO = Path(__file__).resolve().parents[1]
 #: chosen to take ~200 s on a loaded 2-core CPU, far less on a GPU), selected
 #: by marker: ``gpu_check`` where a module's subset is run.
 TEST_GROUPS = (
+    ("the whole method with a GPU profile against the CPU column; the tuner's GPU candidates",
+     ["tests/test_network_gpu.py", "tests/test_cbca_gpu.py", "tests/test_tune.py", "-k",
+      "with_the_gpu_profile or gpu_candidates"], ()),
     ("SGM, work-group per line (GPU layout)", ["tests/test_sgm_wg.py", "-m", "gpu_check"], ()),
     ("SGM, CPU-shaped kernels", ["tests/test_sgm.py", "-m", "gpu_check"], ()),
     ("census", ["tests/test_census.py"], ()),
@@ -245,6 +248,9 @@ def bench_plan(cpu: bool, data: Path | None, tmp: Path):
     for arch, label in ((PAPER, "paper"), (FST, "fst")):
         if label in costs:  # the bench takes this network by name
             plan.append((f"{label}, {net_where}", ["--cost", label, *net_pair], ""))
+            if label == "fst":  # the same bench with the rules' choices: what tuning changed
+                plan.append((f"{label}, {net_where}, the rules (MCCNN_TUNE=off)", ["--cost", label, *net_pair],
+                             "MCCNN_TUNE=off"))
             continue
         if "cnn" not in costs:
             plan.append((label, None, "not benchmarked: `mccnn-cl bench` has no --cost cnn"))
@@ -276,7 +282,10 @@ def run_benches(spec, plan, repeat, env, say, t_end, limit=BENCH_LIMIT_S):
             rows.append((title, "skipped", 0.0, note, ""))
             continue
         cmd = [sys.executable, "-m", "mccnn_cl", "bench", "--device", spec, "--repeat", str(repeat), *args]
-        rc, out, sec = _run(cmd, min(limit, left), env)
+        run_env = env
+        if note == "MCCNN_TUNE=off":
+            run_env = dict(os.environ if env is None else env, MCCNN_TUNE="off")
+        rc, out, sec = _run(cmd, min(limit, left), run_env)
         status = "timed out" if rc is None else ("ok" if rc == 0 else f"FAILED (exit {rc})")
         say(f"gpu_check: bench {title}: {status} ({sec:.0f} s)")
         rows.append((title, status, sec, note, out.strip()))
@@ -331,6 +340,8 @@ def main(argv=None) -> int:
                     help="the whole check's time budget (set-up excluded); every fixed budget (tune, tests, "
                          "one test group, one bench) shrinks or grows in proportion (default: %.0f s on a GPU, "
                          "%.0f s with --cpu, before the --cpu speed scaling)" % (TOTAL_BUDGET_S, CPU_TOTAL_BUDGET_S))
+    ap.add_argument("--tune-seconds", type=float, default=None, metavar="SECONDS",
+                    help="the limit of `mccnn-cl tune` (default %.0f s, scaled with --budget)" % TUNE_LIMIT_S)
     ap.add_argument("--env-note", default="", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
@@ -379,7 +390,8 @@ def main(argv=None) -> int:
             f"numpy GEMM {gflops:.0f} GFLOP/s against {CPU_REFERENCE_GFLOPS:.0f} on the machine the budgets "
             f"were set on: budgets x {speed:.2f}")
         say(f"gpu_check: speed: {note}")
-    tune_row = run_tune(spec, TUNE_LIMIT_S * min(scale, MAX_SCALE), env, say)
+    tune_limit = args.tune_seconds if args.tune_seconds is not None else TUNE_LIMIT_S * min(scale, MAX_SCALE)
+    tune_row = run_tune(spec, tune_limit, env, say)
     test_rows = run_tests(spec, test_budget * scale, env, say, group_limit * scale)
     with tempfile.TemporaryDirectory(prefix="gpu-check-") as tmp:
         bench_rows = run_benches(spec, bench_plan(args.cpu, data, Path(tmp)), 1 if args.cpu else 3, env, say,
