@@ -36,9 +36,10 @@ cd "$(dirname "$0")/.."
 CHECK_S=${1:-150}
 MIN=${2:-5}
 DEST=${OUT:-runs/gpu_lease}
-RUNS=${GPU_LEASE_RUNS:-"fam_scratch|fst|;fam_init|fst|--init kitti-fst"}
-IFS=';' read -r -a RUN_LIST <<< "$RUNS"
-for r in "${RUN_LIST[@]}"; do
+RUNS=${GPU_LEASE_RUNS-"fam_scratch|fst|;fam_init|fst|--init kitti-fst"}   # set and empty: no training
+RUN_LIST=()
+[ -n "$RUNS" ] && IFS=';' read -r -a RUN_LIST <<< "$RUNS"
+for r in ${RUN_LIST[@]+"${RUN_LIST[@]}"}; do
     IFS='|' read -r name arch _ <<< "$r"
     [[ "$name" =~ ^[A-Za-z0-9._-]+$ ]] && [[ "$arch" =~ ^(fst|acrt|paper)$ ]] || {
         echo "gpu_lease: GPU_LEASE_RUNS entry '$r' is not NAME|fst, acrt or paper|FLAGS" >&2; exit 2; }
@@ -80,8 +81,8 @@ if [ -n "${GPU_LEASE_EVAL:-}${GPU_LEASE_EVAL_AFTER:-}" ] && [ ! -d .gpu_eval ] &
     rm -rf .gpu_eval.part && mkdir -p .gpu_eval.part && tar -xJf .gpu_eval.tar.xz -C .gpu_eval.part \
         && mv .gpu_eval.part .gpu_eval && say "unpacked .gpu_eval.tar.xz"
 fi
-evaluate() {   # ';'-separated SET|LABEL=SPEC entries, one after another, each cut at the deadline
-    local entries
+evaluate() {   # ENTRIES [TAG]: ';'-separated SET|LABEL=SPEC, one after another, each cut at the deadline
+    local entries tag=${2:-eval}
     IFS=';' read -r -a entries <<< "$1"
     for e in "${entries[@]}"; do
         local set=${e%%|*} method=${e#*|} left=$((DEADLINE - (SECONDS - T_START)))
@@ -91,11 +92,24 @@ evaluate() {   # ';'-separated SET|LABEL=SPEC entries, one after another, each c
         [ "$left" -gt 10 ] || { say "eval $set $method: not run (deadline)"; continue; }
         say "eval $set $method (at most $left s)"
         timeout "$left" "${PY_EVAL[@]}" scripts/family_table.py --device "${GPU_LEASE_EVAL_DEVICE:-gpu}" \
-            --data "$data" --pairs "${pairs[@]}" --methods "$method" --out "$DEST/eval_$set.jsonl" \
-            >> "$DEST/eval.log" 2>&1
+            --data "$data" --pairs "${pairs[@]}" --methods "$method" --out "$DEST/${tag}_$set.jsonl" \
+            >> "$DEST/$tag.log" 2>&1
         say "eval $set ${method%%=*}: exit status $?"
     done
 }
+# the evaluation's OpenCL: a CUDA-only image registers no NVIDIA ICD (gpu_check.sh writes one
+# for itself; the same here, for family_table.py)
+if [ -z "${OCL_ICD_VENDORS:-}" ] && [ "${GPU_TRAIN_DEVICE:-cuda}" != cpu ] && command -v nvidia-smi >/dev/null \
+        && ! grep -qsi nvidia /etc/OpenCL/vendors/*.icd; then
+    LIB=$( (ldconfig -p 2>/dev/null | awk '/libnvidia-opencl\.so\.1/ {print $NF; exit}') || true)
+    for d in /usr/local/nvidia/lib64 /usr/lib/x86_64-linux-gnu /usr/lib64; do
+        [ -z "$LIB" ] && [ -e "$d/libnvidia-opencl.so.1" ] && LIB="$d/libnvidia-opencl.so.1"
+    done
+    if [ -n "$LIB" ]; then
+        mkdir -p "$WORK/vendors" && echo "$LIB" > "$WORK/vendors/nvidia.icd" \
+            && export OCL_ICD_VENDORS=$WORK/vendors && say "NVIDIA ICD for the evaluation: $LIB"
+    fi
+fi
 PY_EVAL=(python3)
 [ -x .venv/bin/python ] && PY_EVAL=(.venv/bin/python)
 LIMIT=$(python3 -c "print(int(float('$MIN') * 60 + 60))")
@@ -112,10 +126,11 @@ train() {   # NAME ARCH EXTRA-ARGS
     cp "$WORK/$1.out" "$DEST/$1/log.txt"
 }
 say "training ${#RUN_LIST[@]} runs at once, $MIN min each: $RUNS"
-for r in "${RUN_LIST[@]}"; do
+for r in ${RUN_LIST[@]+"${RUN_LIST[@]}"}; do
     IFS='|' read -r name arch flags <<< "$r"
     train "$name" "$arch" "$flags" &
 done
+[ -n "${GPU_LEASE_EVAL2:-}" ] && evaluate "$GPU_LEASE_EVAL2" eval2 &
 [ -n "${GPU_LEASE_EVAL:-}" ] && evaluate "$GPU_LEASE_EVAL"
 wait
 [ -n "${GPU_LEASE_EVAL_AFTER:-}" ] && evaluate "$GPU_LEASE_EVAL_AFTER"
