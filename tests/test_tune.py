@@ -308,3 +308,29 @@ def test_short_runs_are_timed_several_times(ctx):
     calls.clear()
     tune._timed(ctx, lambda: (calls.append(1), _time.sleep(0.12)), 2)
     assert len(calls) == 1 + 2
+
+
+def test_hopeless_candidates_are_timed_once(ctx):
+    """A candidate over tune.HOPELESS x the rules' time in the first round is not timed
+    again (it cannot win), while the others are timed every round; the progress count
+    still reaches rounds x candidates."""
+    rules = tune._rules_value(ctx.profile, "sgm_cols")
+    slow, fast = (32, 64) if rules not in (32, 64) else (48, 96)
+    times = {rules: 1.0, slow: 50.0, fast: 0.5}
+    calls = {c: 0 for c in times}
+
+    def run(c):
+        cols = c.profile.rule("sgm_cols")
+        calls[cols] += 1
+        return times[cols], np.zeros(3)
+
+    ticks = []
+    opt = tune.Option("sgm_cols", [{"sgm_cols": slow}, {"sgm_cols": fast}], run)
+    choices, measured = tune.choose(ctx, [opt], progress=lambda: ticks.append(1), rounds=4)
+    assert choices == {"sgm_cols": fast}
+    # the rules: the reference run, then 4 timed rounds; the slow one once; the fast one 4 times
+    assert calls == {rules: 5, slow: 1, fast: 4}
+    assert measured["sgm_cols"]["candidates"][1] == [{"sgm_cols": slow}, 50.0]
+    assert len(ticks) == 4 * 3
+    assert not tune._hopeless([[1.0], [1.9]], 1) and tune._hopeless([[1.0], [2.1]], 1)
+    assert not tune._hopeless([[1.0], []], 1) and not tune._hopeless([[9.0], [1.0]], 0)

@@ -271,12 +271,24 @@ def noise(times) -> float:
     return (max(times) - min(times)) / min(times)
 
 
+#: A candidate whose first timing is over this many times the rules' best is not
+#: timed again (it cannot win by the noise margin; on a GPU the CPU-shaped SGM
+#: kernels take 50-200x the rules' and were most of a tune's time)
+HOPELESS = 2.0
+
+
+def _hopeless(times, j) -> bool:
+    """Candidate ``j`` (not the rules' own, 0) already timed over HOPELESS x the rules' best."""
+    return j > 0 and bool(times[j]) and bool(times[0]) and min(times[j]) > HOPELESS * min(times[0])
+
+
 def choose(ctx, opts, progress=None, rounds=1) -> tuple:
     """Measure the rules' choice (candidate ``{}``, always first; candidates
     equal to it are dropped) and every other candidate of every option,
     ``rounds`` times interleaved (rules, 1, 2, ..., then the reverse order,
     ...: a change of the machine's load falls on all of them), keeping each
-    candidate's best time.  Another candidate replaces the rules' choice only
+    candidate's best time (one over HOPELESS x the rules' best after a round is
+    not timed again).  Another candidate replaces the rules' choice only
     when its best time beats the rules' best by more than the noise: the
     relative spread of the rules' own timings over the rounds
     (:func:`noise`), at least :data:`MARGIN`.  A candidate whose output
@@ -299,7 +311,9 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
             for r in range(max(1, int(rounds))):
                 order = range(len(cands)) if r % 2 == 0 else reversed(range(len(cands)))
                 for j in order:
-                    if failed[j]:
+                    if failed[j] or _hopeless(times, j):
+                        if progress is not None:
+                            progress()
                         continue
                     profile.tuned.clear()
                     profile.tuned.update(choices)
