@@ -63,7 +63,7 @@ def test_general_fst_provenance():
 def test_general_paper_provenance():
     """general-paper: the paper's network fine-tuned from kitti-paper on every family with general-fst's
     held-out families; its lineage (kitti-paper v1) saw two held-out Middlebury scenes, Cloth3 and Reindeer
-    (MODEL_CARD.md), and no other held-out pair; kitti-paper's acrt KITTI 2015 settings."""
+    (MODEL_CARD.md), and no other held-out pair; the acrt Middlebury settings, chosen on training pairs."""
     from mccnn_cl.evaluation.datasets import dataset_of, scene_family
     w = resolve("general-paper")
     assert w.architecture == PAPER
@@ -73,7 +73,8 @@ def test_general_paper_provenance():
     assert {dataset_of(k) for k in run} == {"kitti", "middlebury", "middeval3", "eth3d"}
     assert not {scene_family(k) for k in held} & {scene_family(k) for k in run}  # this run: families held out whole
     assert held & set(t["trained_on"]) == {"middlebury/Cloth3", "middlebury/Reindeer"}  # the lineage's
-    assert w.stereo == authors_settings("mccnn-acrt", "kitti2015")
+    assert w.stereo == authors_settings("mccnn-acrt", "mb")
+    assert "chosen on 12 training pairs" in w.meta["stereo_source"]
 
 
 @pytest.mark.slow
