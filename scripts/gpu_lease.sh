@@ -22,10 +22,13 @@
 #   GPU_LEASE_EVAL_AFTER  the same, after them; {RUN} in a SPEC is the runs' folder
 #                         (e.g. "heldout|p=b{RUN}/fam_paper/weights.npz@mccnn-acrt/mb")
 # SET: "train" (GPU_LEASE_TRAIN_PAIRS, default 3 training pairs per dataset, from
-# .gpu_data: where settings are chosen) or "heldout" (every pair of .gpu_eval, packed
+# $GPU_TRAIN_DATA, default .gpu_data: where settings are chosen) or "heldout" (every
+# pair of $GPU_LEASE_EVAL_DATA, default .gpu_eval, packed
 # apart from the training data by
 #   python -m tools.pack_gpu_families --holdout '*' --val $(cat runs/heldout.txt) --out .gpu_eval.tar.xz
-# and carried as .gpu_eval.tar.xz).  Records: eval_train.jsonl, eval_heldout.jsonl, eval.log.
+# and carried as .gpu_eval.tar.xz).  Records: eval_train.jsonl, eval_heldout.jsonl, eval.log
+# (eval2_* for GPU_LEASE_EVAL2, a second stream beside GPU_LEASE_EVAL).  The device:
+# GPU_LEASE_EVAL_DEVICE (default gpu; cpu with GPU_TRAIN_DEVICE=cpu).
 # What comes back ($OUT, else runs/gpu_lease; the device tool returns 8 files):
 # gpu_check_report.md, gpu_check.log, per run weights.npz, history.json, log.txt, and
 # the evaluation's three files (one run with the check and the evaluation, two
@@ -77,7 +80,12 @@ if [ ! -d .gpu_data ] && [ -f .gpu_data.tar.xz ]; then
     rm -rf .gpu_data.part && mkdir -p .gpu_data.part && tar -xJf .gpu_data.tar.xz -C .gpu_data.part \
         && mv .gpu_data.part .gpu_data && say "unpacked .gpu_data.tar.xz"
 fi
-if [ -n "${GPU_LEASE_EVAL:-}${GPU_LEASE_EVAL_AFTER:-}" ] && [ ! -d .gpu_eval ] && [ -f .gpu_eval.tar.xz ]; then
+EVAL_DATA=${GPU_LEASE_EVAL_DATA:-.gpu_eval}     # the held-out pairs (SET heldout)
+TRAIN_DATA=${GPU_TRAIN_DATA:-.gpu_data}        # the training pairs (SET train)
+EVAL_DEVICE=${GPU_LEASE_EVAL_DEVICE:-gpu}      # the OpenCL device of the evaluation
+[ "${GPU_TRAIN_DEVICE:-cuda}" = cpu ] && EVAL_DEVICE=${GPU_LEASE_EVAL_DEVICE:-cpu}
+if [ -n "${GPU_LEASE_EVAL:-}${GPU_LEASE_EVAL2:-}${GPU_LEASE_EVAL_AFTER:-}" ] && [ "$EVAL_DATA" = .gpu_eval ] \
+        && [ ! -d .gpu_eval ] && [ -f .gpu_eval.tar.xz ]; then
     rm -rf .gpu_eval.part && mkdir -p .gpu_eval.part && tar -xJf .gpu_eval.tar.xz -C .gpu_eval.part \
         && mv .gpu_eval.part .gpu_eval && say "unpacked .gpu_eval.tar.xz"
 fi
@@ -87,11 +95,12 @@ evaluate() {   # ENTRIES [TAG]: ';'-separated SET|LABEL=SPEC, one after another,
     for e in "${entries[@]}"; do
         local set=${e%%|*} method=${e#*|} left=$((DEADLINE - (SECONDS - T_START)))
         method=${method//\{RUN\}/$WORK}
-        local data=.gpu_data pairs=($TRAIN_PAIRS)
-        [ "$set" = heldout ] && { data=.gpu_eval; pairs=('*'); }
+        local data=$TRAIN_DATA pairs=($TRAIN_PAIRS)
+        [ "$set" = heldout ] && { data=$EVAL_DATA; pairs=('*'); }
+        [ "$set" = train ] || [ "$set" = heldout ] || { say "eval entry '$e': SET must be train or heldout"; continue; }
         [ "$left" -gt 10 ] || { say "eval $set $method: not run (deadline)"; continue; }
         say "eval $set $method (at most $left s)"
-        timeout "$left" "${PY_EVAL[@]}" scripts/family_table.py --device "${GPU_LEASE_EVAL_DEVICE:-gpu}" \
+        timeout "$left" "${PY_EVAL[@]}" scripts/family_table.py --device "$EVAL_DEVICE" \
             --data "$data" --pairs "${pairs[@]}" --methods "$method" --out "$DEST/${tag}_$set.jsonl" \
             >> "$DEST/$tag.log" 2>&1
         say "eval $set ${method%%=*}: exit status $?"
@@ -112,6 +121,7 @@ if [ -z "${OCL_ICD_VENDORS:-}" ] && [ "${GPU_TRAIN_DEVICE:-cuda}" != cpu ] && co
 fi
 PY_EVAL=(python3)
 [ -x .venv/bin/python ] && PY_EVAL=(.venv/bin/python)
+[ -n "${PYTHON:-}" ] && PY_EVAL=("$PYTHON")
 LIMIT=$(python3 -c "print(int(float('$MIN') * 60 + 60))")
 train() {   # NAME ARCH EXTRA-ARGS
     GPU_TRAIN_SET=families GPU_TRAIN_NAME=$1 GPU_TRAIN_ARGS=$3 OUT=$WORK \

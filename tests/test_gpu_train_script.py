@@ -199,3 +199,40 @@ def test_fit_minutes_run_is_the_run_with_the_chosen_schedule(small_data, tmp_pat
     # not with --resume (the plan is for a new run)
     assert main(base + ["--fit-minutes", "1", "--resume", str(tmp_path / "plain" / "checkpoint.pt"),
                         "--out", str(tmp_path / "plain")]) == 2
+
+
+@pytest.mark.full_data
+def test_gpu_lease_evaluates_held_out_pairs_packed_apart(small_data, tmp_path):
+    """gpu_lease.sh's evaluation (no training, on the CPU): the held-out pairs are packed
+    apart from the training data (--holdout '*': no training pair in that archive), each
+    SET|LABEL=SPEC entry appends its records to eval_SET.jsonl, {RUN} names the runs'
+    folder, a bad SET is refused with a line, and entries past the deadline are not run."""
+    import tarfile
+
+    out = tmp_path / "eval.tar.xz"
+    r = subprocess.run(["bash", str(REPO / "scripts" / "pack_gpu_data.sh"), "--families", "--data", str(small_data),
+                        "--out", str(out), "--holdout", "*", "--val", "middlebury/Cones"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "0 training pairs" in r.stdout, r.stdout + r.stderr
+    held = tmp_path / "held"
+    with tarfile.open(out) as tar:
+        tar.extractall(held)
+    assert [ref.key for ref in discover(held, labeled=True)] == ["middlebury/Cones"]
+    env = dict(os.environ, GPU_TRAIN_DEVICE="cpu", GPU_LEASE_RUNS="", PYTHON=sys.executable,
+               GPU_LEASE_EVAL_DATA=str(held), GPU_TRAIN_DATA=str(small_data),
+               GPU_LEASE_TRAIN_PAIRS="middlebury/Cones", GPU_LEASE_EVAL="heldout|c=census;nowhere|x=census",
+               GPU_LEASE_EVAL_AFTER="train|n={RUN}/missing.npz", OUT=str(tmp_path / "back"))
+    r = subprocess.run(["bash", str(REPO / "scripts" / "gpu_lease.sh"), "0", "0"], capture_output=True, text=True,
+                       timeout=300, env=env)
+    assert r.returncode == 0, r.stdout + r.stderr
+    recs = [json.loads(line) for line in open(tmp_path / "back" / "eval_heldout.jsonl")]
+    assert [(x["method"], x["pair"]) for x in recs] == [("c", "middlebury/Cones")]
+    assert 0 <= recs[0]["result"]["bad2_noc"] < 100
+    assert "SET must be train or heldout" in r.stdout
+    log = (tmp_path / "back" / "eval.log").read_text()
+    assert "missing.npz" in log and "{RUN}" not in log and "/gpu_lease." in log  # substituted, then failed
+    env.update(GPU_LEASE_DEADLINE="0", OUT=str(tmp_path / "late"))
+    r = subprocess.run(["bash", str(REPO / "scripts" / "gpu_lease.sh"), "0", "0"], capture_output=True, text=True,
+                       timeout=120, env=env)
+    assert r.returncode == 0 and r.stdout.count("not run (deadline)") == 2, r.stdout
+    assert not (tmp_path / "late" / "eval_heldout.jsonl").exists()
