@@ -119,3 +119,27 @@ def test_speed_scale():
     assert gpucheck.speed_scale(ref / 100)[0] == gpucheck.MAX_SCALE
     scale, gflops = gpucheck.speed_scale()
     assert 1.0 <= scale <= gpucheck.MAX_SCALE and gflops > 0
+
+
+def test_fst_is_benched_with_the_rules_too(tmp_path, monkeypatch):
+    """The bench plan times the fst pipeline twice, the second time with MCCNN_TUNE=off
+    (the rules' kernels), so a GPU report shows what tuning changed; only that row gets
+    the variable."""
+    monkeypatch.setattr(gpucheck, "_bench_costs", lambda: ["census", "fst", "cnn"])
+    plan = gpucheck.bench_plan(False, None, tmp_path)
+    titles = [t for t, _, _ in plan]
+    fst = [i for i, t in enumerate(titles) if t.startswith("fst")]
+    assert len(fst) == 2 and titles[fst[1]].endswith("the rules (MCCNN_TUNE=off)")
+    assert plan[fst[0]][1] == plan[fst[1]][1]
+    seen = []
+
+    def fake_run(cmd, limit, env=None):
+        seen.append((cmd[-2:], (env or {}).get("MCCNN_TUNE")))
+        return 0, "ok", 0.1
+
+    monkeypatch.setattr(gpucheck, "_run", fake_run)
+    rows = gpucheck.run_benches("0:0", plan, 1, {"X": "1"}, lambda *_: None, gpucheck.time.perf_counter() + 100)
+    assert [s for _, s, _, _, _ in rows].count("ok") == len([p for p in plan if p[1] is not None])
+    tunes = [t for _, t in seen]
+    assert tunes.count("off") == 1 and tunes[-1] == "off"  # the rules' row is the plan's last
+    assert [i for i, (t, _, _) in enumerate(plan) if t.endswith("(MCCNN_TUNE=off)")] == [len(plan) - 1]
