@@ -143,3 +143,23 @@ def test_fst_is_benched_with_the_rules_too(tmp_path, monkeypatch):
     tunes = [t for _, t in seen]
     assert tunes.count("off") == 1 and tunes[-1] == "off"  # the rules' row is the plan's last
     assert [i for i, (t, _, _) in enumerate(plan) if t.endswith("(MCCNN_TUNE=off)")] == [len(plan) - 1]
+
+
+def test_a_group_is_given_time_to_build(monkeypatch):
+    """A scaled-down group limit is raised to MIN_GROUP_S and no group starts with less
+    left than that: a group stopped while building its kernels tells nothing."""
+    limits = []
+
+    def fake_run(cmd, limit, env=None):
+        limits.append(limit)
+        return 0, "1 passed in 1.00s", 25.0  # as if each group had taken 25 s
+
+    monkeypatch.setattr(gpucheck, "_run", fake_run)
+    monkeypatch.setattr(gpucheck.time, "perf_counter", lambda: 25.0 * len(limits))  # 25 s a group
+    rows = gpucheck.run_tests("0:0", 100.0, None, lambda *_: None, group_limit=27.0)
+    assert limits == [gpucheck.MIN_GROUP_S] * 2
+    ran = [r for r in rows if r[1] == "passed"]
+    assert len(ran) == 2 and all(r[1] == "not run" for r in rows[2:])  # 100 s: at 50 s left, no third group
+    limits.clear()
+    rows = gpucheck.run_tests("0:0", 30.0, None, lambda *_: None, group_limit=10.0)
+    assert limits == [30.0] and rows[0][1] == "passed"  # a budget under the floor: the first group gets it all
