@@ -90,7 +90,7 @@ CASE_KERNELS = {
              "cbca_fused_multi_short"},
     "cbca_wg": {"cbca_rows_wg", "cbca_columns_wg"},
     "sgm": {"sgm_rows", "sgm_columns", "sgm_paired"},
-    "sgm_wg": {"sgm_wg_path"},
+    "sgm_wg": {"sgm_wg_path", "sgm_wg_cols"},
     "disparity": {"disparity_wta_left", "disparity_wta_right", "disparity_lr_check",
                   "disparity_right_volume", "disparity_mirror", "interpolate_fill", "subpixel_refine"},
     "refine": {"refine_enlarge", "refine_median", "refine_median16", "refine_bilateral"},

@@ -528,14 +528,17 @@ def case_sgm_wg(ctx, rng, chk):
     local-memory tree reduction with barriers): work-groups of 4, 16 and 5
     work-items (levels several per work-item, fewer levels than work-items,
     a group size that is not a power of two) so that Oclgrind's race and
-    barrier checks see the local memory shared; float32 and half."""
+    barrier checks see the local memory shared; float32 and half; and the
+    vertical paths with 8 columns per work-group (sgm_wg_cols)."""
     from mccnn_cl.reference.aggregation import sgm
     from mccnn_cl.stages.sgm_wg import SGMWorkGroup
 
-    for (D, H, W), kw, L, half in (((9, 4, 13), {}, 4, False),
-                                   ((7, 5, 6), {"variant": "code", "outside_large": False}, 16, False),
-                                   ((11, 3, 14), {}, 5, False),
-                                   ((6, 4, 9), {}, 4, True)):
+    for (D, H, W), kw, L, half, cols in (((9, 4, 13), {}, 4, False, 0),
+                                         ((7, 5, 6), {"variant": "code", "outside_large": False}, 16, False, 0),
+                                         ((11, 3, 14), {}, 5, False, 0),
+                                         ((6, 4, 9), {}, 4, True, 0),
+                                         ((9, 5, 11), {}, 4, False, 8),   # sgm_wg_cols: 2 groups of 8 x 9
+                                         ((6, 4, 9), {}, 4, True, 8)):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
         C = _volume(rng, D, H, W)
         if half:
@@ -544,13 +547,13 @@ def case_sgm_wg(ctx, rng, chk):
             ctx.fill(out, -65504.0, 2 * D * H * W, np.float16)
         else:
             out = _poisoned(ctx, 4 * D * H * W)
-        SGMWorkGroup(ctx, half=half, local_size=L)(ctx.to_device(C), ctx.to_device(img_l), ctx.to_device(img_r),
-                                                   D, H, W, out=out, **kw)
+        SGMWorkGroup(ctx, half=half, local_size=L, cols=cols)(ctx.to_device(C), ctx.to_device(img_l),
+                                                              ctx.to_device(img_r), D, H, W, out=out, **kw)
         got = ctx.from_device(out, (D, H, W), np.float16 if half else np.float32).astype(np.float32)
         # float32: as tests/test_sgm_wg.py; half: the four partial sums rounded
         # to half in place (tests/test_half.py's bound, costs < 1 + 4 P2)
         atol = 7 * 2 ** -11 * (1.0 + 4 * 32.0) if half else 2e-5 * (1.0 + 32.0)
-        chk.close(f"SGM work-group D={D} {H}x{W} L={L} half={half} {kw}", got,
+        chk.close(f"SGM work-group D={D} {H}x{W} L={L} half={half} cols={cols} {kw}", got,
                   sgm(C.astype(np.float32), img_l, img_r, **kw), atol=atol)
 
 

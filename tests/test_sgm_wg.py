@@ -171,6 +171,44 @@ def test_half_storage(ctx, shared_data, L):
     assert np.nanmax(np.abs(got - want)) > 0  # rounding happened: the half path ran
 
 
+@pytest.mark.gpu_check
+@pytest.mark.parametrize("cols", [8, 16, 32])
+def test_columns_per_work_group_give_the_same_bits(ctx, shared_data, cols):
+    """cols (kernel sgm_wg_cols, the vertical paths with adjacent columns per work-group):
+    the same bits as a work-group per column, on random volumes with NaN costs (D above
+    and below the level slices, W not a multiple of the columns, one row, one column),
+    on a real KITTI crop with both penalty variants, and with half volumes; and within
+    the reference's tolerance."""
+    rng = np.random.default_rng(cols)
+    cases = [((20, 7, 12), {}), ((70, 9, 37), {"variant": "code", "outside_large": False}), ((5, 1, 40), {}),
+             ((4, 30, 1), {}), ((33, 12, 17), {"pi1": 2.0, "pi2": 7.0, "p2_times_pi1": True})]
+    for (D, H, W), kw in cases:
+        cost = random_volume(rng, D, H, W, scale=3.0)
+        img_l, img_r = blocky_image(rng, H, W), blocky_image(rng, H, W)
+        st = SGMWorkGroup(ctx, cols=cols)
+        assert st.cols_shape(D) is not None
+        got = run(ctx, st, cost, img_l, img_r, **kw)
+        want = run(ctx, SGMWorkGroup(ctx), cost, img_l, img_r, **kw)
+        np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32), err_msg=f"{D}x{H}x{W} {kw}")
+        check_reference(got, cost, sgm(cost, img_l, img_r, **kw), kw.get("pi2", 32.0))
+    imgs = kitti_crop(shared_data, 180, 400, 20, 70)
+    cost = ad_volume(imgs[0], imgs[1], 30)
+    for kw in ({}, {"variant": "code", "outside_large": False, "pi1": 2.0, "pi2": 14.0}):
+        got = run(ctx, SGMWorkGroup(ctx, cols=cols), cost, imgs[0], imgs[1], **kw)
+        np.testing.assert_array_equal(got.view(np.uint32), run(ctx, SGMWorkGroup(ctx), cost, *imgs, **kw)
+                                      .view(np.uint32))
+        check_reference(got, cost, sgm(cost, imgs[0], imgs[1], **kw), kw.get("pi2", 32.0))
+    C = cost.astype(np.float16)
+    got = run(ctx, SGMWorkGroup(ctx, half=True, cols=cols), C, *imgs, dtype=np.float16)
+    np.testing.assert_array_equal(got, run(ctx, SGMWorkGroup(ctx, half=True), C, *imgs, dtype=np.float16))
+
+
+def test_columns_choice_is_checked(ctx):
+    with pytest.raises(InputError, match="columns must be one of"):
+        SGMWorkGroup(ctx, cols=12)
+    assert SGMWorkGroup(ctx).cols_shape(64) is None  # 0: a work-group per column
+
+
 def test_allocates_output_and_reuses_stage(ctx):
     """out=None allocates; one stage object serves several D (a new local size each)."""
     rng = np.random.default_rng(8)
@@ -233,3 +271,14 @@ def test_stereo_matcher_with_the_workgroup_stage(ctx, shared_data, workgroup_sgm
         np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8), err_msg=name)
     np.testing.assert_array_equal(got.disparity.view(np.uint8), want.disparity.view(np.uint8))
     assert np.isfinite(got.disparity).mean() > 0.5 and np.nanstd(got.disparity) > 0.5
+
+
+def test_the_columns_rule_reaches_the_stage(ctx, workgroup_sgm, monkeypatch):
+    """make_sgm hands the profile's sgm_wg_cols to the work-group stage (the tuner's choice)."""
+    from mccnn_cl.opencl.device import RULES
+    from mccnn_cl.stages.sgm_select import make_sgm
+
+    assert make_sgm(ctx).wg_cols == 0
+    monkeypatch.setitem(RULES["sgm_wg_cols"], ctx.profile.kind, 16)
+    st = make_sgm(ctx)
+    assert isinstance(st, SGMWorkGroup) and st.wg_cols == 16 and st.cols_shape(64)[0] == 16

@@ -193,14 +193,14 @@ def test_gpu_candidates_agree(ctx, cache, monkeypatch):
                               max_work_group=1024)
     monkeypatch.setattr(ctx, "profile", DeviceProfile.of(gpu, cl))
     opts = tune.options(ctx, size=(12, 80, 24), repeat=1)
-    assert [o.name for o in opts] == ["sgm", "cbca_path", "network_gemm", "launch_local"]
+    assert [o.name for o in opts] == ["sgm", "sgm_wg_cols", "cbca_path", "network_gemm", "launch_local"]
     choices, measured = tune.choose(ctx, opts)
     for name, res in measured.items():
         results = res["candidates"]
         assert results[0][0] == {} and len(results) > 1, name
         assert all(s is not None for _, s in results), f"{name}: a candidate disagreed with the rules: {results}"
-    assert set(choices) <= {"sgm_stage", "sgm_paired_max_units", "sgm_cols", "cbca_workgroup", "network_gemm_tile",
-                            "launch_local"}
+    assert set(choices) <= {"sgm_stage", "sgm_paired_max_units", "sgm_cols", "sgm_wg_cols", "cbca_workgroup",
+                            "network_gemm_tile", "launch_local"}
 
 
 def test_devices_lines_name_the_source(cache, ctx):

@@ -27,7 +27,7 @@ def describe_choices(device) -> list:
     lines = [head]
     names = ("sgm_paired_max_units", "sgm_cols", "cbca_fused", "cbca_multi", "launch_local")
     if not profile.is_cpu:  # the GPU-shaped paths and the GEMM tile are tuned there
-        names = ("sgm_stage", "sgm_cols", "cbca_workgroup", "launch_local", "network_gemm_tile")
+        names = ("sgm_stage", "sgm_cols", "sgm_wg_cols", "cbca_workgroup", "launch_local", "network_gemm_tile")
     for name in names:
         lines.append(f"  {name:22s} {profile.rule(name)!s:14s} ({profile.rule_source(name)})")
     if not profile.is_cpu:

@@ -127,3 +127,114 @@ __kernel void sgm_wg_path(__global const vol_t *cost,  /* D x H x W cost volume 
         red_cur = red_cur == red ? red + pw : red;
     }
 }
+
+/* The vertical paths (r = (0, +-1)) with SGM_WG_CW adjacent columns per
+ * work-group (sgm_wg_cols): a work-group of (SGM_WG_CW, K) work-items walks
+ * the columns x0 .. x0 + SGM_WG_CW - 1 together, work-item (c, k) taking
+ * column x0 + c and the levels d = k, k + K, k + 2K, ...  In sgm_wg_path a
+ * step reads one cell per level, a plane (H x W floats) apart: one memory
+ * transaction per 4 bytes.  Here the work-items of one level read adjacent
+ * columns, so a step's reads and writes come in runs of SGM_WG_CW floats.
+ * The path state is [D + 2][SGM_WG_CW] in local memory (two buffers, as in
+ * sgm_wg_path); min_k C_r(p, k) per column: each work-item writes its
+ * levels' minimum, then after one barrier reads the column's K minima (the
+ * reduction buffers alternate per step, so one barrier per step suffices).
+ * Work-items beyond the image walk its last column and write nothing.  The
+ * same recurrence, in the same order of operations per cell, as sgm_wg_path
+ * (a minimum does not depend on the order of its terms), so the same bits.
+ * Local memory: 2 (D + 2) SGM_WG_CW + 2 K SGM_WG_CW floats. */
+#ifndef SGM_WG_CW
+#define SGM_WG_CW 8
+#endif
+__kernel void sgm_wg_cols(__global const vol_t *cost,  /* D x H x W cost volume (NaN invalid) */
+                          __global const float *img_l, /* H x W left image, gray in [0, 1] */
+                          __global const float *img_r, /* H x W right image */
+                          __global vol_t *out,         /* D x H x W output (mode) */
+                          __local float *path,         /* 2 x (D + 2) x SGM_WG_CW: C_r of p - r, of p */
+                          __local float *red,          /* 2 x K x SGM_WG_CW: the levels' minima */
+                          const int D,
+                          const int H,
+                          const int W,
+                          const int dy,                /* r = (0, dy) */
+                          const float p1_small,        /* P1 when 0, 1, 2 gradients are large */
+                          const float p1_one,
+                          const float p1_both,
+                          const float p2_small,        /* P2 likewise */
+                          const float p2_one,
+                          const float p2_both,
+                          const float tau_so,
+                          const int outside_large,     /* D2 outside the right image counts as large */
+                          const int mode)
+{
+    const int CW = SGM_WG_CW;
+    const int c = get_local_id(0);
+    const int k = get_local_id(1);
+    const int K = get_local_size(1);
+    const int x_own = get_group_id(0) * CW + c;
+    const int inside = x_own < W;
+    const int x = inside ? x_own : W - 1;
+    __local float *prev = path, *cur = path + (D + 2) * CW;
+    __local float *red_cur = red;
+    float m = INFINITY; /* min_k C_r(p - r, k) of this column */
+    /* level -1 and level D of both buffers: never valid */
+    if (k == 0) {
+        prev[c] = prev[(D + 1) * CW + c] = INFINITY;
+        cur[c] = cur[(D + 1) * CW + c] = INFINITY;
+    }
+    const int dmax = min(D - 1, x);
+    for (int i = 0; i < H; ++i) {
+        const int y = dy > 0 ? i : H - 1 - i;
+        const int py = y - dy; /* p - r, inside the image when i > 0 */
+        float d1 = 0.0f;
+        if (i > 0)
+            d1 = fabs(img_l[y * W + x] - img_l[py * W + x]);
+        const int big_l = SGM_LARGE(d1, tau_so);
+        float p1_a, p1_b, p2_a, p2_b;
+        SGM_BY_D1(p1_small, p1_one, p1_both, big_l, p1_a, p1_b);
+        SGM_BY_D1(p2_small, p2_one, p2_both, big_l, p2_a, p2_b);
+        float own_min = INFINITY;
+        for (int d = k; d < D; d += K) {
+            const size_t idx = VIDX(d, y, x, H, W);
+            float val = INFINITY;
+            if (d <= dmax) {
+                const float cv = VOL_GET(cost, idx);
+                if (i == 0) {
+                    val = cv; /* first pixel of the path */
+                } else {
+                    const int xr = x - d; /* pd and pd - r in the right image: the same column */
+                    int big_r;
+                    if (xr < 0 || xr >= W)
+                        big_r = outside_large;
+                    else
+                        big_r = SGM_LARGE(img_r[y * W + xr] - img_r[py * W + xr], tau_so);
+                    /* prev[(d + 1) CW + c] is C_r(p - r, d) */
+                    val = sgm_step(cv, m, prev[d * CW + c], prev[(d + 1) * CW + c], prev[(d + 2) * CW + c],
+                                   SGM_BY_D2(p1_a, p1_b, big_r), SGM_BY_D2(p2_a, p2_b, big_r));
+                }
+                own_min = fmin(own_min, val);
+                if (inside) {
+                    if (mode == 0) {
+                        VOL_SET(out, idx, val);
+                    } else {
+                        const float old = VOL_GET(out, idx);
+                        VOL_SET(out, idx, mode == 1 ? old + val : (old + val) * 0.25f);
+                    }
+                }
+            } else if (mode == 0 && inside) {
+                VOL_SET(out, idx, INVALID_COST);
+            }
+            cur[(d + 1) * CW + c] = val;
+        }
+        red_cur[k * CW + c] = own_min;
+        barrier(CLK_LOCAL_MEM_FENCE);
+        float mm = INFINITY;
+        for (int j = 0; j < K; ++j)
+            mm = fmin(mm, red_cur[j * CW + c]);
+        m = mm;
+        /* swap the path buffers and the reduction buffers */
+        __local float *t = prev;
+        prev = cur;
+        cur = t;
+        red_cur = red_cur == red ? red + K * CW : red;
+    }
+}

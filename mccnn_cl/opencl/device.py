@@ -43,7 +43,9 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: and ``sgm_whole_tiles`` (faster code, longer compiles), ``sgm_group_of_one``
 #: (work-groups of 1, else the kernel's preferred multiple); the paired sweeps
 #: (``sgm_paired_max_units``: taken on devices with at most this many compute
-#: units; two work-items per launch).  CBCA: ``cbca_workgroup`` (the GPU-shaped
+#: units; two work-items per launch); ``sgm_wg_cols``: the work-group stage's vertical
+#: paths with that many adjacent columns per work-group (0: one column per work-group,
+#: as its rows; :class:`~mccnn_cl.stages.sgm_wg.SGMWorkGroup`).  CBCA: ``cbca_workgroup`` (the GPU-shaped
 #: two passes of kernels/cbca_wg.cl, a work-group per row or column tile and
 #: disparity; before the fused rules), ``cbca_fused`` (both passes in one
 #: launch, one work-item per plane walking it whole), ``cbca_multi`` (several
@@ -74,6 +76,7 @@ RULES = {
     "sgm_whole_tiles":         {CPU: True,  LLVMPIPE: False, GPU: True},
     "sgm_group_of_one":        {CPU: True,  LLVMPIPE: True,  GPU: False},
     "sgm_paired_max_units":    {CPU: 2,     LLVMPIPE: 0,     GPU: 0},
+    "sgm_wg_cols":             {CPU: 0,     LLVMPIPE: 0,     GPU: 0},
     "cbca_workgroup":          {CPU: False, LLVMPIPE: False, GPU: True},
     "cbca_fused":              {CPU: True,  LLVMPIPE: False, GPU: False},
     "cbca_multi":              {CPU: True,  LLVMPIPE: True,  GPU: False},

@@ -175,12 +175,15 @@ def _launch_local(run):
 
 def _gpu_options(ctx, runs) -> list:
     """GPU-shaped devices: each GPU-shaped path (the rules' gpu column) against the
-    CPU-shaped one it replaces, and the conv GEMM's tile.  Every candidate computes
+    CPU-shaped one it replaces, the work-group SGM's columns per group, and the conv
+    GEMM's tile.  Every candidate computes
     the rules' result (SGM to rounding: the one-direction kernels sum in the work-group
     path's order, the tiles and CBCA's short passes bit for bit)."""
     return [
         Option("sgm", [{"sgm_stage": "lines", "sgm_paired_max_units": 0, "sgm_cols": c} for c in (32, 64, 128)],
                runs["sgm"], exact=False),
+        # the work-group stage's vertical paths, adjacent columns per work-group (bit for bit)
+        Option("sgm_wg_cols", [{"sgm_wg_cols": c} for c in (8, 16, 32)], runs["sgm"]),
         Option("cbca_path", [{"cbca_workgroup": False}], runs["cbca"]),
         Option("network_gemm", [{"network_gemm_tile": t} for t in (dict(TM=128, RM=8), dict(TM=32, RM=2),
                                                                    dict(TN=32, RN=2), dict(TK=32))], runs["conv"]),

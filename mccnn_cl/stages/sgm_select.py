@@ -14,7 +14,7 @@ def make_sgm(ctx, half: bool = False):
     both take the same call and expose ``cols``, ``paired``, ``scratch_bytes``."""
     impl = ctx.profile.rule("sgm_stage")
     if impl == "workgroup":
-        return SGMWorkGroup(ctx, half=half)
+        return SGMWorkGroup(ctx, half=half, cols=ctx.profile.rule("sgm_wg_cols"))
     if impl != "lines":
         raise InputError(f"unknown SGM stage {impl!r} in the device rules (\"lines\" or \"workgroup\")")
     return SGM(ctx, half=half)

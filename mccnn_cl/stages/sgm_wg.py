@@ -37,6 +37,12 @@ from .sgm import check_call, penalty_table
 
 #: The four launches (dx, dy, output mode), in SGM's accumulation order.
 PASSES = ((1, 0, 0), (-1, 0, 1), (0, 1, 1), (0, -1, 2))
+#: ``cols``: 0 (a work-group per column for the vertical paths, as for the rows) or
+#: that many adjacent columns per work-group (kernel ``sgm_wg_cols``: a step's cells of
+#: one level are adjacent in memory instead of a plane apart)
+COLS_CHOICES = (0, 8, 16, 32)
+#: work-items across the levels per ``sgm_wg_cols`` work-group, at most
+COLS_MAX_SLICES = 32
 
 
 def _pow2(n: int) -> int:
@@ -55,13 +61,17 @@ class SGMWorkGroup:
     cols = None
     paired = False
 
-    def __init__(self, ctx, half: bool = False, local_size=None):
+    def __init__(self, ctx, half: bool = False, local_size=None, cols: int = 0):
         self.ctx = ctx
         self.half = bool(half)
         if local_size is not None and int(local_size) < 1:
             raise InputError(f"SGM work-group size must be >= 1, got {local_size}")
         self.local_size = None if local_size is None else int(local_size)
+        if int(cols) not in COLS_CHOICES:
+            raise InputError(f"SGM work-group columns must be one of {COLS_CHOICES}, got {cols}")
+        self.wg_cols = int(cols)
         self._kernel = None
+        self._cols_kernel = None
 
     @staticmethod
     def scratch_bytes(D, W, *args, **kwargs) -> int:
@@ -73,6 +83,26 @@ class SGMWorkGroup:
         if self._kernel is None:
             self._kernel = self.ctx.kernel("sgm_wg.cl", "sgm_wg_path", VOL_HALF=int(self.half))
         return self._kernel
+
+    def cols_kernel(self):
+        if self._cols_kernel is None:
+            self._cols_kernel = self.ctx.kernel("sgm_wg.cl", "sgm_wg_cols", VOL_HALF=int(self.half),
+                                                SGM_WG_CW=self.wg_cols)
+        return self._cols_kernel
+
+    def cols_shape(self, D):
+        """(columns, level slices) of a ``sgm_wg_cols`` work-group for D levels, or None
+        where it does not fit (the kernel's work-group limit, the local memory)."""
+        if not self.wg_cols:
+            return None
+        cw = self.wg_cols
+        kmax = self.ctx.work_group_size(self.cols_kernel()) // cw
+        K = max(1, min(kmax, COLS_MAX_SLICES, int(D)))
+        while K > 1 and 4 * cw * (2 * (int(D) + 2) + 2 * K) > self.ctx.local_mem:
+            K //= 2
+        if kmax < 1 or 4 * cw * (2 * (int(D) + 2) + 2 * K) > self.ctx.local_mem:
+            return None
+        return cw, K
 
     def _local_bytes(self, D, L) -> int:
         return 4 * (2 * (int(D) + 2) + 2 * _pow2(L))
@@ -111,9 +141,18 @@ class SGMWorkGroup:
         pw = _pow2(L)
         cl, kern = self.ctx.cl, self.kernel()
         local_path, local_red = cl.LocalMemory(4 * 2 * (D + 2)), cl.LocalMemory(4 * 2 * pw)
+        shape = self.cols_shape(D)
         for dx, dy, mode in PASSES:
             lines = H if dx else W
             (p1s, p2s) = pen[dy != 0]
+            if dy and shape is not None:  # the vertical paths, adjacent columns per work-group
+                cw, K = shape
+                launch(self.ctx, "SGM (columns per work-group)", self.cols_kernel(), (round_up(W, cw), K),
+                       d_cost, d_img_left, d_img_right, out, cl.LocalMemory(4 * 2 * (D + 2) * cw),
+                       cl.LocalMemory(4 * 2 * K * cw), np.int32(D), np.int32(H), np.int32(W), np.int32(dy),
+                       *p1s, *p2s, np.float32(tau_so), np.int32(bool(outside_large)), np.int32(mode),
+                       local_size=(cw, K))
+                continue
             launch(self.ctx, "SGM (work-group per line)", kern, (lines * L,), d_cost, d_img_left, d_img_right,
                    out, local_path, local_red, np.int32(pw), np.int32(D), np.int32(H), np.int32(W),
                    np.int32(dx), np.int32(dy), *p1s, *p2s, np.float32(tau_so), np.int32(bool(outside_large)),
