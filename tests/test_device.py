@@ -138,3 +138,9 @@ def test_head_tile_follows_the_vector_registers():
     assert gpu.network_tiles()["RM"] == RULES["network_tiles"]["gpu"]["RM"]
     narrow.tuned["network_tiles"] = {"RM": 8}
     assert narrow.network_tiles()["RM"] == 8
+    # a device that reports 8-wide vectors (PoCL on a Zen 3) gets RN 8: RM 8 keeps to 8 registers
+    zen3 = DeviceProfile.of(fake_device("pthread-haswell-AMD EPYC", T.CPU, width=8), cl)
+    tiles = zen3.network_tiles()
+    assert tiles["RN"] == 8 and tiles["RM"] == RULES["network_tiles"]["cpu"]["RM"] == 8
+    assert tiles["CONV_RN"] == RULES["network_tiles"]["cpu"]["CONV_RN"] == 16  # the fst stack's own
+    assert gpu.network_tiles()["CONV_RN"] == gpu.network_tiles()["RN"]  # no rule of its own: RN

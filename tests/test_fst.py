@@ -177,3 +177,28 @@ def test_fst_matcher_tiles_exact(ctx, shared_data, monkeypatch):
     assert tiled.plan.tiled
     np.testing.assert_array_equal(tiled.disparity, whole.disparity)
     np.testing.assert_array_equal(tiled.intermediates["D_SE"], whole.intermediates["D_SE"])
+
+
+def test_conv_rn_sets_the_fst_stack_only(ctx):
+    """The tiles' CONV_RN (channels per conv work-item) reaches the fst stack, and every
+    width gives the same volume bit for bit (each output sums its terms in one order
+    whatever the tile) and the reference's within TOL; an explicit RN alone still sets
+    the stack (as before CONV_RN); the paper network's stack keeps the head's RN."""
+    from mccnn_cl.costs.network import PaperCost
+
+    w = Weights.random([[24, 3]] * 3, architecture="mccnn-fst", seed=5)
+    left, right = random_pair(np.random.default_rng(5), 14, 45)
+    expected = ref.fst_cost_volume(w, left, right, 9)
+    vols = []
+    for rn in (16, 8, 4):
+        cost = FstCost(ctx, w, tiles={"CONV_RN": rn, "CONV_RM": 3})
+        assert cost.stack.rn == rn
+        vols.append(run_poisoned(ctx, cost, left, right, 9))
+        check(vols[-1], expected)
+    for v in vols[1:]:
+        np.testing.assert_array_equal(v, vols[0])
+    assert FstCost(ctx, w, tiles={"RN": 2}).stack.rn == 2
+    assert FstCost(ctx, w).stack.rn == ctx.profile.network_tiles()["CONV_RN"]
+    p = Weights.random([[16, 3]] * 2, [32, 32, 2], architecture="mccnn-paper", seed=6)
+    paper = PaperCost(ctx, p, tiles={"RN": 4, "CONV_RN": 16})
+    assert paper.stack.rn == paper.rn == 4

@@ -33,7 +33,8 @@ def describe_choices(device) -> list:
     if not profile.is_cpu:
         return lines
     tiles, mine = profile.network_tiles(), profile.tuned.get("network_tiles", {})
-    for key, what in (("CONV_RM", "conv pixels per work-item"), ("RM", "head cells per work-item")):
+    for key, what in (("CONV_RM", "conv pixels per work-item"), ("CONV_RN", "fst conv channels per work-item"),
+                      ("RM", "head cells per work-item")):
         label = f"network_tiles {key}"
         lines.append(f"  {label:22s} {tiles[key]!s:14s} ({'tuned' if key in mine else 'rules'}), {what}")
     return lines

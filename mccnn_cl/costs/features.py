@@ -281,6 +281,9 @@ class ConvNetCost(MatchingCost):
 
     local = False  # the volume is computed once for the whole image (host memory when tiled)
     label = "network cost"
+    #: the conv stack's channels per work-item: the head's RN (the fc networks, whose L4 split and
+    #: hidden width are padded to it) or the tiles' own CONV_RN (fst: the stack alone)
+    stack_rn_from_head = False
 
     def __init__(self, ctx, weights, tiles=None, half: bool = False, local_tiles=None):
         weights.validate()
@@ -296,8 +299,12 @@ class ConvNetCost(MatchingCost):
         self.channels = weights.input_channels
         self.tiles = default_tiles(ctx)
         self.tiles.update(tiles or {})
-        self.stack = ConvStack(ctx, weights, int(self.tiles["RN"]), int(self.tiles["CONV_RM"]),
-                               local_tiles=local_tiles)
+        given = tiles or {}
+        if self.stack_rn_from_head or ("RN" in given and "CONV_RN" not in given):
+            rn = self.tiles["RN"]  # an explicit RN sets both, as it did before CONV_RN
+        else:
+            rn = self.tiles["CONV_RN"]
+        self.stack = ConvStack(ctx, weights, int(rn), int(self.tiles["CONV_RM"]), local_tiles=local_tiles)
 
     def band_rows(self, h: int, w: int) -> int:
         raise NotImplementedError

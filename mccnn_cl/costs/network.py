@@ -102,6 +102,7 @@ class PaperCost(ConvNetCost):
     """
 
     architecture = PAPER
+    stack_rn_from_head = True  # the L4 split is a conv-stack kernel of the head's width
     #: per-tile cost (see mccnn_cl.costs.registry): False, the volume is
     #: computed once for the whole image (into host memory when tiled)
     local = False

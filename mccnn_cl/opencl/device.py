@@ -50,11 +50,14 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: disparity; before the fused rules), ``cbca_fused`` (both passes in one
 #: launch, one work-item per plane walking it whole), ``cbca_multi`` (several
 #: iterations per launch, the same), ``cbca_multi_group_of_one``.  Network:
-#: ``network_tiles`` (register tiles; RN grows with the float vector width on CPUs;
-#: CONV_RM 4 pixels x RN 16 channels per conv work-item: 4 accumulator registers of
-#: AVX-512, 8 of AVX2, whose 16 registers CONV_RM 8 overflowed: the fst conv stack took
-#: 2.63 s against 1.44-1.49 s at 4 with PoCL's AVX2 code, 1.18 against 1.21 s with its
-#: AVX-512 code, BENCHMARKS.md; ``mccnn-cl tune`` measures 4, 6 and 8);
+#: ``network_tiles`` (register tiles; the head's RN grows with the float vector width on CPUs;
+#: CONV_RM 4 pixels x CONV_RN 16 channels per conv work-item of the fst stack: 4 accumulator
+#: registers of AVX-512, 8 of AVX2, whose 16 registers CONV_RM 8 overflowed: the fst conv stack
+#: took 2.63 s against 1.44-1.49 s at 4 with PoCL's AVX2 code, 1.18 against 1.21 s with its
+#: AVX-512 code; on a Zen 3, whose PoCL device reports a float vector width of 8, one KITTI
+#: image's stack took 0.56 s at CONV_RN 16 against 1.03 s at RN 8, BENCHMARKS.md; the paper
+#: and acrt stacks keep RN, which their heads share; ``mccnn-cl tune`` measures CONV_RM 4, 6
+#: and 8 and CONV_RN 8);
 #: ``network_local_tiles`` (the conv stack and the L4 split as a local-memory tiled
 #: GEMM, kernels/network_conv_wg.cl) with its starting tile ``network_gemm_tile``
 #: (TM pixels x TN channels per work-group, TK terms per slice, RM x RN per
@@ -81,7 +84,7 @@ RULES = {
     "cbca_fused":              {CPU: True,  LLVMPIPE: False, GPU: False},
     "cbca_multi":              {CPU: True,  LLVMPIPE: True,  GPU: False},
     "cbca_multi_group_of_one": {CPU: True,  LLVMPIPE: True,  GPU: False},
-    "network_tiles":           {CPU: dict(TM=64, RM=8, ROWS_FASTEST=1, CONV_RM=4),
+    "network_tiles":           {CPU: dict(TM=64, RM=8, ROWS_FASTEST=1, CONV_RM=4, CONV_RN=16),
                                 LLVMPIPE: dict(TM=64, RM=8, ROWS_FASTEST=1, CONV_RM=4),
                                 GPU: dict(TM=32, RM=4, RN=4, ROWS_FASTEST=0, CONV_RM=4)},
     "network_local_tiles":     {CPU: False, LLVMPIPE: False, GPU: True},
@@ -96,6 +99,8 @@ RULES = {
 #: The head's RM (cells per work-item, x RN 16 channels of accumulators) on CPUs without 32 wide
 #: vector registers: the paper network's head on a 400 x 200 pair at D 64 took 22.3 s at RM 8 and
 #: 16.8 s at 4 with PoCL's AVX2 code, 12.2 and 13.4 s with its AVX-512 code (BENCHMARKS.md).
+#: Where the device reports a float vector width of 8 (RN 8: PoCL on a Zen 3) RM 8 keeps to 8
+#: registers and stays: the tuner's head run took 1.46 s there against 2.20 s at RM 4.
 NARROW_HEAD_RM = 4
 #: LLVM CPU names (as PoCL puts them in its device names) whose code has AVX-512
 AVX512_LLVM_CPUS = ("avx512", "cascadelake", "cooperlake", "cannonlake", "icelake", "tigerlake", "rocketlake",
@@ -208,12 +213,15 @@ class DeviceProfile:
 
     def network_tiles(self) -> dict:
         """Starting register tiles of the network kernels (refined against the kernel limits by the costs).
-        On a CPU without 32 wide vector registers (:attr:`wide_vectors`) the head's RM is at most
-        :data:`NARROW_HEAD_RM` unless tuned: its RM x 16 accumulators overflow AVX2's 16 registers."""
+        On a CPU without 32 wide vector registers (:attr:`wide_vectors`) and RN 16 the head's RM is
+        at most :data:`NARROW_HEAD_RM` unless tuned: its RM x 16 accumulators overflow AVX2's 16
+        registers.  ``CONV_RN`` (the fst conv stack's channels per work-item) defaults to RN."""
         tiles = dict(self.rule("network_tiles"))
         if "RN" not in tiles:
             tiles["RN"] = 16 if self.vector_width >= 16 else 8 if self.vector_width >= 8 else 4
-        if self.is_cpu and not self.wide_vectors and "RM" not in self.tuned.get("network_tiles", {}):
+        tiles.setdefault("CONV_RN", tiles["RN"])
+        if (self.is_cpu and not self.wide_vectors and int(tiles["RN"]) >= 16
+                and "RM" not in self.tuned.get("network_tiles", {})):
             tiles["RM"] = min(int(tiles["RM"]), NARROW_HEAD_RM)
         return tiles
 

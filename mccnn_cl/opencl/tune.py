@@ -132,7 +132,7 @@ def options(ctx, size=SIZE, repeat=1) -> list:
 
         weights = Weights.load()
         tiles = default_tiles(ctx_)
-        stack = ConvStack(ctx_, weights, int(tiles["RN"]), int(tiles["CONV_RM"]))
+        stack = ConvStack(ctx_, weights, int(tiles["CONV_RN"]), int(tiles["CONV_RM"]))  # the fst stack's tile
         d_img = ctx_.to_device(np.ascontiguousarray(img_l[:, :, None]))
         feat = []
 
@@ -202,7 +202,9 @@ def _cpu_options(ctx, runs) -> list:
         Option("sgm", sgm, runs["sgm"], exact=False),
         Option("cbca_path", [{"cbca_fused": True, "cbca_multi": True}, {"cbca_fused": True, "cbca_multi": False},
                              {"cbca_fused": False, "cbca_multi": False}], runs["cbca"]),
-        Option("network_conv", [{"network_tiles": {"CONV_RM": r}} for r in (4, 6, 8)], runs["conv"]),
+        # CONV_RN 8: a device that reports 8-wide vectors (the rules take 16 on CPUs)
+        Option("network_conv", [{"network_tiles": {"CONV_RM": r}} for r in (4, 6, 8)]
+               + [{"network_tiles": {"CONV_RN": 8, "CONV_RM": 8}}], runs["conv"]),
         Option("network_head", [{"network_tiles": {"RM": r}} for r in (4, 8)], runs["head"]),
         _launch_local(runs["local"]),
     ]
