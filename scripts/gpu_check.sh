@@ -55,19 +55,9 @@ if [ -z "$PY" ] || ! "$PY" -c "$NEED" 2>/dev/null; then
 fi
 
 # A CUDA-only image: the driver's OpenCL library is there, its ICD file is not
-if [ "$CPU" = 0 ] && [ -z "${OCL_ICD_VENDORS:-}" ] && command -v nvidia-smi >/dev/null && \
-        ! grep -qsi nvidia /etc/OpenCL/vendors/*.icd; then
-    LIB=$( (ldconfig -p 2>/dev/null | awk '/libnvidia-opencl\.so\.1/ {print $NF; exit}') || true)
-    for d in /usr/lib/x86_64-linux-gnu /usr/lib64 /usr/local/nvidia/lib64 /usr/lib/aarch64-linux-gnu; do
-        [ -z "$LIB" ] && [ -e "$d/libnvidia-opencl.so.1" ] && LIB="$d/libnvidia-opencl.so.1"
-    done
-    if [ -n "$LIB" ]; then
-        mkdir -p .gpucheck/vendors
-        cp /etc/OpenCL/vendors/*.icd .gpucheck/vendors/ 2>/dev/null || true
-        echo "$LIB" > .gpucheck/vendors/nvidia.icd
-        export OCL_ICD_VENDORS=$PWD/.gpucheck/vendors
-        NOTE="$NOTE; NVIDIA ICD written to .gpucheck/vendors for $LIB (none was registered)"
-        echo "gpu_check: no NVIDIA ICD registered; using $LIB through .gpucheck/vendors" >&2
-    fi
+. scripts/nvidia_icd.sh  # (the working directory is the repository root)
+if [ "$CPU" = 0 ] && nvidia_icd "$PWD/.gpucheck/vendors"; then
+    NOTE="$NOTE; NVIDIA ICD written to .gpucheck/vendors for $NVIDIA_ICD_LIB (none was registered)"
+    echo "gpu_check: no NVIDIA ICD registered; using $NVIDIA_ICD_LIB through .gpucheck/vendors" >&2
 fi
 exec "$PY" -m tools.gpucheck --env-note "$NOTE" ${ARGS[@]+"${ARGS[@]}"}

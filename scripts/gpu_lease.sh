@@ -106,18 +106,11 @@ evaluate() {   # ENTRIES [TAG]: ';'-separated SET|LABEL=SPEC, one after another,
         say "eval $set ${method%%=*}: exit status $?"
     done
 }
-# the evaluation's OpenCL: a CUDA-only image registers no NVIDIA ICD (gpu_check.sh writes one
-# for itself; the same here, for family_table.py)
-if [ -z "${OCL_ICD_VENDORS:-}" ] && [ "${GPU_TRAIN_DEVICE:-cuda}" != cpu ] && command -v nvidia-smi >/dev/null \
-        && ! grep -qsi nvidia /etc/OpenCL/vendors/*.icd; then
-    LIB=$( (ldconfig -p 2>/dev/null | awk '/libnvidia-opencl\.so\.1/ {print $NF; exit}') || true)
-    for d in /usr/local/nvidia/lib64 /usr/lib/x86_64-linux-gnu /usr/lib64; do
-        [ -z "$LIB" ] && [ -e "$d/libnvidia-opencl.so.1" ] && LIB="$d/libnvidia-opencl.so.1"
-    done
-    if [ -n "$LIB" ]; then
-        mkdir -p "$WORK/vendors" && echo "$LIB" > "$WORK/vendors/nvidia.icd" \
-            && export OCL_ICD_VENDORS=$WORK/vendors && say "NVIDIA ICD for the evaluation: $LIB"
-    fi
+# the evaluation's OpenCL: a CUDA-only image registers no NVIDIA ICD (scripts/nvidia_icd.sh,
+# which gpu_check.sh uses too)
+. scripts/nvidia_icd.sh  # (the working directory is the repository root)
+if [ "${GPU_TRAIN_DEVICE:-cuda}" != cpu ] && nvidia_icd "$WORK/vendors"; then
+    say "NVIDIA ICD for the evaluation: $NVIDIA_ICD_LIB"
 fi
 PY_EVAL=(python3)
 [ -x .venv/bin/python ] && PY_EVAL=(.venv/bin/python)

@@ -163,3 +163,38 @@ def test_a_group_is_given_time_to_build(monkeypatch):
     limits.clear()
     rows = gpucheck.run_tests("0:0", 30.0, None, lambda *_: None, group_limit=10.0)
     assert limits == [30.0] and rows[0][1] == "passed"  # a budget under the floor: the first group gets it all
+
+
+def test_nvidia_icd_is_registered_where_a_cuda_image_lacks_it(tmp_path):
+    """scripts/nvidia_icd.sh (sourced by gpu_check.sh and gpu_lease.sh): with nvidia-smi on the
+    PATH, the driver's OpenCL library present and no NVIDIA ICD registered, `nvidia_icd DIR`
+    writes DIR/nvidia.icd naming the library and exports OCL_ICD_VENDORS; with OCL_ICD_VENDORS
+    already set, or no library, it changes nothing and returns 1."""
+    if any("nvidia" in p.read_text(errors="ignore").lower() for p in Path("/etc/OpenCL/vendors").glob("*.icd")):
+        pytest.skip("this machine registers an NVIDIA ICD: the case under test cannot arise")
+    bin_dir, lib_dir = tmp_path / "bin", tmp_path / "lib"
+    bin_dir.mkdir(), lib_dir.mkdir()
+    (bin_dir / "nvidia-smi").write_text("#!/bin/sh\nexit 0\n")
+    (bin_dir / "nvidia-smi").chmod(0o755)
+    lib = lib_dir / "libnvidia-opencl.so.1"
+    lib.write_bytes(b"")
+    script = REPO / "scripts" / "nvidia_icd.sh"
+    run = ('. "$1"; nvidia_icd "$2"; echo "rc=$? vendors=${OCL_ICD_VENDORS:-} lib=${NVIDIA_ICD_LIB:-}"')
+    env = {k: v for k, v in os.environ.items() if k != "OCL_ICD_VENDORS"}
+    env.update(PATH=f"{bin_dir}:{env['PATH']}", NVIDIA_ICD_SEARCH=str(lib_dir))
+
+    def sh(dest, **extra):
+        out = subprocess.run(["bash", "-c", run, "sh", str(script), str(dest)], env={**env, **extra},
+                             capture_output=True, text=True, timeout=60)
+        return out.stdout.strip()
+
+    if "libnvidia-opencl" in subprocess.run(["bash", "-c", "ldconfig -p 2>/dev/null"], capture_output=True,
+                                            text=True).stdout:
+        pytest.skip("ldconfig lists a real NVIDIA OpenCL library here: the search folder is not what is found")
+    dest = tmp_path / "vendors"
+    assert sh(dest) == f"rc=0 vendors={dest} lib={lib}"
+    assert (dest / "nvidia.icd").read_text().strip() == str(lib)
+    other = tmp_path / "other"
+    assert sh(other, OCL_ICD_VENDORS="/x") == "rc=1 vendors=/x lib="
+    assert sh(other, NVIDIA_ICD_SEARCH=str(tmp_path / "none")) == "rc=1 vendors= lib="
+    assert not other.exists()

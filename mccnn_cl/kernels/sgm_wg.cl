@@ -27,6 +27,44 @@
 #include "common.h"
 #include "sgm_recurrence.h"
 
+/* One cell (d, y, x) of a path step, shared by both kernels: C_r(p, d) from
+ * the cost cell at idx and, past the path's first pixel, C_r(p - r, .) at
+ * levels d - 1, d, d + 1 (prev_d[0], prev_d[stride], prev_d[2 stride]; read
+ * only then) and its minimum m, with D2 from the right image at columns xr
+ * (of p) and xrp (of p - r) on rows y and py; stored into out by mode when
+ * store is set.  Returns C_r(p, d). */
+static inline float sgm_wg_cell(__global const vol_t *cost, __global const float *img_r,
+                                __global vol_t *out, const size_t idx, const int first,
+                                __local const float *prev_d, const int stride, const float m,
+                                const int y, const int py, const int xr, const int xrp, const int W,
+                                const float p1_a, const float p1_b, const float p2_a, const float p2_b,
+                                const float tau_so, const int outside_large, const int mode,
+                                const int store)
+{
+    const float c = VOL_GET(cost, idx);
+    float val;
+    if (first) {
+        val = c; /* first pixel of the path */
+    } else {
+        int big_r;
+        if (xrp < 0 || xrp >= W)
+            big_r = outside_large;
+        else
+            big_r = SGM_LARGE(img_r[y * W + xr] - img_r[py * W + xrp], tau_so);
+        val = sgm_step(c, m, prev_d[0], prev_d[stride], prev_d[2 * stride], SGM_BY_D2(p1_a, p1_b, big_r),
+                       SGM_BY_D2(p2_a, p2_b, big_r));
+    }
+    if (store) {
+        if (mode == 0) {
+            VOL_SET(out, idx, val);
+        } else {
+            const float old = VOL_GET(out, idx);
+            VOL_SET(out, idx, mode == 1 ? old + val : (old + val) * 0.25f);
+        }
+    }
+    return val;
+}
+
 __kernel void sgm_wg_path(__global const vol_t *cost,  /* D x H x W cost volume (NaN invalid) */
                           __global const float *img_l, /* H x W left image, gray in [0, 1] */
                           __global const float *img_r, /* H x W right image */
@@ -86,27 +124,10 @@ __kernel void sgm_wg_path(__global const vol_t *cost,  /* D x H x W cost volume 
             const size_t idx = VIDX(d, y, x, H, W);
             float val = INFINITY;
             if (d <= dmax) {
-                const float c = VOL_GET(cost, idx);
-                if (i == 0) {
-                    val = c; /* first pixel of the path */
-                } else {
-                    const int xr = x - d, xrp = px - d; /* pd and pd - r in the right image */
-                    int big_r;
-                    if (xrp < 0 || xrp >= W)
-                        big_r = outside_large;
-                    else
-                        big_r = SGM_LARGE(img_r[y * W + xr] - img_r[py * W + xrp], tau_so);
-                    /* prev[d + 1] is C_r(p - r, d) */
-                    val = sgm_step(c, m, prev[d], prev[d + 1], prev[d + 2], SGM_BY_D2(p1_a, p1_b, big_r),
-                                   SGM_BY_D2(p2_a, p2_b, big_r));
-                }
+                /* pd and pd - r in the right image: x - d, px - d; prev[d + 1] is C_r(p - r, d) */
+                val = sgm_wg_cell(cost, img_r, out, idx, i == 0, prev + d, 1, m, y, py, x - d, px - d, W,
+                                  p1_a, p1_b, p2_a, p2_b, tau_so, outside_large, mode, 1);
                 own_min = fmin(own_min, val);
-                if (mode == 0) {
-                    VOL_SET(out, idx, val);
-                } else {
-                    const float old = VOL_GET(out, idx);
-                    VOL_SET(out, idx, mode == 1 ? old + val : (old + val) * 0.25f);
-                }
             } else if (mode == 0) {
                 VOL_SET(out, idx, INVALID_COST);
             }
@@ -140,7 +161,7 @@ __kernel void sgm_wg_path(__global const vol_t *cost,  /* D x H x W cost volume 
  * levels' minimum, then after one barrier reads the column's K minima (the
  * reduction buffers alternate per step, so one barrier per step suffices).
  * Work-items beyond the image walk its last column and write nothing.  The
- * same recurrence, in the same order of operations per cell, as sgm_wg_path
+ * same recurrence, one cell by the same helper (sgm_wg_cell) as sgm_wg_path
  * (a minimum does not depend on the order of its terms), so the same bits.
  * Local memory: 2 (D + 2) SGM_WG_CW + 2 K SGM_WG_CW floats. */
 #ifndef SGM_WG_CW
@@ -197,29 +218,11 @@ __kernel void sgm_wg_cols(__global const vol_t *cost,  /* D x H x W cost volume 
             const size_t idx = VIDX(d, y, x, H, W);
             float val = INFINITY;
             if (d <= dmax) {
-                const float cv = VOL_GET(cost, idx);
-                if (i == 0) {
-                    val = cv; /* first pixel of the path */
-                } else {
-                    const int xr = x - d; /* pd and pd - r in the right image: the same column */
-                    int big_r;
-                    if (xr < 0 || xr >= W)
-                        big_r = outside_large;
-                    else
-                        big_r = SGM_LARGE(img_r[y * W + xr] - img_r[py * W + xr], tau_so);
-                    /* prev[(d + 1) CW + c] is C_r(p - r, d) */
-                    val = sgm_step(cv, m, prev[d * CW + c], prev[(d + 1) * CW + c], prev[(d + 2) * CW + c],
-                                   SGM_BY_D2(p1_a, p1_b, big_r), SGM_BY_D2(p2_a, p2_b, big_r));
-                }
+                /* pd and pd - r in the right image: the same column x - d; prev[(d + 1) CW + c] is
+                 * C_r(p - r, d) */
+                val = sgm_wg_cell(cost, img_r, out, idx, i == 0, prev + d * CW + c, CW, m, y, py, x - d, x - d,
+                                  W, p1_a, p1_b, p2_a, p2_b, tau_so, outside_large, mode, inside);
                 own_min = fmin(own_min, val);
-                if (inside) {
-                    if (mode == 0) {
-                        VOL_SET(out, idx, val);
-                    } else {
-                        const float old = VOL_GET(out, idx);
-                        VOL_SET(out, idx, mode == 1 ? old + val : (old + val) * 0.25f);
-                    }
-                }
             } else if (mode == 0 && inside) {
                 VOL_SET(out, idx, INVALID_COST);
             }
