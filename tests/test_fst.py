@@ -69,9 +69,9 @@ def test_real_crops(ctx, shared_data, crop):
     right = cv2.imread(str(shared_data / rp), cv2.IMREAD_GRAYSCALE)[y0:y0 + 41, x0:x0 + 67]
     assert left.std() > 5 and right.std() > 5
     w = Weights.random(architecture="mccnn-fst", seed=5)  # 4 x 64 maps, 3 x 3
-    cost = FstCost(ctx, w)
     expected = ref.fst_cost_volume(w, left, right, 24)
-    check(run_poisoned(ctx, cost, left, right, 24), expected)
+    for vw in (16, 8):  # both widths of the pairs form
+        check(run_poisoned(ctx, FstCost(ctx, w, workgroup=False, volume_width=vw), left, right, 24), expected)
     # the best disparity of a real pair is mostly a clear minimum: the costs are not flat
     assert np.nanstd(expected) > 0.05
 
@@ -135,16 +135,46 @@ def test_interface_and_errors(ctx):
         cost(img[:4], img[:4], 3)  # smaller than the 5 x 5 patch
 
 
-@pytest.mark.parametrize("size", [(37 + 8, 53 + 8, 16), (12, 80, 70), (10, 40, 45)],
-                         ids=["37x53-D16", "D70-w72", "D>W"])
+@pytest.mark.parametrize("size", [(37 + 8, 53 + 8, 16), (12, 80, 70), (10, 40, 45), (9, 20, 13)],
+                         ids=["37x53-D16", "D70-w72", "D>W", "w12-D13"])
 def test_volume_forms(ctx, size):
-    """The CPU form of the volume kernel (fst_volume_pairs) against the
-    reference; widths that end inside a 16- and a 32-pixel block, D not a
-    multiple of 8 or 16."""
+    """The CPU forms of the volume kernel (fst_volume_pairs on 16-wide vectors,
+    fst_volume_pairs8 on 8-wide ones) against the reference and each other bit
+    for bit (the same fma chain per cost); widths that end inside an 8-, a 16-
+    and a 32-pixel block, D not a multiple of 4, 8 or 16; float16 storage too."""
     H, W, D = size
     w = Weights.random([[16, 3]] * 4, architecture="mccnn-fst", seed=W)
     left, right = random_pair(np.random.default_rng(H), H, W)
-    check(run_poisoned(ctx, FstCost(ctx, w), left, right, D), ref.fst_cost_volume(w, left, right, D))
+    expected = ref.fst_cost_volume(w, left, right, D)
+    got = {}
+    for vw in (16, 8):
+        cost = FstCost(ctx, w, workgroup=False, volume_width=vw)
+        assert cost.volume_path == "pairs" and cost.volume_width == vw
+        got[vw] = run_poisoned(ctx, cost, left, right, D)
+        check(got[vw], expected)
+    np.testing.assert_array_equal(got[8], got[16])
+    halves = [run_poisoned(ctx, FstCost(ctx, w, half=True, workgroup=False, volume_width=vw), left, right, D)
+              for vw in (16, 8)]
+    np.testing.assert_array_equal(halves[0], halves[1])
+
+
+def test_volume_width_rule(ctx, monkeypatch):
+    """The pairs form's width follows the rule (0: the device's float vector width, 16 or
+    more -> 16, else 8; PoCL on a Zen 3 reports 8), a tuned width wins, a bad one is refused."""
+    from dataclasses import replace
+    from mccnn_cl.opencl.device import RULES
+
+    assert RULES["fst_volume_width"]["cpu"] == 0
+    prof = ctx.profile
+    for width, expected in ((16, 16), (8, 8), (4, 8)):
+        p = replace(prof, vector_width=width, tuned={})
+        assert p.fst_volume_width() == expected
+    assert replace(prof, vector_width=16, tuned={"fst_volume_width": 8}).fst_volume_width() == 8
+    monkeypatch.setattr(ctx, "profile", replace(prof, vector_width=8, tuned={}))
+    w = Weights.random([[8, 3]], architecture="mccnn-fst", seed=1)
+    assert FstCost(ctx, w, workgroup=False).volume_width == 8
+    with pytest.raises(InputError, match="volume_width"):
+        FstCost(ctx, w, workgroup=False, volume_width=4)
 
 
 def test_fst_matcher_tiles_exact(ctx, shared_data, monkeypatch):

@@ -143,15 +143,17 @@ def case_fst(ctx, rng, chk):
 
     w = Weights.random(conv_layers=[[6, 3], [5, 3]], architecture="mccnn-fst", seed=4)  # patch 5
     # the CPU-shaped kernels whatever the device's default (case fst_wg has the GPU-shaped ones):
-    cost = FstCost(ctx, w, local_tiles=False, workgroup=False)  # pairs of 16-pixel vectors
+    cost = FstCost(ctx, w, local_tiles=False, workgroup=False, volume_width=16)  # pairs of 16-pixel vectors
+    cost8 = FstCost(ctx, w, local_tiles=False, workgroup=False, volume_width=8)  # pairs of 8-pixel vectors
     # 2nd: D >= W (cropped W = 9), 3rd: cropped width 35 (a partial 16-pixel block)
-    for cost, (h, wd, D) in ((cost, (9, 21, 7)), (cost, (8, 13, 11)), (cost, (7, 39, 20))):
+    for cost, (h, wd, D) in ((cost, (9, 21, 7)), (cost, (8, 13, 11)), (cost, (7, 39, 20)),
+                             (cost8, (8, 13, 11)), (cost8, (7, 39, 20))):
         left, right = _images(rng, h, wd)
         H, W = h - 2 * w.margin, wd - 2 * w.margin
         out = _poisoned(ctx, D * H * W * 4)
         cost(left, right, D, out=out)
         # float32 dot products of 5 unit-vector components: ~1e-7
-        chk.close(f"fst {h}x{wd} D={D}", ctx.from_device(out, (D, H, W)), ref.fst_cost_volume(w, left, right, D),
+        chk.close(f"fst {h}x{wd} D={D} width {cost.volume_width}", ctx.from_device(out, (D, H, W)), ref.fst_cost_volume(w, left, right, D),
                   atol=2e-6, rtol=0)
 
 

@@ -18,7 +18,10 @@ in increasing order, negated):
 
 * ``fst_volume_pairs`` (``kernels/fst.cl``, the CPU form): a work-item per
   32 pixels of a row walking every disparity, its right vectors made by
-  shuffles of aligned loads;
+  shuffles of aligned loads; ``fst_volume_pairs8`` is the same on 8-wide
+  vectors (16 pixels per work-item), for CPUs whose vector registers hold 8
+  floats (rule ``fst_volume_width``: :meth:`DeviceProfile.fst_volume_width`;
+  ``FstCost(volume_width=8 or 16)`` forces one);
 * ``fst_volume_wg`` (``kernels/fst_wg.cl``, the "workgroup" path; the
   default on the profile's ``gpu`` column, rule ``fst_workgroup``): a
   work-group per (tile of TX columns, chunk of TD disparities, row) stages
@@ -46,6 +49,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..opencl.context import launch_sizes, round_up
+from ..errors import InputError
 from ..weights import FST, Weights
 from ..validate import check_cost_inputs
 from .features import ConvNetCost, check_tile, fit_tile, normalise, shrinker
@@ -78,17 +82,22 @@ class FstCost(ConvNetCost):
     label = "fst cost"
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False,
-                 local_tiles=None, workgroup=None):
+                 local_tiles=None, workgroup=None, volume_width: int | None = None):
         super().__init__(ctx, weights, tiles, half, local_tiles)
         self.nk = weights.feature_maps
-        self._vol_px = _VOL_PX
         defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL)
         self._norm = ctx.kernel(FST_CL, "fst_normalise", **defs)
         wg = ctx.profile.local_tile("fst_workgroup", "fst_volume_tile", workgroup)
         self.volume_tile = None
         if wg is None:
             self.volume_path = "pairs"
-            self._vol = ctx.kernel(FST_CL, "fst_volume_pairs", VOL_HALF=int(half), **defs)
+            vw = ctx.profile.fst_volume_width() if volume_width is None else int(volume_width)
+            if vw not in (8, 16):
+                raise InputError(f"fst volume_width must be 8 or 16, got {vw}")
+            self.volume_width = vw  # fst_volume_pairs (16) or fst_volume_pairs8
+            self._vol_px = 2 * vw
+            name = "fst_volume_pairs" if vw == 16 else "fst_volume_pairs8"
+            self._vol = ctx.kernel(FST_CL, name, VOL_HALF=int(half), **defs)
         else:
             self.volume_path = "workgroup"
             self._vol, self.volume_tile = self._volume_wg(*wg)

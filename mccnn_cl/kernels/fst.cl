@@ -139,3 +139,93 @@ __kernel void fst_volume_pairs(
         }
     }
 }
+
+/* fst_volume_pairs8: fst_volume_pairs on 8-wide vectors, for CPUs whose
+ * vectors are 8 floats (AVX2: there the 16 float16 accumulators above take 32
+ * of the 16 registers and spill).  One work-item per 16 pixels of a row: two
+ * 8-pixel vectors xa = x0 and xb = x0 + 8.  The right vectors xa needs at d
+ * are the ones xb needs at d + 8, so each quarter-block e of 4 disparities
+ * (xa: d = 4e + i, xb: d = 4e + 8 + i, i = 0..3, e >= -2) makes its 4
+ * shifted vectors once from two aligned 8-float loads: 8 accumulators, 13
+ * registers in all.  Every cost is the same fma chain over the maps as in
+ * fst_volume_pairs, so the same bits.  Global size (ceil(w / 16), hb). */
+#define SHF8(s) __builtin_shufflevector(A, B, s, s + 1, s + 2, s + 3, s + 4, s + 5, s + 6, s + 7)
+#define QUARTER_BLOCK(S0, S1, S2, S3)                                               \
+    for (int k = 0; k < NK; ++k) {                                              \
+        const size_t o = (size_t)k * (size_t)wp;                                \
+        const float8 la = vload8(0, L + o), lb = vload8(0, L + o + 8);         \
+        const float8 A = vload8(0, R + o + base), B = vload8(0, R + o + base + 8); \
+        float8 v;                                                               \
+        v = S0; acc[0] = fma(la, v, acc[0]); acc[4] = fma(lb, v, acc[4]);       \
+        v = S1; acc[1] = fma(la, v, acc[1]); acc[5] = fma(lb, v, acc[5]);       \
+        v = S2; acc[2] = fma(la, v, acc[2]); acc[6] = fma(lb, v, acc[6]);       \
+        v = S3; acc[3] = fma(la, v, acc[3]); acc[7] = fma(lb, v, acc[7]);       \
+    }
+
+/* lanes 0 .. n-1 of v to p (n <= 8) */
+static inline void vol_store8_partial(const float8 v, __global vol_t *p, const int n)
+{
+#if VOL_HALF
+    float t[8];
+    vstore8(v, 0, t);
+    for (int i = 0; i < n; ++i)
+        vstore_half(t[i], i, p);
+#else
+    if (n == 8) {
+        vstore8(v, 0, p);
+        return;
+    }
+    float t[8];
+    vstore8(v, 0, t);
+    for (int i = 0; i < n; ++i)
+        p[i] = t[i];
+#endif
+}
+
+__kernel void fst_volume_pairs8(
+    __global const float *fl, __global const float *fr, __global vol_t *cost,
+    int h, int w, int y0, int D, int wp)
+{
+    const int x0 = get_global_id(0) * 16;
+    const int yb = get_global_id(1);
+    if (x0 >= w)
+        return;
+    const int na = min(8, w - x0), nb = min(8, w - x0 - 8);   /* nb <= 0: no xb */
+    const int y = y0 + yb;
+    __global const float *L = fl + (size_t)yb * NK * (size_t)wp + PADL + x0;
+    __global const float *R = fr + (size_t)yb * NK * (size_t)wp + PADL + x0;
+    const int8 xa = (int8)(0, 1, 2, 3, 4, 5, 6, 7) + (int8)(x0), xbv = xa + (int8)(8);
+    for (int e = -2; 4 * e < D; ++e) {
+        const int da = 4 * e;
+        if (x0 + 15 < da + 8) {                  /* both vectors invalid from here on */
+            for (int d = max(da, 0); d < D; ++d)
+                vol_store8_partial((float8)(INVALID_COST), cost + VIDX(d, y, x0, h, w), na);
+            if (nb > 0)
+                for (int d = max(da + 8, 0); d < D; ++d)
+                    vol_store8_partial((float8)(INVALID_COST), cost + VIDX(d, y, x0 + 8, h, w), nb);
+            return;
+        }
+        float8 acc[8];
+#pragma unroll
+        for (int j = 0; j < 8; ++j)
+            acc[j] = (float8)(0.0f);
+        /* window i starts at right pixel x0 - da - i */
+        if ((e & 1) == 0) {                      /* x0 - da is a multiple of 8 */
+            const int base = -da - 8;            /* A = R[x0 - da - 8 ..], B = R[x0 - da ..] */
+            QUARTER_BLOCK(B, SHF8(7), SHF8(6), SHF8(5))
+        } else {                                 /* x0 - da - 4 is a multiple of 8 */
+            const int base = -da - 4;
+            QUARTER_BLOCK(SHF8(4), SHF8(3), SHF8(2), SHF8(1))
+        }
+#pragma unroll
+        for (int i = 0; i < 4; ++i) {
+            const int d = da + i;
+            if (d >= 0 && d < D)
+                vol_store8_partial(select(-acc[i], (float8)(INVALID_COST), xa < (int8)(d)),
+                                   cost + VIDX(d, y, x0, h, w), na);
+            if (nb > 0 && d + 8 >= 0 && d + 8 < D)
+                vol_store8_partial(select(-acc[4 + i], (float8)(INVALID_COST), xbv < (int8)(d + 8)),
+                                   cost + VIDX(d + 8, y, x0 + 8, h, w), nb);
+        }
+    }
+}

@@ -65,7 +65,10 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: hidden layer that GEMM as a 1 x 1 convolution, kernels/network_head_wg.cl,
 #: instead of fused per tile of cells); ``fst_workgroup`` (fst's cosine volume with a work-group per
 #: (column tile, disparity chunk, row), kernels/fst_wg.cl) with ``fst_volume_tile``
-#: (TX columns x TD disparities, TK maps per slice, RX x RD per work-item).  The
+#: (TX columns x TD disparities, TK maps per slice, RX x RD per work-item);
+#: ``fst_volume_width``: the pairs form's vector width, 16 (fst_volume_pairs) or 8
+#: (fst_volume_pairs8), 0 = the device's float vector width (16 where it is 16, else 8:
+#: PoCL on a Zen 3 reports 8, and its 16 float16 accumulators spilled there).  The
 #: tiles are the same in every column (they are what a forced run starts from) and
 #: shrink to the kernel's CL_KERNEL_WORK_GROUP_SIZE and the local memory.
 #: ``census_cost_launch``: (levels per census_cost work-item, 0 = all D; its
@@ -92,6 +95,7 @@ RULES = {
     "network_gemm_tile":       {c: dict(TM=64, TN=64, TK=16, RM=4, RN=4) for c in (CPU, LLVMPIPE, GPU)},
     "fst_workgroup":           {CPU: False, LLVMPIPE: False, GPU: True},
     "fst_volume_tile":         {c: dict(TX=64, TD=64, TK=16, RX=4, RD=4) for c in (CPU, LLVMPIPE, GPU)},
+    "fst_volume_width":        {CPU: 0, LLVMPIPE: 0, GPU: 16},
     "launch_local":            {CPU: (64, 2, 2), LLVMPIPE: (64, 2, 2), GPU: None},
     "census_cost_launch":      {CPU: (0, (16, 1, 1)), LLVMPIPE: (0, (16, 1, 1)), GPU: (1, None)},
 }
@@ -224,6 +228,12 @@ class DeviceProfile:
                 and "RM" not in self.tuned.get("network_tiles", {})):
             tiles["RM"] = min(int(tiles["RM"]), NARROW_HEAD_RM)
         return tiles
+
+    def fst_volume_width(self) -> int:
+        """fst's pairs-form volume kernel's vector width (rule ``fst_volume_width``; 0: 16 where the
+        device's float vector width is 16 or more, else 8)."""
+        vw = int(self.rule("fst_volume_width"))
+        return vw if vw else (16 if self.vector_width >= 16 else 8)
 
     @property
     def wide_vectors(self) -> bool:

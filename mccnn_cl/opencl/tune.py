@@ -147,6 +147,24 @@ def options(ctx, size=SIZE, repeat=1) -> list:
         stack.release_buffers()
         return sec, out_map
 
+    def volume_run(ctx_):
+        # fst's cosine volume (the pairs form) from planar features of the default network's maps
+        from ..costs.fst import PADL, FstCost
+        from ..models import resolve
+
+        cost = FstCost(ctx_, resolve("general-fst"))
+        wp, rng = cost._wp(W), np.random.default_rng(7)
+        feats = []
+        for _ in range(2):
+            f = np.zeros((H, cost.nk, wp), np.float32)
+            f[:, :, PADL:PADL + W] = rng.standard_normal((H, cost.nk, W), dtype=np.float32)
+            feats.append(ctx_.to_device(f))
+        sec = _timed(ctx_, lambda: cost.launch_volume(feats[0], feats[1], out, H, W, 0, D, H), repeat)
+        got = ctx_.from_device(out, (D, H, W))
+        for f in feats:
+            f.release()
+        return sec, got
+
     def head_run(ctx_):
         # the fully connected head of the shipped paper network (general-paper), whose cells per
         # second do not depend on the image's size: a small pair, HEAD_SIZE
@@ -164,7 +182,7 @@ def options(ctx, size=SIZE, repeat=1) -> list:
         buf.release()
         return sec, got
 
-    runs = dict(sgm=sgm_run, cbca=cbca_run, local=local_run, conv=conv_run, head=head_run)
+    runs = dict(sgm=sgm_run, cbca=cbca_run, local=local_run, conv=conv_run, volume=volume_run, head=head_run)
     return _cpu_options(ctx, runs) if ctx.profile.is_cpu else _gpu_options(ctx, runs)
 
 
@@ -193,7 +211,8 @@ def _gpu_options(ctx, runs) -> list:
 
 def _cpu_options(ctx, runs) -> list:
     """CPU-shaped devices: SGM's sweeps and column width, CBCA's kernels, the register
-    tiles of the conv stack and of the head, the work-group size left to launch_local."""
+    tiles of the conv stack and of the head, the fst volume's vector width, the
+    work-group size left to launch_local."""
     units = max(ctx.profile.compute_units, 1)
     # SGM: the paired sweeps (their chunk width is fixed), or the one-direction
     # kernels at each column width (without paired sweeps the width matters)
@@ -205,6 +224,8 @@ def _cpu_options(ctx, runs) -> list:
         # CONV_RN 8: a device that reports 8-wide vectors (the rules take 16 on CPUs)
         Option("network_conv", [{"network_tiles": {"CONV_RM": r}} for r in (4, 6, 8)]
                + [{"network_tiles": {"CONV_RN": 8, "CONV_RM": 8}}], runs["conv"]),
+        # the fst volume's pairs form on 16- or 8-wide vectors (rules: the device's vector width)
+        Option("fst_volume", [{"fst_volume_width": v} for v in (16, 8)], runs["volume"]),
         Option("network_head", [{"network_tiles": {"RM": r}} for r in (4, 8)], runs["head"]),
         _launch_local(runs["local"]),
     ]
@@ -239,6 +260,8 @@ def _rules_value(profile, name):
     from dataclasses import replace
 
     bare = replace(profile, tuned={})
+    if name == "fst_volume_width":  # 0 in the rules: the device's vector width decides
+        return bare.fst_volume_width()
     v = bare.network_tiles() if name == "network_tiles" else bare.rule(name)
     return list(v) if isinstance(v, tuple) else v
 
