@@ -139,7 +139,7 @@ def test_interface_and_errors(ctx):
                          ids=["37x53-D16", "D70-w72", "D>W", "w12-D13"])
 def test_volume_forms(ctx, size):
     """The CPU forms of the volume kernel (fst_volume_pairs on 16-wide vectors,
-    fst_volume_pairs8 on 8-wide ones) against the reference and each other bit
+    FST_VW 8 on 8-wide ones) against the reference and each other bit
     for bit (the same fma chain per cost); widths that end inside an 8-, a 16-
     and a 32-pixel block, D not a multiple of 4, 8 or 16; float16 storage too."""
     H, W, D = size

@@ -18,8 +18,8 @@ in increasing order, negated):
 
 * ``fst_volume_pairs`` (``kernels/fst.cl``, the CPU form): a work-item per
   32 pixels of a row walking every disparity, its right vectors made by
-  shuffles of aligned loads; ``fst_volume_pairs8`` is the same on 8-wide
-  vectors (16 pixels per work-item), for CPUs whose vector registers hold 8
+  shuffles of aligned loads, on 16-wide vectors or (``FST_VW`` 8: 16 pixels
+  per work-item) on 8-wide ones, for CPUs whose vector registers hold 8
   floats (rule ``fst_volume_width``: :meth:`DeviceProfile.fst_volume_width`;
   ``FstCost(volume_width=8 or 16)`` forces one);
 * ``fst_volume_wg`` (``kernels/fst_wg.cl``, the "workgroup" path; the
@@ -94,10 +94,9 @@ class FstCost(ConvNetCost):
             vw = ctx.profile.fst_volume_width() if volume_width is None else int(volume_width)
             if vw not in (8, 16):
                 raise InputError(f"fst volume_width must be 8 or 16, got {vw}")
-            self.volume_width = vw  # fst_volume_pairs (16) or fst_volume_pairs8
+            self.volume_width = vw  # fst_volume_pairs built with FST_VW 16 or 8
             self._vol_px = 2 * vw
-            name = "fst_volume_pairs" if vw == 16 else "fst_volume_pairs8"
-            self._vol = ctx.kernel(FST_CL, name, VOL_HALF=int(half), **defs)
+            self._vol = ctx.kernel(FST_CL, "fst_volume_pairs", VOL_HALF=int(half), FST_VW=vw, **defs)
         else:
             self.volume_path = "workgroup"
             self._vol, self.volume_tile = self._volume_wg(*wg)

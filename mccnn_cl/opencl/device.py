@@ -66,8 +66,8 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: instead of fused per tile of cells); ``fst_workgroup`` (fst's cosine volume with a work-group per
 #: (column tile, disparity chunk, row), kernels/fst_wg.cl) with ``fst_volume_tile``
 #: (TX columns x TD disparities, TK maps per slice, RX x RD per work-item);
-#: ``fst_volume_width``: the pairs form's vector width, 16 (fst_volume_pairs) or 8
-#: (fst_volume_pairs8), 0 = the device's float vector width (16 where it is 16, else 8:
+#: ``fst_volume_width``: the pairs form's vector width (fst_volume_pairs built with
+#: FST_VW 16 or 8), 0 = the device's float vector width (16 where it is 16, else 8:
 #: PoCL on a Zen 3 reports 8, and its 16 float16 accumulators spilled there).  The
 #: tiles are the same in every column (they are what a forced run starts from) and
 #: shrink to the kernel's CL_KERNEL_WORK_GROUP_SIZE and the local memory.
