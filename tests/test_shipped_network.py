@@ -63,7 +63,8 @@ def test_general_fst_provenance():
 def test_general_paper_provenance():
     """general-paper: the paper's network fine-tuned from kitti-paper on every family with general-fst's
     held-out families; its lineage (kitti-paper v1) saw two held-out Middlebury scenes, Cloth3 and Reindeer
-    (MODEL_CARD.md), and no other held-out pair; the acrt Middlebury settings, chosen on training pairs."""
+    (MODEL_CARD.md), and no other held-out pair; the acrt KITTI 2015 CBCA with the acrt Middlebury SGM
+    penalties and bilateral filter, chosen on training pairs."""
     from mccnn_cl.evaluation.datasets import dataset_of, scene_family
     w = resolve("general-paper")
     assert w.architecture == PAPER
@@ -73,7 +74,10 @@ def test_general_paper_provenance():
     assert {dataset_of(k) for k in run} == {"kitti", "middlebury", "middeval3", "eth3d"}
     assert not {scene_family(k) for k in held} & {scene_family(k) for k in run}  # this run: families held out whole
     assert held & set(t["trained_on"]) == {"middlebury/Cloth3", "middlebury/Reindeer"}  # the lineage's
-    assert w.stereo == authors_settings("mccnn-acrt", "mb")
+    k15, mb = authors_settings("mccnn-acrt", "kitti2015"), authors_settings("mccnn-acrt", "mb")
+    groups = {"sgm_pi1", "sgm_pi2", "sgm_q1", "sgm_v", "sgm_tau_so", "blur_sigma", "blur_tau"}
+    assert w.stereo == {k: (mb[k] if k in groups else v) for k, v in k15.items()}
+    assert w.stereo["cbca_iterations_after"] == k15["cbca_iterations_after"] == 4  # not mb's 16 passes
     assert "chosen on 12 training pairs" in w.meta["stereo_source"]
 
 
