@@ -80,7 +80,7 @@ def run_poisoned(ctx, cost, left, right, D, half=False):
 CASE_KERNELS = {
     "network": {"network_conv", "network_head", "network_mark_invalid"},
     "network_wg": {"network_conv_wg", "network_head_l4", "network_head_out", "network_mark_invalid"},
-    "fst": {"network_conv", "fst_normalise", "fst_volume_pairs"},
+    "fst": {"network_conv", "fst_normalise16", "fst_volume_pairs"},
     "fst_wg": {"network_conv_wg", "fst_normalise", "fst_volume_wg"},
     "acrt": {"network_conv", "network_head", "network_mark_invalid"},
     "census": {"census_transform", "census_cost"},

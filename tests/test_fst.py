@@ -93,6 +93,50 @@ def test_features_normalised_and_no_last_relu(ctx):
     np.testing.assert_allclose(got[0], -1.0, atol=1e-4)
 
 
+@pytest.mark.parametrize("nk,cs", [(64, 64), (20, 32), (8, 16), (24, 24)])
+def test_normalise_forms_same_bits(ctx, nk, cs):
+    """fst_normalise16 (16 pixels per work-item, transposed blocks of maps) writes the
+    same bits as fst_normalise (one pixel per work-item) into poisoned planes, for map
+    counts that are and are not multiples of 16, a channel stride that leaves no room
+    past the last map (24), rows whose width is not a multiple of 16, the zero padding
+    left and right of each row included; and both equal x / sqrt(|x|^2 + 1e-5) in float64
+    to float32 rounding."""
+    from mccnn_cl.opencl.context import launch_sizes
+
+    rng = np.random.default_rng(nk)
+    h, w = 3, 37
+    wp = fst_stage.PADL + -(-w // 32) * 32
+    feat = rng.standard_normal((h * w, cs), dtype=np.float32)
+    feat[5, :nk] = 0.0  # a pixel whose maps are all 0: 0 / sqrt(1e-5)
+    feat[:, nk:] = np.nan  # maps past NK (padding of the stride) must never be read into a result
+    d_feat = ctx.to_device(feat)
+    got = {}
+    for name, px in (("fst_normalise", 1), ("fst_normalise16", 16)):
+        kern = ctx.kernel("fst.cl", name, NK=nk, CS=cs, PADL=fst_stage.PADL)
+        d_out = ctx.empty(h * nk * wp * 4, "planes")
+        ctx.fill(d_out, POISON, h * nk * wp * 4)
+        kern(ctx.queue, *launch_sizes(ctx, (wp // px, h), guarded=(1, 0)), d_feat, d_out, np.int32(w),
+             np.int32(wp))
+        got[name] = ctx.from_device(d_out, (h, nk, wp))
+    a, b = got["fst_normalise"], got["fst_normalise16"]
+    assert not np.any(b == POISON)
+    np.testing.assert_array_equal(a.view(np.uint32), b.view(np.uint32))
+    pad = np.ones(wp, bool)
+    pad[fst_stage.PADL:fst_stage.PADL + w] = False
+    assert np.all(b[:, :, pad] == 0)
+    f = feat[:, :nk].astype(np.float64).reshape(h, w, nk)
+    want = (f / np.sqrt((f * f).sum(-1, keepdims=True) + 1e-5)).transpose(0, 2, 1)
+    np.testing.assert_allclose(b[:, :, fst_stage.PADL:fst_stage.PADL + w], want, rtol=0, atol=1e-6)
+
+
+def test_cpu_shaped_cost_uses_the_16_pixel_normalise(ctx):
+    """The pairs form (CPU-shaped) launches fst_normalise16, the work-group form the
+    one-pixel kernel."""
+    w = Weights.random([[8, 3]], architecture="mccnn-fst", seed=1)
+    assert FstCost(ctx, w, workgroup=False)._norm.function_name == "fst_normalise16"
+    assert FstCost(ctx, w, workgroup=True)._norm.function_name == "fst_normalise"
+
+
 @pytest.mark.parametrize("rows", [1, 3])
 def test_bands_and_to_host(ctx, monkeypatch, rows):
     """Bands of 1 and 3 volume rows (seams), to_host in bands: the same values as one band."""

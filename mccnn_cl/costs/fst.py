@@ -86,9 +86,12 @@ class FstCost(ConvNetCost):
         super().__init__(ctx, weights, tiles, half, local_tiles)
         self.nk = weights.feature_maps
         defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL)
-        self._norm = ctx.kernel(FST_CL, "fst_normalise", **defs)
         wg = ctx.profile.local_tile("fst_workgroup", "fst_volume_tile", workgroup)
         self.volume_tile = None
+        # the normalisation's form follows the volume's: 16 pixels per work-item beside the
+        # CPU-shaped pairs form, one pixel per work-item beside the work-group form (GPUs)
+        self._norm_px = 16 if wg is None else 1
+        self._norm = ctx.kernel(FST_CL, "fst_normalise16" if wg is None else "fst_normalise", **defs)
         if wg is None:
             self.volume_path = "pairs"
             vw = ctx.profile.fst_volume_width() if volume_width is None else int(volume_width)
@@ -173,8 +176,8 @@ class FstCost(ConvNetCost):
         d_feat = self.stack.run_image(band)
         wp = self._wp(w)
         d_out = self.ctx.empty(hb * self.nk * wp * 4, "fst planar features")
-        self._norm(self.ctx.queue, *launch_sizes(self.ctx, (wp, hb), guarded=(1, 0)), d_feat, d_out, np.int32(w),
-                   np.int32(wp))
+        self._norm(self.ctx.queue, *launch_sizes(self.ctx, (wp // self._norm_px, hb), guarded=(1, 0)), d_feat,
+                   d_out, np.int32(w), np.int32(wp))
         self.stack.give(d_feat)
         return d_out
 

@@ -55,6 +55,28 @@ static inline void store16_partial(const float16 v, __global float *p, const int
         p[i] = t[i];
 }
 
+/* Transpose of a 16 x 16 block held as 16 float16 rows: afterwards r[i].sj
+ * is the former r[j].si.  Each stage splits every pair of rows into their
+ * even and odd lanes (rows 0..7 take the even ones, 8..15 the odd ones),
+ * which rotates the 8-bit index (row, lane) right by one bit; four stages
+ * swap row and lane.  Pure register shuffles (no private-memory round trip);
+ * sgm.cl's horizontal paths and fst.cl's fst_normalise16. */
+static inline __attribute__((always_inline)) void transpose16(float16 *r)
+{
+    __attribute__((opencl_unroll_hint))
+    for (int s = 0; s < 4; ++s) {
+        float16 t[16];
+        __attribute__((opencl_unroll_hint))
+        for (int i = 0; i < 8; ++i) {
+            t[i] = (float16)(r[2 * i].even, r[2 * i + 1].even);
+            t[i + 8] = (float16)(r[2 * i].odd, r[2 * i + 1].odd);
+        }
+        __attribute__((opencl_unroll_hint))
+        for (int i = 0; i < 16; ++i)
+            r[i] = t[i];
+    }
+}
+
 /* Volume element type and access (see the header comment):
  *   VOL_GET(p, i), VOL_SET(p, i, v)     one element, as float
  *   VOL_LOAD16(p)                       16 consecutive elements

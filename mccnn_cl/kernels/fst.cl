@@ -6,7 +6,9 @@
  * row:  out[(y NK + k) WP + PADL + x] = f_k(x, y) / sqrt(|f(x, y)|^2 + EPS)
  * (EPS = 1e-5 as in the released code's Normalize2).  The PADL columns
  * left of x = 0 and the columns from x = w to WP - PADL hold 0, so the volume
- * kernel reads whole 16-wide vectors without bounds tests.
+ * kernel reads whole 16-wide vectors without bounds tests.  Two forms: one
+ * pixel per work-item (beside the GPU-shaped volume, fst_wg.cl) and
+ * fst_normalise16, 16 pixels per work-item (beside fst_volume_pairs).
  *
  * fst_volume_pairs: the cosine volume  C(d, y, x) = -f_L(x, y) . f_R(x - d, y),
  * NaN where x - d < 0 (each cost is 0, one fma per map in increasing order,
@@ -34,6 +36,9 @@
 #endif
 #if PADL < 32
 #error "PADL must be at least 32"
+#endif
+#if PADL % 16
+#error "PADL must be a multiple of 16 (fst_normalise16's blocks)"
 #endif
 
 #define EPS 1e-5f
@@ -64,6 +69,72 @@ __kernel void fst_normalise(
     for (int k = 0; k < NK; ++k)
         o[(size_t)k * wp] = f[k] * inv;
 }
+
+/* fst_normalise16: fst_normalise for 16 consecutive columns xp0 .. xp0 + 15
+ * of a planar row per work-item (global size (wp / 16, hb)), the CPU-shaped
+ * form: the per-pixel kernel above reads each pixel's maps CS floats apart
+ * across its work-items (a gather per map when a CPU compiler vectorises over
+ * work-items; 46 ms per KITTI image on a 2-core Zen 3).  Here the 16 pixels'
+ * maps are loaded in blocks of 16 (one vector per pixel) and transposed in
+ * registers (transpose16, common.h), so that the sums of squares and the
+ * stores run on 16 pixels at once, one aligned vector per plane (26-30 ms
+ * for that image, same machine).  Every lane
+ * does the same operations as one work-item of fst_normalise (the fma chain
+ * over k = 0 .. NK - 1 in order, the same square root and division), so
+ * the features are the same bits.  The transposed blocks wait in private
+ * memory (16 NK floats) between the sums and the stores (reading the maps
+ * again instead measured the same). */
+#define NB ((NK + 15) / 16) /* blocks of 16 maps */
+static inline __attribute__((always_inline)) void fst_map_block(
+    __global const float *f, const int kb, const int nv, float16 *r)
+{
+    /* r[j] = maps kb .. kb + 15 of pixel j (0 for pixels j >= nv and maps >= NK), transposed:
+     * afterwards r[j] = map kb + j of the 16 pixels */
+    __attribute__((opencl_unroll_hint))
+    for (int j = 0; j < 16; ++j) {
+        if (j < nv)
+            r[j] = kb + 16 <= NK ? vload16(0, f + (size_t)j * CS + kb)
+                                 : load16_partial(f + (size_t)j * CS + kb, 0, NK - kb, 0.0f);
+        else
+            r[j] = (float16)(0.0f);
+    }
+    transpose16(r);
+}
+
+__kernel void fst_normalise16(
+    __global const float *feat, /* conv stack output, [hb * w][CS] */
+    __global float *out,        /* planar features, [hb][NK][wp] */
+    int w,                      /* pixels per row */
+    int wp)                     /* row stride of a plane (PADL + w rounded up to 32) */
+{
+    const int xp0 = get_global_id(0) * 16;
+    const int y = get_global_id(1);
+    if (xp0 >= wp)
+        return;
+    const int x0 = xp0 - PADL; /* PADL is a multiple of 16: a block is all padding or starts at x0 >= 0 */
+    __global float *o = out + (size_t)y * NK * (size_t)wp + xp0;
+    const int nv = x0 < 0 ? 0 : clamp(w - x0, 0, 16); /* pixels of the row in this block */
+    if (nv == 0) {
+        for (int k = 0; k < NK; ++k)
+            vstore16((float16)(0.0f), 0, o + (size_t)k * wp);
+        return;
+    }
+    __global const float *f = feat + ((size_t)y * (size_t)w + (size_t)x0) * CS;
+    float16 r[16 * NB];
+    float16 s = (float16)(0.0f);
+    for (int b = 0; b < NB; ++b) {
+        fst_map_block(f, 16 * b, nv, r + 16 * b);
+        __attribute__((opencl_unroll_hint))
+        for (int j = 0; j < 16; ++j)
+            if (16 * b + j < NK)
+                s = fma(r[16 * b + j], r[16 * b + j], s);
+    }
+    const float16 inv = (float16)(1.0f) / sqrt(s + (float16)(EPS));
+    const int16 in_row = LANES < (int16)(nv); /* columns x >= w hold 0 */
+    for (int k = 0; k < NK; ++k)
+        vstore16(select((float16)(0.0f), r[k] * inv, in_row), 0, o + (size_t)k * wp);
+}
+#undef NB
 
 /* fst_volume_pairs: one work-item per 2 FST_VW pixels of a row: two FST_VW-
  * pixel vectors xa = x0 and xb = x0 + FST_VW.  The right vectors that xa needs

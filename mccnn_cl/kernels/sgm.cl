@@ -308,27 +308,6 @@ __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume 
         vstore16(m[g], 0, st_m + g * VW);
 }
 
-/* Transpose of a 16 x 16 block held as 16 float16 rows: afterwards r[i].sj
- * is the former r[j].si.  Each stage splits every pair of rows into their
- * even and odd lanes (rows 0..7 take the even ones, 8..15 the odd ones),
- * which rotates the 8-bit index (row, lane) right by one bit; four stages
- * swap row and lane.  Pure register shuffles (no private-memory round trip). */
-static inline __attribute__((always_inline)) void transpose16(float16 *r)
-{
-    __attribute__((opencl_unroll_hint))
-    for (int s = 0; s < 4; ++s) {
-        float16 t[VW];
-        __attribute__((opencl_unroll_hint))
-        for (int i = 0; i < VW / 2; ++i) {
-            t[i] = (float16)(r[2 * i].even, r[2 * i + 1].even);
-            t[i + VW / 2] = (float16)(r[2 * i].odd, r[2 * i + 1].odd);
-        }
-        __attribute__((opencl_unroll_hint))
-        for (int i = 0; i < VW; ++i)
-            r[i] = t[i];
-    }
-}
-
 /* Whole 16 x 16 tiles (16 columns, 16 levels all inside the chunk's valid
  * range) are moved by sgm_rows with plain vector loads and stores one plane
  * apart, without the per-row tests and index arithmetic of the general path
