@@ -208,9 +208,10 @@ def test_scratch_reused_across_sizes(ctx, multi):
     assert allocated == path_scratch_bytes(11, 70, max_arm(4), "multi" if multi else "fused")
 
 
-def multi_vs_single(ctx, cost, arms_l, arms_r, iterations, in_place):
+def multi_vs_single(ctx, cost, arms_l, arms_r, iterations, in_place, select_add=None):
     """The multi-iteration kernel's result (out of place into a poisoned
-    buffer, or in place) and the one-iteration fused kernel's, iterated."""
+    buffer, or in place; its masked terms in the form ``select_add``) and the
+    one-iteration fused kernel's, iterated."""
     D, H, W = cost.shape
     A = int(max(arms_l.max(), arms_r.max()))
     d_l, d_r = arms_to_device(ctx, arms_l), arms_to_device(ctx, arms_r)
@@ -222,7 +223,7 @@ def multi_vs_single(ctx, cost, arms_l, arms_r, iterations, in_place):
         else:
             out = ctx.empty(cost.nbytes)
             ctx.fill(out, POISON, cost.nbytes)
-        stage = CBCA(ctx, fused=True, multi=multi)
+        stage = CBCA(ctx, fused=True, multi=multi, select_add=select_add)
         assert stage.fused and stage.multi == multi
         assert stage(d_cost, d_l, d_r, D, H, W, iterations=iterations, max_arm=A, out=out) is out
         res.append(ctx.from_device(out, cost.shape))
@@ -252,6 +253,23 @@ def test_multi_iteration_counts_random(ctx, in_place):
             got, single = multi_vs_single(ctx, cost, arms_l, arms_r, it, in_place)
             np.testing.assert_array_equal(got.view(np.uint32), single.view(np.uint32))
             compare(got, cbca(cost, arms_l, arms_r, it), cost)
+
+
+@pytest.mark.parametrize("select_add", [False, True])
+def test_multi_masked_term_forms_same_bits(ctx, select_add):
+    """Both forms of the multi kernel's masked terms (CBCA_SELECT_ADD: a select
+    of s and s + v, or s plus a select of 0 and v) give the one-iteration fused
+    kernel's bits, arms 0 .. SHORT_MAX - 1 and NaN cells included."""
+    rng = np.random.default_rng(23)
+    D, H, W = 6, 21, 39
+    cost = random_volume(rng, D, H, W)
+    img_l, img_r = blocky_image(rng, H, W, 6, 0.01), blocky_image(rng, H, W, 6, 0.01)
+    arms_l, arms_r = cross_arms(img_l, eta=8, include_neighbor=True), cross_arms(img_r, eta=8, include_neighbor=True)
+    assert max(arms_l.max(), arms_r.max()) == max_arm(8, True) and min(arms_l.min(), arms_r.min()) == 0
+    for it, in_place in ((4, False), (5, True)):
+        got, single = multi_vs_single(ctx, cost, arms_l, arms_r, it, in_place, select_add)
+        assert not np.any(got == POISON)
+        np.testing.assert_array_equal(got.view(np.uint32), single.view(np.uint32))
 
 
 @pytest.mark.gpu_check

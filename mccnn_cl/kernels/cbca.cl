@@ -481,7 +481,8 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
  *
  * Bit-identity with cbca_fused_short: the same float additions in the same
  * order per element.  There `s += select(0, v, take)` for k = -MAX_ARM ..
- * MAX_ARM; here `s = select(s, s + v, take)` (one masked add).  They agree
+ * MAX_ARM; here the same (CBCA_SELECT_ADD 1) or `s = select(s, s + v,
+ * take)` (CBCA_SELECT_ADD 0, one masked add on AVX-512).  They agree
  * because s starts at +0 and a round-to-nearest sum is -0 only if both terms
  * are -0, so s is never -0 and s + 0 == s.  For a valid lane the term k = 0
  * is always taken (p is in U_d(p)), k < 0 is taken iff k >= -l (r >= 0) and
@@ -528,17 +529,32 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
 /* Masked running sum of the 2 MAX_ARM + 1 vectors LOAD(k), k = -MAX_ARM ..
  * MAX_ARM in order: term k < 0 taken where NEG >= -k, k > 0 where POS >= k.
  * NEG, POS: char16 arms (<= CBCA_SHORT_MAX, so positive as signed bytes).
- * Signed bytes on purpose: for k = +-1 LLVM turns an unsigned or int
- * "arm >= 1" into "arm != 0" and PoCL then emits an add plus a masked blend
- * (two 512-bit ops); a signed byte "arm > 0" stays one masked add. */
+ * Two forms of a masked term, the same bits (see above):
+ *  CBCA_SELECT_ADD 0: s = select(s, s + v, take).  Signed bytes on purpose:
+ *    for k = +-1 LLVM turns an unsigned or int "arm >= 1" into "arm != 0" and
+ *    PoCL then emits an add plus a masked blend (two 512-bit ops); a signed
+ *    byte "arm > 0" stays one masked add (AVX-512).
+ *  CBCA_SELECT_ADD 1: s = s + select(0, v, take): the mask applied to v off
+ *    the chain of adds (an and, then an add); 4 iterations on a KITTI-sized
+ *    volume 288-291 ms against 308-312 for form 0 with AVX2 code (Zen 3,
+ *    pthread-haswell; interleaved runs).
+ * The host sets 1 where the CPU has no AVX-512 (DeviceProfile.wide_vectors). */
+#ifndef CBCA_SELECT_ADD
+#define CBCA_SELECT_ADD 0
+#endif
+#if CBCA_SELECT_ADD
+#define CBCA_TERM(s, v, take) (s) = (s) + select((float16)(0.0f), (v), (take))
+#else
+#define CBCA_TERM(s, v, take) (s) = select((s), (s) + (v), (take))
+#endif
 #define CBCA_MASKED_SUM(s, LOAD, NEG, POS)                                        \
     do {                                                                          \
         _Pragma("unroll") for (int k = -MAX_ARM; k <= MAX_ARM; ++k) {             \
             const float16 v_ = LOAD(k);                                           \
             if (k < 0)                                                            \
-                (s) = select((s), (s) + v_, convert_int16((NEG) >= (char16)(-k))); \
+                CBCA_TERM(s, v_, convert_int16((NEG) >= (char16)(-k)));           \
             else if (k > 0)                                                       \
-                (s) = select((s), (s) + v_, convert_int16((POS) >= (char16)(k)));  \
+                CBCA_TERM(s, v_, convert_int16((POS) >= (char16)(k)));            \
             else                                                                  \
                 (s) = (s) + v_;                                                   \
         }                                                                         \
@@ -732,4 +748,5 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
 }
 #undef CBCA_COPY_CHUNK
 #undef CBCA_MASKED_SUM
+#undef CBCA_TERM
 #endif /* MAX_ARM <= CBCA_SHORT_MAX */

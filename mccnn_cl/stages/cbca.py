@@ -87,7 +87,10 @@ class CBCA:
     ``half=True``: volumes stored as half (``VOL_HALF``, kernels/common.h);
     sums stay float (the two-pass kernels store their row sums in the volume,
     so they round them to half too).  ``__init__``'s ``max_arm`` only
-    pre-builds that program.
+    pre-builds that program.  ``select_add``: the "multi" path's form of a
+    masked term (``CBCA_SELECT_ADD`` in kernels/cbca.cl; the same bits either
+    way); None: 1 where the CPU has no AVX-512
+    (:attr:`~mccnn_cl.opencl.device.DeviceProfile.wide_vectors`).
     """
 
     #: Extra D x H x W volumes a call needs beyond ``d_cost`` and ``out``
@@ -96,8 +99,9 @@ class CBCA:
 
     def __init__(self, ctx, max_arm: int = ARM_LIMIT, short: bool = True, fused: bool | None = None,
                  half: bool = False, multi: bool | None = None, workgroup: bool | None = None,
-                 local_size=None):
+                 local_size=None, select_add: bool | None = None):
         self.ctx = ctx
+        self.select_add = select_add  # multi path's masked-term form (None: by the device; tests force both)
         self.short = bool(short)
         rule = ctx.profile.rule
         if workgroup and fused:
@@ -135,7 +139,11 @@ class CBCA:
         if k is None:
             ctx, half = self.ctx, int(self.half)
             if path == "multi":
-                kern = ctx.kernel("cbca.cl", "cbca_fused_multi_short", MAX_ARM=max_arm, CBCA_K=MULTI_K, VOL_HALF=half)
+                # the masked terms' form (kernels/cbca.cl, CBCA_MASKED_SUM): one masked add where the CPU
+                # has AVX-512, the mask on the term off the chain of adds elsewhere (the same bits)
+                sel = int(self.select_add if self.select_add is not None else not ctx.profile.wide_vectors)
+                kern = ctx.kernel("cbca.cl", "cbca_fused_multi_short", MAX_ARM=max_arm, CBCA_K=MULTI_K, VOL_HALF=half,
+                                  CBCA_SELECT_ADD=sel)
                 # a work-item walks a whole plane: on CPUs groups of one spread the D planes evenly over the cores
                 k = [(kern, ctx.profile.line_group(ctx, kern, ctx.profile.rule("cbca_multi_group_of_one")))]
             elif path == "workgroup":
