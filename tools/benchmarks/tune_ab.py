@@ -2,7 +2,7 @@
 ratios to their floors measured in the same run; a never-seen size and D
 after a warm-up; the first call of a fresh ``mccnn-cl match`` process.
 
-    .venv/bin/python bench/tune_ab.py [--data ../shared/data] [--repeat 3]
+    .venv/bin/python tools/benchmarks/tune_ab.py [--data ../shared/data] [--repeat 3]
 
 Tuning "on" applies the device's stored choices (run ``mccnn-cl tune``
 first); "off" the rules table.  Each configuration gets its own matcher;
