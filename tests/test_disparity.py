@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from mccnn_cl.errors import InputError
 from mccnn_cl.reference import disparity as ref
 from mccnn_cl.costs.census import CensusCost
 from mccnn_cl.stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpixel, WinnerTakeAll
@@ -88,6 +89,23 @@ def test_wta_random(ctx, D, H, W, levels):
     assert (DL <= x).all() and (DR <= W - 1 - x).all() and DL.min() >= 0 and DR.min() >= 0
     if levels:  # ties present: the smallest d wins
         assert len(np.unique(C[~np.isnan(C)])) <= levels + 1
+
+
+@pytest.mark.parametrize("chunks", [1, 3, 8])
+def test_wta_left_chunks_per_work_item(ctx, chunks):
+    """Any number of 16-pixel chunks per work-item of the left WTA (WTA_CHUNKS; the rule
+    gives CPUs 8, GPUs 1) gives the reference's map: rows that end inside a work-item's
+    last chunk and mid-way through its chunks, D beyond the width of a work-item's first
+    chunks, ties."""
+    rng = np.random.default_rng(chunks)
+    for D, H, W, levels in ((40, 5, 83, None), (9, 3, 200, 3), (70, 2, 53, None)):
+        C = random_volume(rng, D, H, W, levels)
+        wta = WinnerTakeAll(ctx, chunks=chunks)
+        assert wta.chunks == chunks
+        out = wta.left(ctx.to_device(C), D, H, W, out=poisoned(ctx, H * W * 4, I32_POISON, np.int32))
+        np.testing.assert_array_equal(ctx.from_device(out, (H, W), np.int32), ref.wta_left(C))
+    with pytest.raises(InputError):
+        WinnerTakeAll(ctx, chunks=0)
 
 
 def test_wta_right_matches_materialised_right_volume(ctx):

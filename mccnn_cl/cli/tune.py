@@ -25,7 +25,8 @@ def describe_choices(device) -> list:
         head = "kernel choices: the rules table (not tuned: run `mccnn-cl tune`)"
     profile.tuned.update(tuned)
     lines = [head]
-    names = ("sgm_paired_max_units", "sgm_cols", "cbca_fused", "cbca_multi", "fst_volume_width", "launch_local")
+    names = ("sgm_paired_max_units", "sgm_cols", "cbca_fused", "cbca_multi", "fst_volume_width", "wta_chunks",
+             "launch_local")
     if not profile.is_cpu:  # the GPU-shaped paths and the GEMM tile are tuned there
         names = ("sgm_stage", "sgm_cols", "sgm_wg_cols", "cbca_workgroup", "launch_local", "network_gemm_tile")
     for name in names:

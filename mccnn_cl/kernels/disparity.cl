@@ -14,10 +14,17 @@
 
 /* D^L(x, y) = argmin_{0 <= d <= min(D-1, x)} C(d, y, x).
  * Ties go to the smallest d (strict '<' while d increases).  Invalid cells
- * (d > x) never take part.  One work-item per 16 consecutive pixels of a row
- * (float16 lanes: one contiguous line per plane and step), global size
- * (ceil(W / 16), H); a lane's invalid cells are read (they hold NaN, never
- * uninitialised memory) but masked out. */
+ * (d > x) never take part.  One work-item per WTA_CHUNKS x 16 consecutive
+ * pixels of a row (float16 lanes), global size (ceil(W / (16 WTA_CHUNKS)),
+ * H); a lane's invalid cells are read (they hold NaN, never uninitialised
+ * memory) but masked out.  With WTA_CHUNKS > 1 (the CPU rule) each step
+ * over d reads WTA_CHUNKS adjacent lines of one plane instead of one line
+ * per plane and step (planes H W floats apart), which the CPU's prefetchers
+ * follow; every lane compares the same values in the same order of d, so
+ * the map is the same. */
+#ifndef WTA_CHUNKS
+#define WTA_CHUNKS 1
+#endif
 __kernel void disparity_wta_left(
     __global const vol_t *cost, /* C_L, D x H x W */
     __global int *disp,         /* out: D^L, H x W */
@@ -25,28 +32,42 @@ __kernel void disparity_wta_left(
     const int H,                /* rows */
     const int W)                /* columns */
 {
-    const int x0 = get_global_id(0) * 16;
+    const int xt = get_global_id(0) * (16 * WTA_CHUNKS);
     const int y = get_global_id(1);
-    if (x0 >= W || y >= H)
+    if (xt >= W || y >= H)
         return;
-    const int n = min(16, W - x0);
-    const int16 xs = (int16)(x0) + LANES;
-    const int dmax = min(D - 1, x0 + n - 1);
-    float16 best = vol_load16_partial(cost + VIDX(0, y, x0, H, W), 0, n, 0.0f);
-    int16 best_d = (int16)(0);
-    for (int d = 1; d <= dmax; d++) {
-        const float16 c = vol_load16_partial(cost + VIDX(d, y, x0, H, W), 0, n, 0.0f);
-        const int16 take = (c < best) & ((int16)(d) <= xs);
-        best = select(best, c, take);
-        best_d = select(best_d, (int16)(d), take);
+    const int nc = min(WTA_CHUNKS, (W - xt + 15) / 16); /* chunks in the row */
+    float16 best[WTA_CHUNKS];
+    int16 best_d[WTA_CHUNKS];
+    for (int c = 0; c < nc; ++c) {
+        best[c] = vol_load16_partial(cost + VIDX(0, y, xt + 16 * c, H, W), 0, min(16, W - xt - 16 * c), 0.0f);
+        best_d[c] = (int16)(0);
     }
-    if (n == 16) {
-        vstore16(best_d, 0, disp + (size_t)y * W + x0);
-    } else {
-        int t[16];
-        vstore16(best_d, 0, t);
-        for (int i = 0; i < n; ++i)
-            disp[(size_t)y * W + x0 + i] = t[i];
+    const int dmax = min(D - 1, min(W, xt + 16 * WTA_CHUNKS) - 1);
+    for (int d = 1; d <= dmax; d++) {
+        for (int c = 0; c < nc; ++c) {
+            const int x0 = xt + 16 * c;
+            const int n = min(16, W - x0);
+            if (x0 + n - 1 < d)
+                continue; /* no valid cell of this chunk at d (nor beyond) */
+            const int16 xs = (int16)(x0) + LANES;
+            const float16 v = vol_load16_partial(cost + VIDX(d, y, x0, H, W), 0, n, 0.0f);
+            const int16 take = (v < best[c]) & ((int16)(d) <= xs);
+            best[c] = select(best[c], v, take);
+            best_d[c] = select(best_d[c], (int16)(d), take);
+        }
+    }
+    for (int c = 0; c < nc; ++c) {
+        const int x0 = xt + 16 * c;
+        const int n = min(16, W - x0);
+        if (n == 16) {
+            vstore16(best_d[c], 0, disp + (size_t)y * W + x0);
+        } else {
+            int t[16];
+            vstore16(best_d[c], 0, t);
+            for (int i = 0; i < n; ++i)
+                disp[(size_t)y * W + x0 + i] = t[i];
+        }
     }
 }
 

@@ -72,7 +72,9 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: tiles are the same in every column (they are what a forced run starts from) and
 #: shrink to the kernel's CL_KERNEL_WORK_GROUP_SIZE and the local memory.
 #: ``census_cost_launch``: (levels per census_cost work-item, 0 = all D; its
-#: work-group size, None = the runtime's), kernels/census.cl.
+#: work-group size, None = the runtime's), kernels/census.cl.  ``wta_chunks``: 16-pixel
+#: chunks per work-item of the left WTA (disparity_wta_left's WTA_CHUNKS; more chunks read
+#: adjacent lines of a plane per step, one is the most work-items, for GPUs).
 RULES = {
     "sgm_stage":               {CPU: "lines", LLVMPIPE: "lines", GPU: "workgroup"},
     "sgm_prefetch":            {CPU: True,  LLVMPIPE: True,  GPU: False},
@@ -97,6 +99,7 @@ RULES = {
     "fst_volume_tile":         {c: dict(TX=64, TD=64, TK=16, RX=4, RD=4) for c in (CPU, LLVMPIPE, GPU)},
     "fst_volume_width":        {CPU: 0, LLVMPIPE: 0, GPU: 16},
     "launch_local":            {CPU: (64, 2, 2), LLVMPIPE: (64, 2, 2), GPU: None},
+    "wta_chunks":              {CPU: 8, LLVMPIPE: 8, GPU: 1},
     "census_cost_launch":      {CPU: (0, (16, 1, 1)), LLVMPIPE: (0, (16, 1, 1)), GPU: (1, None)},
 }
 

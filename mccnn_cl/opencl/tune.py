@@ -211,8 +211,8 @@ def _gpu_options(ctx, runs) -> list:
 
 def _cpu_options(ctx, runs) -> list:
     """CPU-shaped devices: SGM's sweeps and column width, CBCA's kernels, the register
-    tiles of the conv stack and of the head, the fst volume's vector width, the
-    work-group size left to launch_local."""
+    tiles of the conv stack and of the head, the fst volume's vector width, the left
+    WTA's chunks per work-item, the work-group size left to launch_local."""
     units = max(ctx.profile.compute_units, 1)
     # SGM: the paired sweeps (their chunk width is fixed), or the one-direction
     # kernels at each column width (without paired sweeps the width matters)
@@ -227,6 +227,8 @@ def _cpu_options(ctx, runs) -> list:
         # the fst volume's pairs form on 16- or 8-wide vectors (rules: the device's vector width)
         Option("fst_volume", [{"fst_volume_width": v} for v in (16, 8)], runs["volume"]),
         Option("network_head", [{"network_tiles": {"RM": r}} for r in (4, 8)], runs["head"]),
+        # the left WTA's 16-pixel chunks per work-item (its map is the same at any)
+        Option("wta_chunks", [{"wta_chunks": c} for c in (1, 4, 8, 16)], runs["local"]),
         _launch_local(runs["local"]),
     ]
     if ctx.profile.loop_limit is not None:  # llvmpipe: the paired sweeps refuse to run under its limit

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import InputError
 from ..opencl.context import launch
 from ..conventions import CORRECT, DIRECTIONS, MISMATCH, OCCLUSION  # noqa: F401
 
@@ -42,9 +43,13 @@ class WinnerTakeAll:
     from the same left-reference volume (the network is never rerun).
     """
 
-    def __init__(self, ctx, half: bool = False):
+    def __init__(self, ctx, half: bool = False, chunks: int | None = None):
         self.ctx = ctx
-        self.k_left = ctx.kernel("disparity.cl", "disparity_wta_left", VOL_HALF=int(half))
+        # 16-pixel chunks per work-item of the left WTA (rule ``wta_chunks``; the same map at any)
+        self.chunks = int(ctx.profile.rule("wta_chunks") if chunks is None else chunks)
+        if self.chunks < 1:
+            raise InputError(f"WTA chunks per work-item must be >= 1, got {self.chunks}")
+        self.k_left = ctx.kernel("disparity.cl", "disparity_wta_left", VOL_HALF=int(half), WTA_CHUNKS=self.chunks)
         self.k_right = ctx.kernel("disparity.cl", "disparity_wta_right", VOL_HALF=int(half))
 
     def _run(self, kernel, stage, grid, d_cost, D, H, W, out):
@@ -54,8 +59,8 @@ class WinnerTakeAll:
         return out
 
     def left(self, d_cost, D, H, W, out=None):
-        """D^L (int32 H x W buffer); 16 pixels per work-item."""
-        return self._run(self.k_left, "WTA (left)", (-(-W // 16), H), d_cost, D, H, W, out)
+        """D^L (int32 H x W buffer); 16 ``chunks`` pixels per work-item."""
+        return self._run(self.k_left, "WTA (left)", (-(-W // (16 * self.chunks)), H), d_cost, D, H, W, out)
 
     def right(self, d_cost, D, H, W, out=None):
         """D^R (int32 H x W buffer), from the left-reference volume."""

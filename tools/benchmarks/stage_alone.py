@@ -4,6 +4,7 @@ printed (BENCHMARKS.md, "Machine C again").
 
     .venv/bin/python tools/benchmarks/stage_alone.py cbca [--iterations 4] [--select-add 0|1]
     .venv/bin/python tools/benchmarks/stage_alone.py sgm
+    .venv/bin/python tools/benchmarks/stage_alone.py wta [--chunks 1|4|8|16]
     .venv/bin/python tools/benchmarks/stage_alone.py normalise     # fst_normalise16 and fst_normalise
 
 Compare variants by running them in turn in one session (speed drifts between
@@ -44,12 +45,13 @@ def volume_inputs(ctx):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("stage", choices=("cbca", "sgm", "normalise"))
+    ap.add_argument("stage", choices=("cbca", "sgm", "normalise", "wta"))
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--iterations", type=int, default=4, help="CBCA iterations (general-fst: 4)")
     ap.add_argument("--max-arm", type=int, default=4, help="CBCA arm bound (general-fst's eta 5: 4)")
     ap.add_argument("--select-add", type=int, choices=(0, 1), default=None,
                     help="CBCA multi path's masked-term form (default: by the device)")
+    ap.add_argument("--chunks", type=int, default=None, help="left WTA chunks per work-item (default: the rule)")
     args = ap.parse_args()
     ctx = ClContext()
     print(f"device: {ctx.describe()}")
@@ -78,6 +80,14 @@ def main():
         ts = timed(ctx, lambda: cb(d_vol, al, ar, D, H, W, args.iterations, args.max_arm, out=d_out), args.runs)
         print(f"CBCA ({cb.path(args.max_arm)} path, {args.iterations} iterations, max arm {args.max_arm}): "
               + " ".join(f"{t * 1000:.0f}" for t in ts) + " ms")
+    elif args.stage == "wta":
+        from mccnn_cl.stages.disparity import WinnerTakeAll
+
+        wta = WinnerTakeAll(ctx, chunks=args.chunks)
+        disp = ctx.empty(H * W * 4, "map")
+        ts = timed(ctx, lambda: wta.left(d_vol, D, H, W, out=disp), args.runs)
+        print(f"WTA left ({wta.chunks} chunks of 16 pixels per work-item): "
+              + " ".join(f"{t * 1000:.1f}" for t in ts) + " ms")
     else:
         from mccnn_cl.stages.sgm_select import make_sgm
 
