@@ -536,8 +536,8 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
  *    byte "arm > 0" stays one masked add (AVX-512).
  *  CBCA_SELECT_ADD 1: s = s + select(0, v, take): the mask applied to v off
  *    the chain of adds (an and, then an add); 4 iterations on a KITTI-sized
- *    volume 288-291 ms against 308-312 for form 0 with AVX2 code (Zen 3,
- *    pthread-haswell; interleaved runs).
+ *    volume, best of 5 in 4 interleaved rounds, 286-291 ms against 296-316
+ *    for form 0 with AVX2 code (Zen 3, pthread-haswell).
  * The host sets 1 where the CPU has no AVX-512 (DeviceProfile.wide_vectors). */
 #ifndef CBCA_SELECT_ADD
 #define CBCA_SELECT_ADD 0

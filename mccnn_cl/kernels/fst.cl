@@ -74,10 +74,10 @@ __kernel void fst_normalise(
  * of a planar row per work-item (global size (wp / 16, hb)), the CPU-shaped
  * form: the per-pixel kernel above reads each pixel's maps CS floats apart
  * across its work-items (a gather per map when a CPU compiler vectorises over
- * work-items; 46 ms per KITTI image on a 2-core Zen 3).  Here the 16 pixels'
+ * work-items; 30 ms per KITTI image on a 2-core Zen 3).  Here the 16 pixels'
  * maps are loaded in blocks of 16 (one vector per pixel) and transposed in
  * registers (transpose16, common.h), so that the sums of squares and the
- * stores run on 16 pixels at once, one aligned vector per plane (26-30 ms
+ * stores run on 16 pixels at once, one aligned vector per plane (19-26 ms
  * for that image, same machine).  Every lane
  * does the same operations as one work-item of fst_normalise (the fma chain
  * over k = 0 .. NK - 1 in order, the same square root and division), so
