@@ -81,33 +81,19 @@ def test_no_platform_gives_install_hint(tmp_path):
     assert "pocl-opencl-icd" in r.stdout
 
 
-class _NoCallbacks:
-    """An event whose runtime refuses completion callbacks (set_callback raises)."""
-
-    def __init__(self, event):
-        self._event = event
-
-    def set_callback(self, *args):
-        raise RuntimeError("no callbacks here")
-
-    def __getattr__(self, name):
-        return getattr(self._event, name)
-
-
-@pytest.mark.parametrize("callbacks", [True, False])
-def test_wait_returns_after_the_work_with_or_without_callbacks(ctx, callbacks):
-    """ctx.wait returns once the event completed, woken by the runtime's completion
-    callback, or by polling its status where set_callback fails; the work is done
-    when it returns (the copy's result is there, the marker COMPLETE)."""
+def test_wait_returns_after_the_work(ctx):
+    """ctx.wait (short polls, Ctrl-C answered between them) returns once the event
+    completed: the copy's result is there, the marker COMPLETE; finish() (a marker
+    after everything queued) likewise."""
     n = 4_000_000
     src = ctx.to_device(np.arange(n, dtype=np.float32))
     dst = ctx.empty(4 * n, "copy")
     ctx.fill(dst, np.float32(-1), 4 * n)
     ctx.cl.enqueue_copy(ctx.queue, dst, src)
     marker = ctx.cl.enqueue_marker(ctx.queue)
-    ctx.wait(marker if callbacks else _NoCallbacks(marker))
+    ctx.wait(marker)
     assert marker.command_execution_status == ctx.cl.command_execution_status.COMPLETE
     out = np.empty(n, np.float32)
     ctx.cl.enqueue_copy(ctx.queue, out, dst, is_blocking=False)
-    ctx.finish()  # the default: a marker after everything queued
+    ctx.finish()
     np.testing.assert_array_equal(out, np.arange(n, dtype=np.float32))
