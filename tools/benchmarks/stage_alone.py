@@ -36,11 +36,11 @@ def timed(ctx, fn, runs):
 
 
 def volume_inputs(ctx):
-    rng = np.random.default_rng(1)
-    il = rng.random((H, W), dtype=np.float32)
-    vol = rng.random((D, H, W), dtype=np.float32)
-    vol[np.broadcast_to(np.arange(D)[:, None, None] > np.arange(W)[None, None, :], vol.shape)] = np.nan
-    return ctx.to_device(il), ctx.to_device(np.roll(il, -5, 1)), ctx.to_device(vol), ctx.empty(vol.nbytes, "out")
+    """The tuner's random inputs (:func:`mccnn_cl.opencl.tune._inputs`) at this size, on the device."""
+    from mccnn_cl.opencl.tune import _inputs
+
+    img_l, img_r, vol = _inputs(ctx, (H, W, D))
+    return ctx.to_device(img_l), ctx.to_device(img_r), ctx.to_device(vol), ctx.empty(vol.nbytes, "out")
 
 
 def main():
