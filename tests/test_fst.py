@@ -153,6 +153,36 @@ def test_bands_and_to_host(ctx, monkeypatch, rows):
     assert seen[-1] == (11, 11) and all(t == 11 for _, t in seen)
 
 
+def test_planar_features_kept_between_bands_and_calls(ctx, monkeypatch):
+    """The normalised features' buffers come from a pool: a later band or call
+    reuses them (no new buffer; a fresh one's first write is page mapping on
+    CPU devices) and what they held before changes nothing; to_host and
+    release_buffers free them."""
+    w = Weights.random([[10, 3]] * 3, architecture="mccnn-fst", seed=5)
+    rng = np.random.default_rng(3)
+    a, b = random_pair(rng, 20, 45), random_pair(rng, 20, 45)
+    cost = FstCost(ctx, w)
+    monkeypatch.setattr(fst_stage, "BAND_BYTES", 2 * cost._row_bytes(39))  # bands of 2 of the 14 rows
+    run_poisoned(ctx, cost, *a, 11)
+    kept = list(cost._planes._free)
+    assert len(kept) == 2
+    for buf in kept:  # whatever a kept buffer holds must not matter: every cell read is rewritten
+        ctx.fill(buf, np.float32(np.nan), buf.size)
+    made = []
+    real_empty = ctx.empty
+    monkeypatch.setattr(ctx, "empty", lambda n, what="buffer": made.append(what) or real_empty(n, what))
+    got = run_poisoned(ctx, cost, *b, 11)
+    assert "fst planar features" not in made
+    assert all(any(k is f for f in cost._planes._free) for k in kept)
+    np.testing.assert_array_equal(got, run_poisoned(ctx, FstCost(ctx, w), *b, 11))
+    check(got, ref.fst_cost_volume(w, *b, 11))
+    cost.to_host(*a, 11)
+    assert cost._planes._free == []
+    run_poisoned(ctx, cost, *a, 11)
+    cost.release_buffers()
+    assert cost._planes._free == []
+
+
 def test_half_storage(ctx):
     w = Weights.random([[16, 3]] * 4, architecture="mccnn-fst", seed=6)
     left, right = random_pair(np.random.default_rng(1), 23, 50)

@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..opencl.context import launch_sizes, round_up
+from ..opencl.context import BufferPool, launch_sizes, round_up
 from ..errors import InputError
 from ..weights import FST, Weights
 from ..validate import check_cost_inputs
@@ -85,6 +85,9 @@ class FstCost(ConvNetCost):
                  local_tiles=None, workgroup=None, volume_width: int | None = None):
         super().__init__(ctx, weights, tiles, half, local_tiles)
         self.nk = weights.feature_maps
+        # the planar features of both images, kept between bands and calls like the conv
+        # stack's maps: a fresh 100+ MB buffer's first write is page mapping on CPU devices
+        self._planes = BufferPool(ctx)
         defs = dict(NK=self.nk, CS=self.stack.stride, PADL=PADL)
         wg = ctx.profile.local_tile("fst_workgroup", "fst_volume_tile", workgroup)
         self.volume_tile = None
@@ -157,9 +160,18 @@ class FstCost(ConvNetCost):
         vol = 2 * self.nk * valid
         return {"features": feat, "volume": vol, "total": feat + vol, "valid_cells": valid}
 
+    def to_host(self, *args, **kwargs):
+        """:meth:`ConvNetCost.to_host`; the planar features are freed after it
+        (the row tiles that follow hold volumes instead)."""
+        try:
+            return super().to_host(*args, **kwargs)
+        finally:
+            self._planes.clear()
+
     def release_buffers(self) -> None:
-        """Free the conv stack's kept maps (see ConvStack)."""
+        """Free the conv stack's kept maps (see ConvStack) and the kept planar features."""
         self.stack.release_buffers()
+        self._planes.clear()
 
     def features(self, img):
         """Host copy of the normalised features of a whole image (h x w x maps,
@@ -169,13 +181,13 @@ class FstCost(ConvNetCost):
         d = self._features(normalise(I), h, w)
         wp = self._wp(w)
         out = self.ctx.from_device(d, (h, self.nk, wp))
-        d.release()
+        self._planes.give(d)
         return out[:, :, PADL:PADL + w].transpose(0, 2, 1).copy()
 
     def _features(self, band, hb, w):
         d_feat = self.stack.run_image(band)
         wp = self._wp(w)
-        d_out = self.ctx.empty(hb * self.nk * wp * 4, "fst planar features")
+        d_out = self._planes.take(hb * self.nk * wp * 4, "fst planar features")
         self._norm(self.ctx.queue, *launch_sizes(self.ctx, (wp // self._norm_px, hb), guarded=(1, 0)), d_feat,
                    d_out, np.int32(w), np.int32(wp))
         self.stack.give(d_feat)
@@ -193,8 +205,7 @@ class FstCost(ConvNetCost):
             self.launch_volume(d_l, d_r, d_cost, vh, w, vy0, D, hb)
             if progress is not None or host is not None:
                 self.ctx.finish()
-            d_l.release()
-            d_r.release()
+            self._planes.give(d_l, d_r)  # the in-order queue runs their next writer after this volume
             if host is not None:
                 band = np.empty((D, hb, w), self.vdtype)
                 self.ctx.cl.enqueue_copy(q, band, d_cost)
