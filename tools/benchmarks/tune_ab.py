@@ -2,7 +2,7 @@
 ratios to their floors measured in the same run; a never-seen size and D
 after a warm-up; the first call of a fresh ``mccnn-cl match`` process.
 
-    .venv/bin/python tools/benchmarks/tune_ab.py [--data ../shared/data] [--repeat 3]
+    .venv/bin/python tools/benchmarks/tune_ab.py [--data ../shared/data] [--repeat 3] [--costs cnn,cnn:kitti-fst,census]
 
 Tuning "on" applies the device's stored choices (run ``mccnn-cl tune``
 first); "off" the rules table.  Each configuration gets its own matcher;
@@ -48,7 +48,9 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--data", default=str(REPO.parent / "shared" / "data"))
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--costs", default="cnn,census")
+    ap.add_argument("--costs", default="cnn,cnn:kitti-fst,census",
+                    help="comma-separated: cnn (the default network), cnn:WEIGHTS (e.g. cnn:kitti-fst, the "
+                         "speed issue's own benchmark), census")
     args = ap.parse_args()
     k = Path(args.data) / "kitti2015" / "training"
     lp, rp = k / "image_2" / "000000_10.png", k / "image_3" / "000000_10.png"
@@ -60,13 +62,15 @@ def main():
     print(f"stored choices: {stored or 'none (run mccnn-cl tune)'}")
     copy_bw, gemm = copy_bandwidth(ctx), numpy_gemm_rate()
     print(f"in-run baselines: copy {copy_bw / 1e9:.1f} GB/s, numpy GEMM {gemm / 1e9:.0f} GFLOP/s")
-    for cost in args.costs.split(","):
+    for entry in args.costs.split(","):
+        cost, _, weights = entry.partition(":")  # "cnn" (the default network), "cnn:kitti-fst", "census"
+        extra = {"weights": weights} if weights else {}
         matchers = {}
         for mode in ("on", "off"):
             ctx.profile.tuned.clear()
             if mode == "on":
                 ctx.profile.tuned.update(stored)
-            m = StereoMatcher(cost=cost, max_disparity=D, device=ctx)
+            m = StereoMatcher(cost=cost, max_disparity=D, device=ctx, **extra)
             m.compute(L, R)  # warm-up: builds, first touch
             matchers[mode] = m
         best = {"on": {}, "off": {}}
@@ -88,7 +92,7 @@ def main():
         vol = D * h * w * 4
         fl = floors(m, L.shape, vol, copy_bw, gemm)
         fl["total"] = sum(fl.values())
-        print(f"\n{cost}: best of {args.repeat}, KITTI 2015 000000 (1242x375), D {D}")
+        print(f"\n{entry}: best of {args.repeat}, KITTI 2015 000000 (1242x375), D {D}")
         print("| stage | floor | tuning on | ratio | tuning off | ratio |")
         print("|---|---|---|---|---|---|")
         for name in ("cost", "CBCA", "SGM", "rest", "total"):
