@@ -252,19 +252,22 @@ def test_census_volume_with_stages(ctx, cones):
     np.testing.assert_array_equal(DL, ref.wta_left(C))
 
 
+@pytest.mark.parametrize("lines", [False, True], ids=["block-per-item", "line-per-item"])
 @pytest.mark.parametrize("D,H,W", [(16, 37, 53), (20, 3, 11), (1, 1, 9), (31, 2, 32), (40, 3, 97), (33, 2, 65)])
-def test_right_reference_volume_and_mirror(ctx, D, H, W):
+def test_right_reference_volume_and_mirror(ctx, D, H, W, lines):
     """The mirrored right-reference volume, made in place, is C_R mirrored left
     to right (exact copies, NaN exactly at d > x), its left WTA mirrored back
     is D^R, and a second call gives C_L back (its invalid cells as NaN).  The
     invalid cells hold finite values before the call (the kernel must write
     them), and the sizes cover lines with no, some and only whole 16-cell
-    blocks, odd and even segment lengths and a middle cell."""
+    blocks, odd and even segment lengths and a middle cell.  Both launch forms
+    (a work-item per 16-pair block, or per line: rule ``mirror_lines``)."""
     rng = np.random.default_rng(D * W)
     C = random_volume(rng, D, H, W, levels=5)
     C_dirty = C.copy()
     C_dirty[np.isnan(C_dirty)] = POISON  # invalid cells with a finite value
-    rr = RightReference(ctx)
+    rr = RightReference(ctx, lines=lines)
+    assert rr.lines is lines
     d_c = ctx.to_device(C_dirty, writable=True)
     assert rr.volume(d_c, D, H, W) is d_c
     CRm = ctx.from_device(d_c, (D, H, W))

@@ -155,32 +155,42 @@ __kernel void disparity_lr_check(
  * loads reversed in registers when all 16 pairs are whole (the two blocks
  * cannot overlap then), else cell by cell, and sets the cells 16k .. 16k+15
  * below d to NaN; each cell has one owner, so no two work-items touch the
- * same cell.  Global size (ceil(W / 16), H, D). */
+ * same cell.  Global size (ceil(W / 16), H, D), or (H, D) with MIRROR_LINES
+ * (rule ``mirror_lines``: a work-item per line on CPUs). */
+#ifndef MIRROR_LINES
+#define MIRROR_LINES 0
+#endif
 __kernel void disparity_right_volume(
     __global vol_t *cost, /* in: C_L, out: mirrored C_R; D x H x W */
     const int D,          /* disparity levels */
     const int H,          /* rows */
     const int W)          /* columns */
 {
-    const int k0 = get_global_id(0) * 16;
-    const int y = get_global_id(1);
-    const int d = get_global_id(2);
-    if (k0 >= W || y >= H || d >= D)
+    /* MIRROR_LINES 1: one work-item walks every 16-pair block of its line (global
+     * size (H, D)); a KITTI-sized volume on 2 Zen 3 cores, 29-33 ms against
+     * 41-51 ms a work-item per block (BENCHMARKS.md), the same bits */
+    const int y = get_global_id(MIRROR_LINES ? 0 : 1);
+    const int d = get_global_id(MIRROR_LINES ? 1 : 2);
+    const int kfirst = MIRROR_LINES ? 0 : (int)get_global_id(0) * 16;
+    const int kend = MIRROR_LINES ? W : kfirst + 16;
+    if (kfirst >= W || y >= H || d >= D)
         return;
     __global vol_t *line = cost + VIDX(d, y, 0, H, W);
-    for (int x = k0; x < min(k0 + 16, min(d, W)); ++x) /* below d: invalid */
-        VOL_SET(line, x, INVALID_COST);
     const int npairs = (W - d) / 2; /* pairs on the line */
-    if (k0 + 16 <= npairs) {
-        const float16 a = VOL_LOAD16(line + d + k0);
-        const float16 b = VOL_LOAD16(line + W - 16 - k0);
-        vol_store16_partial(b.sFEDCBA9876543210, line + d + k0, 16);
-        vol_store16_partial(a.sFEDCBA9876543210, line + W - 16 - k0, 16);
-    } else {
-        for (int i = k0; i < npairs; ++i) {
-            const float a = VOL_GET(line, d + i);
-            VOL_SET(line, d + i, VOL_GET(line, W - 1 - i));
-            VOL_SET(line, W - 1 - i, a);
+    for (int k0 = kfirst; k0 < kend; k0 += 16) {
+        for (int x = k0; x < min(k0 + 16, min(d, W)); ++x) /* below d: invalid */
+            VOL_SET(line, x, INVALID_COST);
+        if (k0 + 16 <= npairs) {
+            const float16 a = VOL_LOAD16(line + d + k0);
+            const float16 b = VOL_LOAD16(line + W - 16 - k0);
+            vol_store16_partial(b.sFEDCBA9876543210, line + d + k0, 16);
+            vol_store16_partial(a.sFEDCBA9876543210, line + W - 16 - k0, 16);
+        } else {
+            for (int i = k0; i < npairs; ++i) {
+                const float a = VOL_GET(line, d + i);
+                VOL_SET(line, d + i, VOL_GET(line, W - 1 - i));
+                VOL_SET(line, W - 1 - i, a);
+            }
         }
     }
 }

@@ -74,7 +74,9 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: ``census_cost_launch``: (levels per census_cost work-item, 0 = all D; its
 #: work-group size, None = the runtime's), kernels/census.cl.  ``wta_chunks``: 16-pixel
 #: chunks per work-item of the left WTA (disparity_wta_left's WTA_CHUNKS; more chunks read
-#: adjacent lines of a plane per step, one is the most work-items, for GPUs).
+#: adjacent lines of a plane per step, one is the most work-items, for GPUs).  ``mirror_lines``:
+#: the right-reference volume's in-place mirroring with a work-item per (d, y) line
+#: (disparity_right_volume's MIRROR_LINES), else per 16-pair block (the most work-items, for GPUs).
 RULES = {
     "sgm_stage":               {CPU: "lines", LLVMPIPE: "lines", GPU: "workgroup"},
     "sgm_prefetch":            {CPU: True,  LLVMPIPE: True,  GPU: False},
@@ -100,6 +102,7 @@ RULES = {
     "fst_volume_width":        {CPU: 0, LLVMPIPE: 0, GPU: 16},
     "launch_local":            {CPU: (64, 2, 2), LLVMPIPE: (64, 2, 2), GPU: None},
     "wta_chunks":              {CPU: 8, LLVMPIPE: 8, GPU: 1},
+    "mirror_lines":            {CPU: True, LLVMPIPE: True, GPU: False},
     "census_cost_launch":      {CPU: (0, (16, 1, 1)), LLVMPIPE: (0, (16, 1, 1)), GPU: (1, None)},
 }
 

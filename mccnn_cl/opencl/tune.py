@@ -125,6 +125,27 @@ def options(ctx, size=SIZE, repeat=1) -> list:
         sec = _timed(ctx_, go, repeat)
         return sec, ctx_.from_device(go(), (H, W))
 
+    d_mir = []
+
+    def mirror_run(ctx_):
+        # the right reference's in-place mirroring, there and back, around its left WTA (on a copy of
+        # the volume: a wrong candidate changes its map, and no other run's input)
+        from ..stages.disparity import RightReference, WinnerTakeAll
+
+        if not d_mir:
+            d_mir.append(ctx_.empty(4 * D * H * W, "tuning mirror volume"))
+            ctx_.cl.enqueue_copy(ctx_.queue, d_mir[0], d_vol)
+        rr, wta = RightReference(ctx_), WinnerTakeAll(ctx_)
+
+        def go():
+            rr.volume(d_mir[0], D, H, W)
+            disp = wta.left(d_mir[0], D, H, W)
+            rr.volume(d_mir[0], D, H, W)
+            return disp
+
+        sec = _timed(ctx_, go, repeat)
+        return sec, ctx_.from_device(go(), (H, W), np.int32)
+
     def conv_run(ctx_):
         # the default network's conv stack (the network's larger share) on one image of the size
         from ..costs.features import ConvStack, default_tiles
@@ -182,7 +203,8 @@ def options(ctx, size=SIZE, repeat=1) -> list:
         buf.release()
         return sec, got
 
-    runs = dict(sgm=sgm_run, cbca=cbca_run, local=local_run, conv=conv_run, volume=volume_run, head=head_run)
+    runs = dict(sgm=sgm_run, cbca=cbca_run, local=local_run, conv=conv_run, volume=volume_run, head=head_run,
+                mirror=mirror_run)
     return _cpu_options(ctx, runs) if ctx.profile.is_cpu else _gpu_options(ctx, runs)
 
 
@@ -212,7 +234,8 @@ def _gpu_options(ctx, runs) -> list:
 def _cpu_options(ctx, runs) -> list:
     """CPU-shaped devices: SGM's sweeps and column width, CBCA's kernels, the register
     tiles of the conv stack and of the head, the fst volume's vector width, the left
-    WTA's chunks per work-item, the work-group size left to launch_local."""
+    WTA's chunks per work-item, the right reference's mirroring, the work-group size
+    left to launch_local."""
     units = max(ctx.profile.compute_units, 1)
     # SGM: the paired sweeps (their chunk width is fixed), or the one-direction
     # kernels at each column width (without paired sweeps the width matters)
@@ -229,6 +252,8 @@ def _cpu_options(ctx, runs) -> list:
         Option("network_head", [{"network_tiles": {"RM": r}} for r in (4, 8)], runs["head"]),
         # the left WTA's 16-pixel chunks per work-item (its map is the same at any)
         Option("wta_chunks", [{"wta_chunks": c} for c in (1, 4, 8, 16)], runs["local"]),
+        # the right reference's mirroring: a work-item per line or per 16-pair block (the same bits)
+        Option("mirror_lines", [{"mirror_lines": v} for v in (True, False)], runs["mirror"]),
         _launch_local(runs["local"]),
     ]
     if ctx.profile.loop_limit is not None:  # llvmpipe: the paired sweeps refuse to run under its limit

@@ -81,15 +81,18 @@ class RightReference:
     W)`` mirrors an int32 map back.
     """
 
-    def __init__(self, ctx, half: bool = False):
+    def __init__(self, ctx, half: bool = False, lines=None):
         self.ctx = ctx
-        self.k_volume = ctx.kernel("disparity.cl", "disparity_right_volume", VOL_HALF=int(half))
+        # a work-item per (d, y) line, or per 16-pair block of one (rule ``mirror_lines``; the same bits)
+        self.lines = bool(ctx.profile.rule("mirror_lines") if lines is None else lines)
+        self.k_volume = ctx.kernel("disparity.cl", "disparity_right_volume", VOL_HALF=int(half),
+                                   MIRROR_LINES=int(self.lines))
         self.k_mirror = ctx.kernel("disparity.cl", "disparity_mirror")
 
     def volume(self, d_cost, D, H, W):
         """Mirror ``d_cost`` (D x H x W) in place, C_L <-> C_R'; returns it."""
-        launch(self.ctx, "right-reference volume", self.k_volume, (-(-W // 16), H, D), d_cost,
-               np.int32(D), np.int32(H), np.int32(W))
+        grid = (H, D) if self.lines else (-(-W // 16), H, D)
+        launch(self.ctx, "right-reference volume", self.k_volume, grid, d_cost, np.int32(D), np.int32(H), np.int32(W))
         return d_cost
 
     def mirror(self, d_map, H, W, out=None):
