@@ -29,7 +29,7 @@ from mccnn_cl.benchmark import copy_bandwidth, group_timings, numpy_gemm_rate
 from mccnn_cl.opencl.context import ClContext
 from mccnn_cl.opencl.device import RULES
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]  # the repository root
 
 
 def floors(m, shape, vol, copy_bw, gemm):
