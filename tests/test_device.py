@@ -57,13 +57,13 @@ def test_declared_loop_limit_and_the_rules_it_changes():
     # Oclgrind's CBCA: "multi" before (its CPU bit), now the generic column's work-group passes
     # (kernels/cbca_wg.cl), bit-identical to the short and fused kernels (tests/test_cbca_gpu.py)
     ("pocl", dict(prefetch=True, cols=128, fused_rows=True, specialize=True, whole_tiles=True, paired=True,
-                  group_of_one=True, loop_limit=None), "multi", 16),
+                  group_of_one=True, loop_limit=None, width=16), "multi", 16),
     ("llvmpipe", dict(prefetch=True, cols=32, fused_rows=False, specialize=False, whole_tiles=False, paired=False,
-                      group_of_one=True, loop_limit=65535), "short", 4),
+                      group_of_one=True, loop_limit=65535, width=16), "short", 4),
     ("oclgrind", dict(prefetch=False, cols=32, fused_rows=False, specialize=True, whole_tiles=True, paired=False,
-                      group_of_one=False, loop_limit=None), "workgroup", 4),
+                      group_of_one=False, loop_limit=None, width=16), "workgroup", 4),
     ("gpu", dict(prefetch=False, cols=32, fused_rows=False, specialize=True, whole_tiles=True, paired=False,
-                 group_of_one=False, loop_limit=None), "workgroup", 4),
+                 group_of_one=False, loop_limit=None, width=16), "workgroup", 4),
 ])
 def test_rules_per_device(key, sgm, cbca, rn):
     p = DeviceProfile.of(DEVICES[key], cl)
@@ -86,9 +86,9 @@ def test_paired_sweeps_follow_compute_units():
 def test_stages_take_their_defaults_from_the_profile(ctx):
     opts = ctx.profile.sgm_options()
     s = SGM(ctx)
-    assert (s.prefetch, s.cols, s.fused_rows, s.specialize, s.whole_tiles, s.paired, s._loop_limit) == \
+    assert (s.prefetch, s.cols, s.fused_rows, s.specialize, s.whole_tiles, s.paired, s._loop_limit, s.width) == \
         (opts["prefetch"], opts["cols"], opts["fused_rows"], opts["specialize"], opts["whole_tiles"],
-         opts["paired"], opts["loop_limit"])
+         opts["paired"], opts["loop_limit"], opts["width"])
     assert SGM(ctx, cols=48, paired=False).cols == 48
     assert CBCA(ctx).path(3) == ctx.profile.cbca_path(3, SHORT_MAX)
     assert CBCA(ctx, fused=False).path(3) == "short"

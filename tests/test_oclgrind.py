@@ -502,7 +502,7 @@ def case_sgm(ctx, rng, chk):
     in one launch) with the first sweep in bands of rows (the vertical path's
     state carried between launches); the column kernel with and without its
     specialised row loops; with D >= 16 the row kernel's whole-tile path;
-    the paired sweeps."""
+    the paired sweeps; both on 8-wide vectors."""
     from mccnn_cl.reference.aggregation import sgm
     from mccnn_cl.stages.sgm import SGM
 
@@ -515,7 +515,10 @@ def case_sgm(ctx, rng, chk):
                                # the paired sweeps (default on CPUs with <= 2 compute units): odd H,
                                # whole tiles and partial ones, a partial last chunk
                                ((20, 5, 37), {}, {"paired": True}),
-                               ((7, 4, 9), {"variant": "code", "outside_large": False}, {"paired": True})):
+                               ((7, 4, 9), {"variant": "code", "outside_large": False}, {"paired": True}),
+                               # 8-wide vectors (SGM_VW 8, the rule where a CPU's vectors hold 8 floats)
+                               ((20, 5, 37), {}, {"paired": True, "width": 8}),
+                               ((20, 3, 21), {}, {"paired": False, "width": 8, "cols": 32, "band": 2})):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
         C = _volume(rng, D, H, W)
         out = _poisoned(ctx, 4 * D * H * W)

@@ -21,22 +21,22 @@ from helpers import ad_volume, blocky_image, invalid_mask, kitti_crop, random_vo
 
 
 def run_sgm(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None,
-            whole_tiles=None, paired=None, **kw):
+            whole_tiles=None, paired=None, width=None, **kw):
     D, H, W = cost.shape
     d_out = ctx.empty(cost.nbytes)
     ctx.fill(d_out, POISON, cost.nbytes)
     d_cost = ctx.to_device(cost)
     SGM(ctx, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows, specialize=specialize,
-        whole_tiles=whole_tiles, paired=paired)(
+        whole_tiles=whole_tiles, paired=paired, width=width)(
         d_cost, ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=d_out, **kw)
     np.testing.assert_array_equal(ctx.from_device(d_cost, cost.shape), cost)  # input untouched
     return ctx.from_device(d_out, cost.shape)
 
 
 def check(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None,
-          whole_tiles=None, paired=None, **kw):
+          whole_tiles=None, paired=None, width=None, **kw):
     got = run_sgm(ctx, cost, img_l, img_r, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows,
-                  specialize=specialize, whole_tiles=whole_tiles, paired=paired, **kw)
+                  specialize=specialize, whole_tiles=whole_tiles, paired=paired, width=width, **kw)
     want = sgm(cost, img_l, img_r, **kw)
     np.testing.assert_array_equal(np.isnan(got), invalid_mask(*cost.shape))
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
@@ -228,6 +228,48 @@ def test_paths_walked_in_several_launches_are_bit_identical(ctx, D, H, W):
     with pytest.raises(InputError):  # the paired sweeps walk half the image per work-item
         SGM(ctx, paired=True, loop_limit=700)(ctx.to_device(cost), ctx.to_device(img_l), ctx.to_device(img_r),
                                               D, H, W)
+
+
+@pytest.mark.parametrize("D,H,W", [(40, 9, 70), (21, 10, 150), (37, 5, 45), (3, 3, 16), (64, 4, 100)])
+def test_vector_widths_are_bit_identical(ctx, D, H, W):
+    """sgm.cl on 8-wide vectors (SGM_VW 8, the rule where the device's floats come 8 to a
+    vector) and on 16-wide ones: the paired sweeps, the one-direction kernels (whole
+    image, bands with 48 columns per work-item, specialised or not) and the paired
+    sweeps on half-precision volumes give the same bits, and match the reference.  W
+    not a multiple of 8 or 16, partial tiles, D > W."""
+    rng = np.random.default_rng(D * 131 + H * 7 + W)
+    cost = random_volume(rng, D, H, W, scale=3.0)
+    img_l, img_r = blocky_image(rng, H, W, 3, 0.08), blocky_image(rng, H, W, 3, 0.08)
+    for cfg in (dict(paired=True), dict(paired=False), dict(paired=False, band=3, cols=48, specialize=False)):
+        wide, _ = check(ctx, cost, img_l, img_r, width=16, **cfg)
+        narrow, _ = check(ctx, cost, img_l, img_r, width=8, **cfg)
+        np.testing.assert_array_equal(narrow.view(np.uint32), wide.view(np.uint32), err_msg=str(cfg))
+    d_cost = ctx.to_device(cost.astype(np.float16))
+    halves = []
+    for width in (16, 8):
+        d_out = ctx.empty(cost.size * 2)
+        ctx.fill(d_out, POISON, cost.size * 2, np.float16)
+        SGM(ctx, half=True, paired=True, width=width)(d_cost, ctx.to_device(img_l), ctx.to_device(img_r), D, H, W,
+                                                      out=d_out)
+        halves.append(ctx.from_device(d_out, cost.shape, np.float16))
+    np.testing.assert_array_equal(halves[1].view(np.uint16), halves[0].view(np.uint16))
+    np.testing.assert_array_equal(np.isnan(halves[0]), invalid_mask(D, H, W))
+
+
+def test_vector_width_rule(ctx):
+    """The width follows the rule (0 on CPUs: the device's float vector width, 16 or more
+    -> 16, else 8; PoCL on a Zen 3 reports 8), a tuned width wins, a bad one is refused."""
+    from dataclasses import replace
+    from mccnn_cl.opencl.device import RULES
+
+    assert RULES["sgm_width"]["cpu"] == 0 and RULES["sgm_width"]["gpu"] == 16
+    prof = ctx.profile
+    for kind, width, expected in (("cpu", 16, 16), ("cpu", 8, 8), ("cpu", 4, 8), ("gpu", 8, 16)):
+        assert replace(prof, kind=kind, vector_width=width, tuned={}).sgm_width() == expected
+    assert replace(prof, kind="cpu", vector_width=16, tuned={"sgm_width": 8}).sgm_width() == 8
+    assert SGM(ctx).width == prof.sgm_width()
+    with pytest.raises(InputError, match="width"):
+        SGM(ctx, width=4)
 
 
 def test_bad_configuration(ctx):

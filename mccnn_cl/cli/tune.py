@@ -25,12 +25,13 @@ def describe_choices(device) -> list:
         head = "kernel choices: the rules table (not tuned: run `mccnn-cl tune`)"
     profile.tuned.update(tuned)
     lines = [head]
-    names = ("sgm_paired_max_units", "sgm_cols", "cbca_fused", "cbca_multi", "fst_volume_width", "wta_chunks",
+    names = ("sgm_paired_max_units", "sgm_cols", "sgm_width", "cbca_fused", "cbca_multi", "fst_volume_width", "wta_chunks",
              "mirror_lines", "launch_local")
     if not profile.is_cpu:  # the GPU-shaped paths and the GEMM tile are tuned there
         names = ("sgm_stage", "sgm_cols", "sgm_wg_cols", "cbca_workgroup", "launch_local", "network_gemm_tile")
     for name in names:
-        value = profile.fst_volume_width() if name == "fst_volume_width" else profile.rule(name)
+        value = (profile.fst_volume_width() if name == "fst_volume_width" else
+                 profile.sgm_width() if name == "sgm_width" else profile.rule(name))
         lines.append(f"  {name:22s} {value!s:14s} ({profile.rule_source(name)})")
     if not profile.is_cpu:
         return lines

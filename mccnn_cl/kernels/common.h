@@ -30,57 +30,69 @@
 /* Index of cell (d, y, x) in a D x H x W volume. */
 #define VIDX(d, y, x, H, W) (((size_t)(d) * (size_t)(H) + (size_t)(y)) * (size_t)(W) + (size_t)(x))
 
-/* Partial 16-wide vector access at the end of a row.  load16_partial gives
- * lanes i = 0..15 = p[first + i]; lanes with i >= n or first + i < 0 are not
- * read and get `fill`.  store16_partial writes lanes 0 .. n-1 (n <= 16). */
-static inline float16 load16_partial(__global const float *p, const int first, const int n, const float fill)
-{
-    if (n == 16 && first >= 0)
-        return vload16(0, p + first);
-    float t[16];
-    for (int i = 0; i < 16; ++i)
-        t[i] = (i < n && first + i >= 0) ? p[first + i] : fill;
-    return vload16(0, t);
-}
-
-static inline void store16_partial(const float16 v, __global float *p, const int n)
-{
-    if (n == 16) {
-        vstore16(v, 0, p);
-        return;
+/* Partial N-wide vector access at the end of a row (N = 16 or 8).
+ * loadN_partial gives lanes i = 0..N-1 = p[first + i]; lanes with i >= n or
+ * first + i < 0 are not read and get `fill`.  storeN_partial writes lanes
+ * 0 .. n-1 (n <= N). */
+#define MCCNN_PARTIAL_ACCESS(N)                                                                          \
+    static inline float##N load##N##_partial(__global const float *p, const int first, const int n,     \
+                                             const float fill)                                          \
+    {                                                                                                   \
+        if (n == N && first >= 0)                                                                       \
+            return vload##N(0, p + first);                                                              \
+        float t[N];                                                                                     \
+        for (int i = 0; i < N; ++i)                                                                     \
+            t[i] = (i < n && first + i >= 0) ? p[first + i] : fill;                                     \
+        return vload##N(0, t);                                                                          \
+    }                                                                                                   \
+    static inline void store##N##_partial(const float##N v, __global float *p, const int n)             \
+    {                                                                                                   \
+        if (n == N) {                                                                                   \
+            vstore##N(v, 0, p);                                                                         \
+            return;                                                                                     \
+        }                                                                                               \
+        float t[N];                                                                                     \
+        vstore##N(v, 0, t);                                                                             \
+        for (int i = 0; i < n; ++i)                                                                     \
+            p[i] = t[i];                                                                                \
     }
-    float t[16];
-    vstore16(v, 0, t);
-    for (int i = 0; i < n; ++i)
-        p[i] = t[i];
-}
+MCCNN_PARTIAL_ACCESS(16)
+MCCNN_PARTIAL_ACCESS(8)
 
-/* Transpose of a 16 x 16 block held as 16 float16 rows: afterwards r[i].sj
- * is the former r[j].si.  Each stage splits every pair of rows into their
- * even and odd lanes (rows 0..7 take the even ones, 8..15 the odd ones),
- * which rotates the 8-bit index (row, lane) right by one bit; four stages
- * swap row and lane.  Pure register shuffles (no private-memory round trip);
- * sgm.cl's horizontal paths and fst.cl's fst_normalise16. */
-static inline __attribute__((always_inline)) void transpose16(float16 *r)
-{
-    __attribute__((opencl_unroll_hint))
-    for (int s = 0; s < 4; ++s) {
-        float16 t[16];
-        __attribute__((opencl_unroll_hint))
-        for (int i = 0; i < 8; ++i) {
-            t[i] = (float16)(r[2 * i].even, r[2 * i + 1].even);
-            t[i + 8] = (float16)(r[2 * i].odd, r[2 * i + 1].odd);
-        }
-        __attribute__((opencl_unroll_hint))
-        for (int i = 0; i < 16; ++i)
-            r[i] = t[i];
+/* Lane numbers 0 .. 7 of an 8-wide vector (sgm.cl built with SGM_VW 8). */
+#define LANES8 ((int8)(0, 1, 2, 3, 4, 5, 6, 7))
+
+/* Transpose of an N x N block held as N floatN rows (N = 16 or 8, in
+ * log2 N stages): afterwards r[i].sj is the former r[j].si.  Each stage
+ * splits every pair of rows into their even and odd lanes (rows 0..N/2-1
+ * take the even ones, the others the odd ones), which rotates the index
+ * (row, lane) right by one bit; log2 N stages swap row and lane.  Pure
+ * register shuffles (no private-memory round trip); sgm.cl's horizontal
+ * paths (transpose8 where SGM_VW is 8: the 16 x 16 form holds 32 registers
+ * of 8 floats) and fst.cl's fst_normalise16. */
+#define MCCNN_TRANSPOSE(N, STAGES)                                                    \
+    static inline __attribute__((always_inline)) void transpose##N(float##N *r)      \
+    {                                                                                 \
+        __attribute__((opencl_unroll_hint))                                           \
+        for (int s = 0; s < STAGES; ++s) {                                            \
+            float##N t[N];                                                            \
+            __attribute__((opencl_unroll_hint))                                       \
+            for (int i = 0; i < N / 2; ++i) {                                         \
+                t[i] = (float##N)(r[2 * i].even, r[2 * i + 1].even);                  \
+                t[i + N / 2] = (float##N)(r[2 * i].odd, r[2 * i + 1].odd);            \
+            }                                                                         \
+            __attribute__((opencl_unroll_hint))                                       \
+            for (int i = 0; i < N; ++i)                                               \
+                r[i] = t[i];                                                          \
+        }                                                                             \
     }
-}
+MCCNN_TRANSPOSE(16, 4)
+MCCNN_TRANSPOSE(8, 3)
 
 /* Volume element type and access (see the header comment):
  *   VOL_GET(p, i), VOL_SET(p, i, v)     one element, as float
- *   VOL_LOAD16(p)                       16 consecutive elements
- *   vol_load16_partial, vol_store16_partial   as load16_partial / store16_partial */
+ *   VOL_LOAD16(p), VOL_LOAD8(p)         16 or 8 consecutive elements
+ *   vol_loadN_partial, vol_storeN_partial   as loadN_partial / storeN_partial */
 #ifndef VOL_HALF
 #define VOL_HALF 0
 #endif
@@ -95,29 +107,36 @@ static inline __attribute__((always_inline)) void transpose16(float16 *r)
  * runtime and Oclgrind.  Loads use the scalar form too (the half-precision
  * timings in docs/method.md were measured so).  The values are the same:
  * round to nearest even on store. */
-static inline float16 vol_load16_partial(__global const half *p, const int first, const int n, const float fill)
-{
-    float t[16];
-    for (int i = 0; i < 16; ++i)
-        t[i] = (i < n && first + i >= 0) ? vload_half(first + i, p) : fill;
-    return vload16(0, t);
-}
-
-static inline void vol_store16_partial(const float16 v, __global half *p, const int n)
-{
-    float t[16];
-    vstore16(v, 0, t);
-    for (int i = 0; i < n; ++i)
-        vstore_half(t[i], i, p);
-}
+#define MCCNN_VOL_HALF_ACCESS(N)                                                                      \
+    static inline float##N vol_load##N##_partial(__global const half *p, const int first, const int n,  \
+                                                 const float fill)                                      \
+    {                                                                                                   \
+        float t[N];                                                                                     \
+        for (int i = 0; i < N; ++i)                                                                     \
+            t[i] = (i < n && first + i >= 0) ? vload_half(first + i, p) : fill;                         \
+        return vload##N(0, t);                                                                          \
+    }                                                                                                   \
+    static inline void vol_store##N##_partial(const float##N v, __global half *p, const int n)          \
+    {                                                                                                   \
+        float t[N];                                                                                     \
+        vstore##N(v, 0, t);                                                                             \
+        for (int i = 0; i < n; ++i)                                                                     \
+            vstore_half(t[i], i, p);                                                                    \
+    }
+MCCNN_VOL_HALF_ACCESS(16)
+MCCNN_VOL_HALF_ACCESS(8)
 #define VOL_LOAD16(p) vol_load16_partial((p), 0, 16, 0.0f)
+#define VOL_LOAD8(p) vol_load8_partial((p), 0, 8, 0.0f)
 #else
 #define vol_t float
 #define VOL_GET(p, i) ((p)[i])
 #define VOL_SET(p, i, v) ((p)[i] = (v))
 #define VOL_LOAD16(p) vload16(0, (p))
+#define VOL_LOAD8(p) vload8(0, (p))
 #define vol_load16_partial load16_partial
 #define vol_store16_partial store16_partial
+#define vol_load8_partial load8_partial
+#define vol_store8_partial store8_partial
 #endif
 
 #endif /* MCCNN_COMMON_H */

@@ -171,7 +171,7 @@ __kernel void fst_normalise16(
 #define FV float8
 #define IV int8
 #define FV_LOAD vload8
-#define FV_LANES ((int8)(0, 1, 2, 3, 4, 5, 6, 7))
+#define FV_LANES LANES8
 #define FV_STORE vol_store8_partial
 #define SHF(s) __builtin_shufflevector(A, B, s, s + 1, s + 2, s + 3, s + 4, s + 5, s + 6, s + 7)
 #define BLOCK_EVEN FMA2(0, B) FMA2(1, SHF(7)) FMA2(2, SHF(6)) FMA2(3, SHF(5))
@@ -188,26 +188,6 @@ __kernel void fst_normalise16(
         FV v;                                                                   \
         BODY                                                                    \
     }
-
-/* lanes 0 .. n-1 of v to p (n <= 8) */
-static inline void vol_store8_partial(const float8 v, __global vol_t *p, const int n)
-{
-#if VOL_HALF
-    float t[8];
-    vstore8(v, 0, t);
-    for (int i = 0; i < n; ++i)
-        vstore_half(t[i], i, p);
-#else
-    if (n == 8) {
-        vstore8(v, 0, p);
-        return;
-    }
-    float t[8];
-    vstore8(v, 0, t);
-    for (int i = 0; i < n; ++i)
-        p[i] = t[i];
-#endif
-}
 
 __kernel void fst_volume_pairs(
     __global const float *fl, __global const float *fr, __global vol_t *cost,

@@ -4,7 +4,7 @@
  * output, or runs the paired sweeps (sgm_paired, at the end: two launches
  * of two work-items for all four directions).
  *
- * Defines (the host, stages/sgm.py, passes all seven; defaults in brackets):
+ * Defines (the host, stages/sgm.py, passes all eight; defaults in brackets):
  *   MAX_DISP          required, >= D (a multiple of 32); sizes the private arrays
  *   VOL_HALF          [0] volumes stored as half (common.h)
  *   SGM_COLS          [32] columns per sgm_columns work-item, a multiple of 16
@@ -14,6 +14,11 @@
  *   SGM_SPECIALIZE    [1] the column kernel's inner loop compiled per case
  *   SGM_WHOLE_TILES   [1] sgm_rows' separate path for whole 16 x 16 tiles
  *   SGM_PAIR_CW       [16] columns per chunk of sgm_paired
+ *   SGM_VW            [16] lanes per vector, 16 or 8 (VW below; the host's
+ *                     rule sgm_width: 8 where the device's float vectors
+ *                     hold 8, e.g. PoCL with AVX2).  The text below says 16;
+ *                     with 8, chunks, tiles and groups are 8 wide and the
+ *                     same bits come out.
  *
  * Validity is decided by index: the cost of cell (d, y, x) is used only when
  * d <= x; entries of C_r(p - r, .) beyond p - r's valid range hold
@@ -44,7 +49,57 @@
 #ifndef MAX_DISP
 #error "sgm.cl needs -D MAX_DISP=<upper bound of the disparity levels D>"
 #endif
+#ifndef SGM_VW
+#define SGM_VW 16
+#endif
+/* Lanes per vector: 16 (float16) or 8 (float8, for CPUs whose vector
+ * registers hold 8 floats: a 16 x 16 transpose needs 32 such registers,
+ * an 8 x 8 one 8).  One text for both through these names. */
+#if SGM_VW == 16
 #define VW 16
+#define floatV float16
+#define intV int16
+#define uintV uint16
+#define vloadV vload16
+#define vstoreV vstore16
+#define LANESV LANES
+#define REVERSEV ((uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0))
+#define AS_INTV as_int16
+#define AS_UINTV as_uint16
+#define transposeV transpose16
+#define loadV_partial load16_partial
+#define vol_loadV_partial vol_load16_partial
+#define vol_storeV_partial vol_store16_partial
+#define VOL_LOADV VOL_LOAD16
+#define sgm_stepV sgm_step16
+#define fmin_aV fmin_a16
+#define SGM_LARGEV SGM_LARGE16
+#define SGM_BY_D1_V SGM_BY_D1_16
+#elif SGM_VW == 8
+#define VW 8
+#define floatV float8
+#define intV int8
+#define uintV uint8
+#define vloadV vload8
+#define vstoreV vstore8
+#define LANESV LANES8
+#define REVERSEV ((uint8)(7, 6, 5, 4, 3, 2, 1, 0))
+#define AS_INTV as_int8
+#define AS_UINTV as_uint8
+#define transposeV transpose8
+#define loadV_partial load8_partial
+#define vol_loadV_partial vol_load8_partial
+#define vol_storeV_partial vol_store8_partial
+#define VOL_LOADV VOL_LOAD8
+#define sgm_stepV sgm_step8
+#define fmin_aV fmin_a8
+#define SGM_LARGEV SGM_LARGE8
+#define SGM_BY_D1_V SGM_BY_D1_8
+#else
+#error "SGM_VW must be 16 or 8"
+#endif
+#define SGM_BY_D2_V SGM_BY_D2_16 /* select: any width */
+#define LINE_FLOATS 16 /* floats per 64-byte cache line (prefetch strides) */
 #ifndef SGM_COLS
 #define SGM_COLS 32 /* columns per work-item of sgm_columns, a multiple of VW */
 #endif
@@ -92,14 +147,14 @@
 static inline __attribute__((always_inline)) void vertical_penalties(
     __global const float *img_l, const int W, const int y, const int py, const int x0, const int n,
     const float tau_so, const float p1_small, const float p1_one, const float p1_both, const float p2_small,
-    const float p2_one, const float p2_both, float16 *p1a, float16 *p1b, float16 *p2a, float16 *p2b)
+    const float p2_one, const float p2_both, floatV *p1a, floatV *p1b, floatV *p2a, floatV *p2b)
 {
-    int16 big_l = (int16)(0);
+    intV big_l = (intV)(0);
     if (n > 0)
-        big_l = SGM_LARGE16(load16_partial(img_l, y * W + x0, n, 0.0f) - load16_partial(img_l, py * W + x0, n, 0.0f),
+        big_l = SGM_LARGEV(loadV_partial(img_l, y * W + x0, n, 0.0f) - loadV_partial(img_l, py * W + x0, n, 0.0f),
                             tau_so);
-    SGM_BY_D1_16(p1_small, p1_one, p1_both, big_l, *p1a, *p1b);
-    SGM_BY_D1_16(p2_small, p2_one, p2_both, big_l, *p2a, *p2b);
+    SGM_BY_D1_V(p1_small, p1_one, p1_both, big_l, *p1a, *p1b);
+    SGM_BY_D1_V(p2_small, p2_one, p2_both, big_l, *p2a, *p2b);
 }
 
 /* Vertical D2 flags (sgm_columns, sgm_paired): bigr[t] = D2 large (-1) or
@@ -112,10 +167,10 @@ static inline __attribute__((always_inline)) void vertical_gradients(
 {
     for (int t0 = t_lo; t0 < t_end; t0 += VW) {
         const int x1 = xw - MAX_DISP + t0;
-        float16 a, b;
+        floatV a, b;
         if (x1 >= 0 && x1 + VW <= W) {
-            a = vload16(0, img_r + y * W + x1);
-            b = vload16(0, img_r + py * W + x1);
+            a = vloadV(0, img_r + y * W + x1);
+            b = vloadV(0, img_r + py * W + x1);
         } else {
             float ta[VW], tb[VW];
             for (int i = 0; i < VW; ++i) {
@@ -123,15 +178,15 @@ static inline __attribute__((always_inline)) void vertical_gradients(
                 ta[i] = in ? img_r[y * W + x1 + i] : 0.0f;
                 tb[i] = in ? img_r[py * W + x1 + i] : 0.0f;
             }
-            a = vload16(0, ta);
-            b = vload16(0, tb);
+            a = vloadV(0, ta);
+            b = vloadV(0, tb);
         }
-        vstore16(isless(fabs(a - b), (float16)(tau_so)) == (int16)(0), 0, bigr + t0);
+        vstoreV(isless(fabs(a - b), (floatV)(tau_so)) == (intV)(0), 0, bigr + t0);
     }
 }
 
 /* Vertical paths: one row y of the path for the columns xw .. xw + SGM_COLS - 1
- * (groups g of VW columns on float16 lanes over x; groups past the image are
+ * (groups g of VW columns on floatV lanes over x; groups past the image are
  * skipped), levels d = 0 .. dmax.  C_r(p - r, d) is read from the state row d
  * (st + d * ws) and overwritten by C_r(p, d); the level d + 1 read at step d
  * is carried to step d + 1 in registers (pd), the old level d - 1 too (pm1).
@@ -143,20 +198,20 @@ static inline __attribute__((always_inline)) void vertical_gradients(
 static inline __attribute__((always_inline)) void col_row(
     __global const vol_t *cost, __global vol_t *out, __global float *st, const int ws, const int H,
     const int W, const int xw, const int dmax, const int y, const int dy, const int last, const int first,
-    const int mode, const int full, const int *bigr, const float16 *p1a, const float16 *p1b,
-    const float16 *p2a, const float16 *p2b, float16 *m)
+    const int mode, const int full, const int *bigr, const floatV *p1a, const floatV *p1b,
+    const floatV *p2a, const floatV *p2b, floatV *m)
 {
-    const int16 lane = LANES;
+    const intV lane = LANESV;
     const size_t plane = (size_t)H * (size_t)W;
     const int next = dy * W; /* offset of the next row on the path */
-    float16 newm[SGM_G], pm1[SGM_G], pd[SGM_G];
+    floatV newm[SGM_G], pm1[SGM_G], pd[SGM_G];
     int ng[SGM_G];
     __attribute__((opencl_unroll_hint))
     for (int g = 0; g < SGM_G; ++g) {
         ng[g] = full ? VW : clamp(W - xw - g * VW, 0, VW);
-        newm[g] = (float16)(INFINITY);
-        pm1[g] = (float16)(INFINITY);
-        pd[g] = first || ng[g] == 0 ? (float16)(INFINITY) : vload16(0, st + xw + g * VW);
+        newm[g] = (floatV)(INFINITY);
+        pm1[g] = (floatV)(INFINITY);
+        pd[g] = first || ng[g] == 0 ? (floatV)(INFINITY) : vloadV(0, st + xw + g * VW);
     }
     __global const vol_t *cp = cost + (size_t)y * W + xw;
     __global vol_t *op = out + (size_t)y * W + xw;
@@ -171,30 +226,30 @@ static inline __attribute__((always_inline)) void col_row(
                 SGM_PREFETCH(cp + g * VW + next);
                 SGM_PREFETCH(op + g * VW + next);
             }
-            const int16 valid = ((int16)(xw + g * VW) + lane >= (int16)(d)) & (lane < (int16)(n));
-            const float16 c = vol_load16_partial(cp, g * VW, n, 0.0f);
-            float16 val;
+            const intV valid = ((intV)(xw + g * VW) + lane >= (intV)(d)) & (lane < (intV)(n));
+            const floatV c = vol_loadV_partial(cp, g * VW, n, 0.0f);
+            floatV val;
             if (first) {
                 val = c; /* first pixel of the path */
             } else {
-                const int16 big_r = vload16(0, bigr + MAX_DISP + g * VW - d);
-                const float16 pn = vload16(0, sp + ws + g * VW); /* C_r(p - r, d + 1) */
-                val = sgm_step16(c, m[g], pm1[g], pd[g], pn, SGM_BY_D2_16(p1a[g], p1b[g], big_r),
-                                 SGM_BY_D2_16(p2a[g], p2b[g], big_r));
+                const intV big_r = vloadV(0, bigr + MAX_DISP + g * VW - d);
+                const floatV pn = vloadV(0, sp + ws + g * VW); /* C_r(p - r, d + 1) */
+                val = sgm_stepV(c, m[g], pm1[g], pd[g], pn, SGM_BY_D2_V(p1a[g], p1b[g], big_r),
+                                 SGM_BY_D2_V(p2a[g], p2b[g], big_r));
                 pm1[g] = pd[g];
                 pd[g] = pn;
             }
-            val = select((float16)(INFINITY), val, valid);
-            vstore16(val, 0, sp + g * VW);
-            newm[g] = fmin_a(newm[g], val);
-            float16 o;
+            val = select((floatV)(INFINITY), val, valid);
+            vstoreV(val, 0, sp + g * VW);
+            newm[g] = fmin_aV(newm[g], val);
+            floatV o;
             if (mode == 0) {
-                o = select((float16)(NAN), val, valid);
+                o = select((floatV)(NAN), val, valid);
             } else {
-                const float16 old = vol_load16_partial(op, g * VW, n, 0.0f);
+                const floatV old = vol_loadV_partial(op, g * VW, n, 0.0f);
                 o = select(old, SGM_COMBINE(old, val, mode), valid);
             }
-            vol_store16_partial(o, op + g * VW, n);
+            vol_storeV_partial(o, op + g * VW, n);
         }
     }
     __attribute__((opencl_unroll_hint))
@@ -225,7 +280,7 @@ static inline __attribute__((always_inline)) void col_row(
 
 /* Vertical paths, rows j0 .. j0 + nj - 1 of the path (row y = j on
  * top->bottom paths, H - 1 - j on bottom->top ones): one work-item walks
- * SGM_COLS adjacent columns (SGM_G groups of VW on float16 lanes over x, so
+ * SGM_COLS adjacent columns (SGM_G groups of VW on floatV lanes over x, so
  * each step touches SGM_COLS contiguous elements of each plane).  The path's
  * state between rows, C_r(p - r, d) for d = 0 .. D (level D and levels beyond
  * the valid range hold +INFINITY) and min_k C_r(p - r, k) as level D + 1,
@@ -258,15 +313,15 @@ __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume 
     const int dmax = min(D - 1, min(W, xw + SGM_COLS) - 1);
     const int full = xw + SGM_COLS <= W;
     __global float *st_m = state + (size_t)(D + 1) * ws + xw;
-    float16 m[SGM_G];
+    floatV m[SGM_G];
     __attribute__((opencl_unroll_hint))
     for (int g = 0; g < SGM_G; ++g)
-        m[g] = j0 == 0 ? (float16)(INFINITY) : vload16(0, st_m + g * VW);
+        m[g] = j0 == 0 ? (floatV)(INFINITY) : vloadV(0, st_m + g * VW);
     if (j0 == 0) /* levels beyond the valid range (at least level D) */
         for (int d = dmax + 1; d <= D; ++d)
             __attribute__((opencl_unroll_hint))
             for (int g = 0; g < SGM_G; ++g)
-                vstore16((float16)(INFINITY), 0, state + (size_t)d * ws + xw + g * VW);
+                vstoreV((floatV)(INFINITY), 0, state + (size_t)d * ws + xw + g * VW);
     /* D2 large (-1) or not (0) at right pixel x' = xw - MAX_DISP + t, for
      * t >= MAX_DISP - dmax (x' < 0 or >= W: never used, set to 0) */
     int bigr[MAX_DISP + SGM_COLS];
@@ -274,7 +329,7 @@ __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume 
     for (int j = j0; j < j0 + nj; ++j) {
         const int y = dy > 0 ? j : H - 1 - j;
         const int last = j + 1 >= H;
-        float16 p1a[SGM_G], p1b[SGM_G], p2a[SGM_G], p2b[SGM_G];
+        floatV p1a[SGM_G], p1b[SGM_G], p2a[SGM_G], p2b[SGM_G];
         if (j == 0) {
 #if SGM_SPECIALIZE
             COL_ROW_MODES(1);
@@ -300,12 +355,12 @@ __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume 
                 for (int g = 0; g < SGM_G; ++g) {
                     const int x0 = xw + g * VW, n = clamp(W - x0, 0, VW);
                     if (n > 0)
-                        vol_store16_partial((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
+                        vol_storeV_partial((floatV)(NAN), out + VIDX(d, y, x0, H, W), n);
                 }
     }
     __attribute__((opencl_unroll_hint))
     for (int g = 0; g < SGM_G; ++g)
-        vstore16(m[g], 0, st_m + g * VW);
+        vstoreV(m[g], 0, st_m + g * VW);
 }
 
 /* Whole 16 x 16 tiles (16 columns, 16 levels all inside the chunk's valid
@@ -333,28 +388,28 @@ static inline __attribute__((always_inline)) void row_gradients(
     __global const float *ir, const int W, const int base, const int ntiles, const int cw, const int dir,
     const float tau_so, const int outside_large, int *big_r_rev)
 {
-    const int16 lane = LANES;
-    const uint16 reverse = (uint16)(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+    const intV lane = LANESV;
+    const uintV reverse = REVERSEV;
     for (int t0 = 0; t0 < ntiles * VW + cw; t0 += VW) {
         const int xa = base + t0, xb = xa - dir;
-        float16 a, b;
+        floatV a, b;
         if (xa >= 0 && xb >= 0 && xa + VW <= W && xb + VW <= W) {
-            a = vload16(0, ir + xa);
-            b = vload16(0, ir + xb);
+            a = vloadV(0, ir + xa);
+            b = vloadV(0, ir + xb);
         } else {
             float ta[VW], tb[VW];
             for (int i = 0; i < VW; ++i) {
                 ta[i] = (xa + i >= 0 && xa + i < W) ? ir[xa + i] : 0.0f;
                 tb[i] = (xb + i >= 0 && xb + i < W) ? ir[xb + i] : 0.0f;
             }
-            a = vload16(0, ta);
-            b = vload16(0, tb);
+            a = vloadV(0, ta);
+            b = vloadV(0, tb);
         }
-        const int16 xrp = (int16)(xb) + lane;
-        const int16 outside = (xrp < (int16)(0)) | (xrp >= (int16)(W));
-        int16 big = isless(fabs(a - b), (float16)(tau_so)) == (int16)(0);
-        big = select(big, (int16)(outside_large ? -1 : 0), outside);
-        vstore16(as_int16(shuffle(as_uint16(big), reverse)), 0, big_r_rev + ntiles * VW + cw - VW - t0);
+        const intV xrp = (intV)(xb) + lane;
+        const intV outside = (xrp < (intV)(0)) | (xrp >= (intV)(W));
+        intV big = isless(fabs(a - b), (floatV)(tau_so)) == (intV)(0);
+        big = select(big, (intV)(outside_large ? -1 : 0), outside);
+        vstoreV(AS_INTV(shuffle(AS_UINTV(big), reverse)), 0, big_r_rev + ntiles * VW + cw - VW - t0);
     }
 }
 
@@ -374,14 +429,14 @@ static inline __attribute__((always_inline)) void row_chunk(
     const int *big_r_rev, const int base, const int rt, __global const vol_t *pf_cost,
     __global const vol_t *pf_out, const size_t plane, const int dmaxn, const int pf_n, const int l2)
 {
-    const int16 lane = LANES;
+    const intV lane = LANESV;
     const int pf_per = dmaxn / n + 1; /* levels prefetched per pixel */
     for (int kk = 0; kk < n; ++kk) {
         const int k = dir > 0 ? kk : n - 1 - kk;
         const int x = x0 + k;
         for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
             __global const vol_t *pc = pf_cost + d * plane, *po = pf_out + d * plane;
-            for (int e = 0; e < pf_n; e += VW) {
+            for (int e = 0; e < pf_n; e += LINE_FLOATS) {
                 if (l2) {
                     SGM_PREFETCH_L2(pc + e);
                     SGM_PREFETCH_L2(po + e);
@@ -410,32 +465,36 @@ static inline __attribute__((always_inline)) void row_chunk(
         SGM_BY_D1(p2_small, p2_one, p2_both, big_l, p2_a, p2_b);
         const float mm = *m;
         float *pv = *prev, *cv = *cur;
-        float16 newm = (float16)(INFINITY);
+        floatV newm = (floatV)(INFINITY);
         for (int v = 0; v < nvec; ++v) {
             const int d0 = v * VW;
             float *bp = blk + k * MAX_DISP + d0;
-            const float16 c = vload16(0, bp);
-            float16 val;
+            const floatV c = vloadV(0, bp);
+            floatV val;
             if (first) {
                 val = c;
             } else {
                 /* D2 large at pd = x - d, lanes d0 .. d0 + 15 */
-                const int16 big_r = vload16(0, big_r_rev + rt - (x - d0 - base));
-                const float16 pm = vload16(0, pv + d0);     /* d - 1 */
-                const float16 pd = vload16(0, pv + d0 + 1); /* d */
-                const float16 pn = vload16(0, pv + d0 + 2); /* d + 1 */
-                val = sgm_step16(c, (float16)(mm), pm, pd, pn, SGM_BY_D2_16((float16)(p1_a), (float16)(p1_b), big_r),
-                                 SGM_BY_D2_16((float16)(p2_a), (float16)(p2_b), big_r));
+                const intV big_r = vloadV(0, big_r_rev + rt - (x - d0 - base));
+                const floatV pm = vloadV(0, pv + d0);     /* d - 1 */
+                const floatV pd = vloadV(0, pv + d0 + 1); /* d */
+                const floatV pn = vloadV(0, pv + d0 + 2); /* d + 1 */
+                val = sgm_stepV(c, (floatV)(mm), pm, pd, pn, SGM_BY_D2_V((floatV)(p1_a), (floatV)(p1_b), big_r),
+                                 SGM_BY_D2_V((floatV)(p2_a), (floatV)(p2_b), big_r));
             }
             if (v == nvec - 1) /* only the last vector has lanes d > dmax */
-                val = select((float16)(INFINITY), val, (int16)(d0) + lane <= (int16)(dmax));
-            vstore16(val, 0, cv + d0 + 1);
-            vstore16(val, 0, bp); /* lanes d > dmax: discarded at write-back */
-            newm = fmin_a(newm, val);
+                val = select((floatV)(INFINITY), val, (intV)(d0) + lane <= (intV)(dmax));
+            vstoreV(val, 0, cv + d0 + 1);
+            vstoreV(val, 0, bp); /* lanes d > dmax: discarded at write-back */
+            newm = fmin_aV(newm, val);
         }
-        vstore16((float16)(INFINITY), 0, cv + nvec * VW + 1); /* d beyond the valid range */
+        vstoreV((floatV)(INFINITY), 0, cv + nvec * VW + 1); /* d beyond the valid range */
+#if VW == 16
         const float8 m8 = fmin(newm.lo, newm.hi);
         const float4 m4 = fmin(m8.lo, m8.hi);
+#else
+        const float4 m4 = fmin(newm.lo, newm.hi);
+#endif
         const float2 m2 = fmin(m4.lo, m4.hi);
         *m = fmin(m2.x, m2.y);
         *prev = cv;
@@ -447,7 +506,7 @@ static inline __attribute__((always_inline)) void row_chunk(
  * level d0 + i of row y at the columns x0 .. x0 + n - 1; levels beyond dmax
  * and columns beyond n read as 0. */
 static inline __attribute__((always_inline)) void load_tile(
-    float16 *r, __global const vol_t *cost, const int y, const int x0, const int d0, const int n, const int dmax,
+    floatV *r, __global const vol_t *cost, const int y, const int x0, const int d0, const int n, const int dmax,
     const int H, const int W)
 {
     if (SGM_WHOLE_TILES && n == VW && d0 + VW - 1 <= dmax) { /* plain loads, one plane apart */
@@ -455,11 +514,11 @@ static inline __attribute__((always_inline)) void load_tile(
         const size_t plane = (size_t)H * (size_t)W;
         __attribute__((opencl_unroll_hint))
         for (int i = 0; i < VW; ++i)
-            r[i] = VOL_LOAD16(src + i * plane);
+            r[i] = VOL_LOADV(src + i * plane);
     } else {
         __attribute__((opencl_unroll_hint))
         for (int i = 0; i < VW; ++i)
-            r[i] = d0 + i <= dmax ? vol_load16_partial(cost, VIDX(d0 + i, y, x0, H, W), n, 0.0f) : (float16)(0.0f);
+            r[i] = d0 + i <= dmax ? vol_loadV_partial(cost, VIDX(d0 + i, y, x0, H, W), n, 0.0f) : (floatV)(0.0f);
     }
 }
 
@@ -470,24 +529,24 @@ static inline __attribute__((always_inline)) void load_tile(
  * not written.  dst: the output at cell (d0, y, x0), levels a plane apart.
  * Cells with x < d keep their value (mode 0 writes NaN there). */
 static inline __attribute__((always_inline)) void write_tile(
-    const float16 *r, __global const float *add, __global vol_t *dst, const size_t plane, const int x0,
+    const floatV *r, __global const float *add, __global vol_t *dst, const size_t plane, const int x0,
     const int d0, const int n, const int dmax, const int mode)
 {
-    const int16 xs = (int16)(x0) + LANES;
+    const intV xs = (intV)(x0) + LANESV;
     if (SGM_WHOLE_TILES && n == VW && d0 + VW - 1 <= dmax) { /* plain loads and stores */
         __attribute__((opencl_unroll_hint))
         for (int i = 0; i < VW; ++i) {
-            const int16 valid = xs >= (int16)(d0 + i);
-            const float16 v = add ? r[i] + vload16(0, add + (d0 + i) * VW) : r[i];
+            const intV valid = xs >= (intV)(d0 + i);
+            const floatV v = add ? r[i] + vloadV(0, add + (d0 + i) * VW) : r[i];
             __global vol_t *p = dst + i * plane;
-            float16 o;
+            floatV o;
             if (mode == 0) {
-                o = select((float16)(INVALID_COST), v, valid);
+                o = select((floatV)(INVALID_COST), v, valid);
             } else {
-                const float16 old = VOL_LOAD16(p);
+                const floatV old = VOL_LOADV(p);
                 o = select(old, SGM_COMBINE(old, v, mode), valid);
             }
-            vol_store16_partial(o, p, VW);
+            vol_storeV_partial(o, p, VW);
         }
         return;
     }
@@ -496,24 +555,24 @@ static inline __attribute__((always_inline)) void write_tile(
         const int d = d0 + i;
         if (d > dmax)
             break;
-        const int16 valid = xs >= (int16)(d);
-        const float16 v = add ? r[i] + vload16(0, add + d * VW) : r[i];
+        const intV valid = xs >= (intV)(d);
+        const floatV v = add ? r[i] + vloadV(0, add + d * VW) : r[i];
         __global vol_t *p = dst + i * plane;
-        float16 o;
+        floatV o;
         if (mode == 0) {
-            o = select((float16)(INVALID_COST), v, valid);
+            o = select((floatV)(INVALID_COST), v, valid);
         } else {
-            const float16 old = vol_load16_partial(p, 0, n, 0.0f);
+            const floatV old = vol_loadV_partial(p, 0, n, 0.0f);
             o = select(old, SGM_COMBINE(old, v, mode), valid);
         }
-        vol_store16_partial(o, p, n);
+        vol_storeV_partial(o, p, n);
     }
 }
 
 /* Horizontal paths.  One work-item walks one row.  For each chunk of 16
  * x it copies the chunk's costs into a private block transposed to [x][d]
  * (16 x 16 tiles transposed in registers), so that the recurrence at one
- * pixel runs on float16 lanes over d: C_r(p - r, d - 1), (d) and (d + 1)
+ * pixel runs on floatV lanes over d: C_r(p - r, d - 1), (d) and (d + 1)
  * are three shifted loads of the array prev, which holds C_r(p - r, d) at
  * index d + 1 with +INFINITY at index 0 and beyond the valid range.  C_r
  * overwrites the costs in the block; the block is transposed back and
@@ -555,7 +614,7 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
         buf_a[i] = INFINITY;
         buf_b[i] = INFINITY;
     }
-    const int16 lane = LANES;
+    const intV lane = LANESV;
     const size_t plane = (size_t)H * (size_t)W;
     for (int pass = 0; pass < 1 + both; ++pass) {
         /* the second pass (both = 1) walks the row the other way, adding to the
@@ -577,7 +636,7 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
                 prev[i] = rs[i];
             m = rs[MAX_DISP + 2 + VW];
         }
-        float16 r[VW];
+        floatV r[VW];
         int big_r_rev[MAX_DISP + VW]; /* D2 large, per right pixel of the chunk, reversed (row_gradients) */
         const int nchunks = (W + VW - 1) / VW;
         const int cend = min(c1, nchunks);
@@ -589,9 +648,9 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
             for (int g = 0; g < ntiles; ++g) { /* load the chunk, transposed; d > dmaxc read as 0 */
                 const int d0 = g * VW;
                 load_tile(r, cost, y, x0, d0, n, dmaxc, H, W);
-                transpose16(r);
+                transposeV(r);
                 for (int k = 0; k < VW; ++k)
-                    vstore16(r[k], 0, blk + k * MAX_DISP + d0);
+                    vstoreV(r[k], 0, blk + k * MAX_DISP + d0);
             }
             const int base = x0 - ntiles * VW, rt = (ntiles + 1) * VW - 1;
             row_gradients(ir, W, base, ntiles, VW, dxp, tau_so, outside_large, big_r_rev);
@@ -605,13 +664,13 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
             for (int g = 0; g < ntiles; ++g) { /* write the chunk back, rows d of 16 x */
                 const int d0 = g * VW;
                 for (int k = 0; k < VW; ++k)
-                    r[k] = vload16(0, blk + k * MAX_DISP + d0);
-                transpose16(r);
+                    r[k] = vloadV(0, blk + k * MAX_DISP + d0);
+                transposeV(r);
                 write_tile(r, (__global const float *)0, out + VIDX(d0, y, x0, H, W), plane, x0, d0, n, dmaxc, modep);
             }
             if (modep == 0)
                 for (int d = dmaxc + 1; d < D; ++d)
-                    vol_store16_partial((float16)(NAN), out + VIDX(d, y, x0, H, W), n);
+                    vol_storeV_partial((floatV)(NAN), out + VIDX(d, y, x0, H, W), n);
         }
         if (cend < nchunks) {
             for (int i = 0; i < MAX_DISP + 2 + VW; ++i)
@@ -635,7 +694,7 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
  * Per row, chunks of SGM_PAIR_CW columns (a multiple of 16; the host uses
  * 16: wider chunks measured slower on PoCL) in the horizontal path's order;
  * per chunk and 16-column group: the group's D x 16 costs are loaded as
- * 16 x 16 tiles and the vertical recurrence runs on the tiles' rows (float16
+ * 16 x 16 tiles and the vertical recurrence runs on the tiles' rows (floatV
  * lanes over x, levels in sequence, as in col_row), its C_r stored in the
  * path state (global; per work-item and group one contiguous [D + 2][16]
  * block, the minimum per column as level D + 1, so a chunk touches a few
@@ -685,7 +744,7 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
     float buf_a[MAX_DISP + 2 + VW], buf_b[MAX_DISP + 2 + VW];
     int big_r_rev[MAX_DISP + PCW]; /* horizontal D2 large, reversed (as in sgm_rows) */
     int bigv[MAX_DISP + PCW];      /* vertical D2 large at right pixel x0 - MAX_DISP + t */
-    const int16 lane = LANES;
+    const intV lane = LANESV;
     const size_t plane = (size_t)H * (size_t)W;
     const int nchunks = (W + PCW - 1) / PCW;
     for (int j = j0; j < j1; ++j) {
@@ -701,7 +760,7 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
             buf_b[i] = INFINITY;
         }
         float m = INFINITY; /* horizontal min_k C_r(p - r, k) */
-        float16 r[VW];
+        floatV r[VW];
         for (int ci = 0; ci < nchunks; ++ci) {
             const int x0 = (dir > 0 ? ci : nchunks - 1 - ci) * PCW;
             const int n = min(PCW, W - x0);
@@ -712,25 +771,25 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
             for (int gx = 0; gx * VW < n; ++gx) { /* 16-column groups: vertical path, transpose into blk */
                 const int xg = x0 + gx * VW, ng = min(VW, n - gx * VW);
                 __global float *sg = st + (size_t)(xg / VW) * (D + 2) * VW; /* the group's state, [D + 2][16] */
-                const int16 xs = (int16)(xg) + lane;
-                const int16 valid_x = lane < (int16)(ng);
+                const intV xs = (intV)(xg) + lane;
+                const intV valid_x = lane < (intV)(ng);
                 const int dmaxg = min(D - 1, xg + ng - 1);
-                float16 p1a = (float16)(0.0f), p1b = p1a, p2a = p1a, p2b = p1a, mv, pd, pm1;
+                floatV p1a = (floatV)(0.0f), p1b = p1a, p2a = p1a, p2b = p1a, mv, pd, pm1;
                 if (vfirst) {
                     /* levels beyond the group's valid range read as +INFINITY at level d + 1 */
                     for (int d = dmaxg + 1; d <= D; ++d)
-                        vstore16((float16)(INFINITY), 0, sg + d * VW);
-                    mv = (float16)(INFINITY);
+                        vstoreV((floatV)(INFINITY), 0, sg + d * VW);
+                    mv = (floatV)(INFINITY);
                     pd = mv;
                     pm1 = mv;
                 } else {
                     vertical_penalties(img_l, W, y, py, xg, ng, tau_so, pv1_small, pv1_one, pv1_both, pv2_small,
                                        pv2_one, pv2_both, &p1a, &p1b, &p2a, &p2b);
-                    mv = vload16(0, sg + (D + 1) * VW);
-                    pd = vload16(0, sg);
-                    pm1 = (float16)(INFINITY);
+                    mv = vloadV(0, sg + (D + 1) * VW);
+                    pd = vloadV(0, sg);
+                    pm1 = (floatV)(INFINITY);
                 }
-                float16 newmv = (float16)(INFINITY);
+                floatV newmv = (floatV)(INFINITY);
                 for (int g = 0; g < ntiles; ++g) {
                     const int d0 = g * VW;
                     load_tile(r, cost, y, xg, d0, ng, dmaxg, H, W);
@@ -739,27 +798,27 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
                     for (int i = 0; i < VW; ++i) { /* a constant trip count keeps r[] in registers */
                         const int d = d0 + i;
                         if (i < iend) {
-                            float16 val;
+                            floatV val;
                             if (vfirst) {
                                 val = r[i];
                             } else {
-                                const int16 big_r = vload16(0, bigv + MAX_DISP + gx * VW - d);
-                                const float16 pn = vload16(0, sg + (d + 1) * VW); /* C_r(p - r, d + 1) */
-                                val = sgm_step16(r[i], mv, pm1, pd, pn, SGM_BY_D2_16(p1a, p1b, big_r),
-                                                 SGM_BY_D2_16(p2a, p2b, big_r));
+                                const intV big_r = vloadV(0, bigv + MAX_DISP + gx * VW - d);
+                                const floatV pn = vloadV(0, sg + (d + 1) * VW); /* C_r(p - r, d + 1) */
+                                val = sgm_stepV(r[i], mv, pm1, pd, pn, SGM_BY_D2_V(p1a, p1b, big_r),
+                                                 SGM_BY_D2_V(p2a, p2b, big_r));
                                 pm1 = pd;
                                 pd = pn;
                             }
-                            val = select((float16)(INFINITY), val, (xs >= (int16)(d)) & valid_x);
-                            vstore16(val, 0, sg + d * VW);
-                            newmv = fmin_a(newmv, val);
+                            val = select((floatV)(INFINITY), val, (xs >= (intV)(d)) & valid_x);
+                            vstoreV(val, 0, sg + d * VW);
+                            newmv = fmin_aV(newmv, val);
                         }
                     }
-                    transpose16(r);
+                    transposeV(r);
                     for (int k = 0; k < VW; ++k)
-                        vstore16(r[k], 0, blk + (gx * VW + k) * MAX_DISP + d0);
+                        vstoreV(r[k], 0, blk + (gx * VW + k) * MAX_DISP + d0);
                 }
-                vstore16(newmv, 0, sg + (D + 1) * VW);
+                vstoreV(newmv, 0, sg + (D + 1) * VW);
             }
             /* horizontal D2 and recurrence, as in sgm_rows */
             const int base = x0 - ntiles * VW, rt = ntiles * VW + PCW - 1;
@@ -778,13 +837,13 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
                 for (int g = 0; g <= dmaxg / VW; ++g) {
                     const int d0 = g * VW;
                     for (int k = 0; k < VW; ++k)
-                        r[k] = vload16(0, blk + (gx * VW + k) * MAX_DISP + d0);
-                    transpose16(r);
+                        r[k] = vloadV(0, blk + (gx * VW + k) * MAX_DISP + d0);
+                    transposeV(r);
                     write_tile(r, sg, out + VIDX(d0, y, xg, H, W), plane, xg, d0, ng, dmaxg, mode);
                 }
                 if (mode == 0)
                     for (int d = dmaxg + 1; d < D; ++d)
-                        vol_store16_partial((float16)(NAN), out + VIDX(d, y, xg, H, W), ng);
+                        vol_storeV_partial((floatV)(NAN), out + VIDX(d, y, xg, H, W), ng);
             }
         }
     }

@@ -25,9 +25,11 @@
 #ifndef SGM_RECURRENCE_H
 #define SGM_RECURRENCE_H
 
-/* a gradient is large: scalar 1/0; vector lanes -1/0 */
+/* a gradient is large: scalar 1/0; vector lanes -1/0 (float16 / float8 lanes) */
 #define SGM_LARGE(diff, tau) (!isless(fabs(diff), (tau)))
-#define SGM_LARGE16(diff, tau) (isless(fabs(diff), (float16)(tau)) == (int16)(0))
+#define SGM_LARGE_T(diff, tau, FT, IT) (isless(fabs(diff), (FT)(tau)) == (IT)(0))
+#define SGM_LARGE16(diff, tau) SGM_LARGE_T(diff, tau, float16, int16)
+#define SGM_LARGE8(diff, tau) SGM_LARGE_T(diff, tau, float8, int8)
 
 /* D1's step: a (D2 small) and b (D2 large) from the pixel's D1 flag */
 #define SGM_BY_D1(small, one, both, big_l, a, b) \
@@ -35,40 +37,46 @@
         (a) = (big_l) ? (one) : (small);         \
         (b) = (big_l) ? (both) : (one);          \
     } while (0)
-#define SGM_BY_D1_16(small, one, both, big_l, a, b)                \
-    do {                                                           \
-        (a) = select((float16)(small), (float16)(one), (big_l));   \
-        (b) = select((float16)(one), (float16)(both), (big_l));    \
+#define SGM_BY_D1_T(small, one, both, big_l, a, b, FT)         \
+    do {                                                       \
+        (a) = select((FT)(small), (FT)(one), (big_l));         \
+        (b) = select((FT)(one), (FT)(both), (big_l));          \
     } while (0)
-/* D2's step (vector lanes: big_r -1/0) */
+#define SGM_BY_D1_16(small, one, both, big_l, a, b) SGM_BY_D1_T(small, one, both, big_l, a, b, float16)
+#define SGM_BY_D1_8(small, one, both, big_l, a, b) SGM_BY_D1_T(small, one, both, big_l, a, b, float8)
+/* D2's step (vector lanes: big_r -1/0; any width) */
 #define SGM_BY_D2_16(a, b, big_r) select((a), (b), (big_r))
 #define SGM_BY_D2(a, b, big_r) ((big_r) ? (b) : (a))
 
 /* fmin (OpenCL: y if y < x, else x; the other argument if one is NaN) with
  * one comparison instead of a NaN test and a comparison, where one argument
  * is known never to be NaN; the same value as fmin in every such case, ties
- * included.  fmin_a: a is never NaN; fmin_b: b is never NaN. */
-static inline __attribute__((always_inline)) float16 fmin_a(const float16 a, const float16 b)
-{
-    return select(a, b, b < a);
-}
-
-static inline __attribute__((always_inline)) float16 fmin_b(const float16 a, const float16 b)
-{
-    return select(a, b, !(a <= b));
-}
-
-/* The recurrence: C_r(p, d) from the cost c = C(p, d), m, and C_r(p - r, .)
- * at d - 1 (lo), d and d + 1 (hi).  m is never NaN (a minimum from
- * +INFINITY through fmin, which drops NaN), so neither is m + P2: fmin_b and
- * fmin_a are fmin there; C_r(p - r, .) may be NaN (a NaN cost). */
-static inline __attribute__((always_inline)) float16 sgm_step16(
-    const float16 c, const float16 m, const float16 lo, const float16 d, const float16 hi,
-    const float16 p1, const float16 p2)
-{
-    const float16 best = fmin_a(fmin_b(d, m + p2), fmin(lo, hi) + p1);
-    return c - m + best;
-}
+ * included.  fmin_aN: a is never NaN; fmin_bN: b is never NaN.
+ *
+ * The recurrence sgm_stepN: C_r(p, d) from the cost c = C(p, d), m, and
+ * C_r(p - r, .) at d - 1 (lo), d and d + 1 (hi).  m is never NaN (a minimum
+ * from +INFINITY through fmin, which drops NaN), so neither is m + P2:
+ * fmin_b and fmin_a are fmin there; C_r(p - r, .) may be NaN (a NaN cost).
+ * One text for float16 and float8 lanes (N = 16, 8), the scalar sgm_step
+ * below in the same order of operations. */
+#define SGM_VECTOR_FUNCTIONS(N)                                                                            \
+    static inline __attribute__((always_inline)) float##N fmin_a##N(const float##N a, const float##N b)   \
+    {                                                                                                      \
+        return select(a, b, b < a);                                                                        \
+    }                                                                                                      \
+    static inline __attribute__((always_inline)) float##N fmin_b##N(const float##N a, const float##N b)   \
+    {                                                                                                      \
+        return select(a, b, !(a <= b));                                                                    \
+    }                                                                                                      \
+    static inline __attribute__((always_inline)) float##N sgm_step##N(                                    \
+        const float##N c, const float##N m, const float##N lo, const float##N d, const float##N hi,        \
+        const float##N p1, const float##N p2)                                                              \
+    {                                                                                                      \
+        const float##N best = fmin_a##N(fmin_b##N(d, m + p2), fmin(lo, hi) + p1);                          \
+        return c - m + best;                                                                               \
+    }
+SGM_VECTOR_FUNCTIONS(16)
+SGM_VECTOR_FUNCTIONS(8)
 
 static inline __attribute__((always_inline)) float sgm_step(
     const float c, const float m, const float lo, const float d, const float hi, const float p1, const float p2)

@@ -232,7 +232,7 @@ def _gpu_options(ctx, runs) -> list:
 
 
 def _cpu_options(ctx, runs) -> list:
-    """CPU-shaped devices: SGM's sweeps and column width, CBCA's kernels, the register
+    """CPU-shaped devices: SGM's sweeps, column width and vector width, CBCA's kernels, the register
     tiles of the conv stack and of the head, the fst volume's vector width, the left
     WTA's chunks per work-item, the right reference's mirroring, the work-group size
     left to launch_local."""
@@ -242,6 +242,8 @@ def _cpu_options(ctx, runs) -> list:
     sgm = [{"sgm_paired_max_units": units}] + [{"sgm_paired_max_units": 0, "sgm_cols": c} for c in (32, 64, 128)]
     opts = [
         Option("sgm", sgm, runs["sgm"], exact=False),
+        # sgm.cl on 16- or 8-wide vectors (rules: the device's vector width; the same bits)
+        Option("sgm_width", [{"sgm_width": v} for v in (16, 8)], runs["sgm"]),
         Option("cbca_path", [{"cbca_fused": True, "cbca_multi": True}, {"cbca_fused": True, "cbca_multi": False},
                              {"cbca_fused": False, "cbca_multi": False}], runs["cbca"]),
         # CONV_RN 8: a device that reports 8-wide vectors (the rules take 16 on CPUs)
@@ -289,6 +291,8 @@ def _rules_value(profile, name):
     bare = replace(profile, tuned={})
     if name == "fst_volume_width":  # 0 in the rules: the device's vector width decides
         return bare.fst_volume_width()
+    if name == "sgm_width":
+        return bare.sgm_width()
     v = bare.network_tiles() if name == "network_tiles" else bare.rule(name)
     return list(v) if isinstance(v, tuple) else v
 

@@ -114,6 +114,7 @@ class SGM:
     whole 16 x 16 tiles of ``sgm_rows`` moved by plain vector loads and stores.
     ``paired``: the paired sweeps (``band``, ``cols``, ``fused_rows`` and
     ``specialize`` configure the one-direction kernels only).
+    ``width``: the kernels' vectors, 16 or 8 floats (``SGM_VW``; the same bits).
     ``loop_limit``: the most loop iterations a work-item may take in all (0:
     none); under a limit the one-direction kernels walk their paths in several
     launches (same results) and the paired sweeps refuse volumes beyond it.
@@ -121,7 +122,7 @@ class SGM:
     recurrences run in float, the partial sums in the output are rounded to half."""
 
     def __init__(self, ctx, prefetch=None, half: bool = False, band=None, cols=None, fused_rows=None,
-                 specialize=None, whole_tiles=None, paired=None, loop_limit=None):
+                 specialize=None, whole_tiles=None, paired=None, loop_limit=None, width=None):
         self.ctx = ctx
         if loop_limit is not None and int(loop_limit) < 0:
             raise InputError(f"SGM loop_limit must be >= 0 (0: none), got {loop_limit}")
@@ -136,6 +137,10 @@ class SGM:
         self.whole_tiles = bool(pick(whole_tiles, "whole_tiles"))
         self.fused_rows = bool(pick(fused_rows, "fused_rows"))
         self.paired = bool(pick(paired, "paired"))
+        width = pick(width, "width")
+        if int(width) not in (8, 16):
+            raise InputError(f"SGM width must be 8 or 16 floats, got {width}")
+        self.width = int(width)
         self._group_of_one = rule["group_of_one"]
         band = 0 if band is None else band
         if int(band) < 0:
@@ -163,7 +168,8 @@ class SGM:
         if k is None:
             k = [self.ctx.kernel("sgm.cl", name, MAX_DISP=max_disp, SGM_CPU_PREFETCH=int(self.prefetch),
                                  VOL_HALF=int(self.half), SGM_COLS=self.cols, SGM_SPECIALIZE=int(self.specialize),
-                                 SGM_WHOLE_TILES=int(self.whole_tiles), SGM_PAIR_CW=PAIR_CW)
+                                 SGM_WHOLE_TILES=int(self.whole_tiles), SGM_PAIR_CW=PAIR_CW,
+                                 SGM_VW=self.width)
                  for name in names]
             k = [(kern, self.ctx.profile.line_group(self.ctx, kern, self._group_of_one)) for kern in k]
             self._kernels[(max_disp, names)] = k
@@ -212,8 +218,8 @@ class SGM:
         state = self._scratch("_state", state_bytes(D, W, self.cols), "SGM path state")
         g_cols = (round_up(ws // self.cols, l_cols),)
 
-        nchunks = -(-W // 16)
-        hband = nchunks  # chunks of 16 columns per sgm_rows launch (llvmpipe's loop limit)
+        nchunks = -(-W // self.width)
+        hband = nchunks  # chunks of `width` columns per sgm_rows launch (llvmpipe's loop limit)
         rstate = state  # sgm_rows' state between chunk ranges (unused when hband = nchunks)
 
         def rows(dx, mode, y0, ny, both=0):
@@ -236,7 +242,7 @@ class SGM:
             if llvmpipe_row_iterations(_max_disp(D), W, self.fused_rows) > self._loop_limit:
                 # walk the rows in ranges of chunks, one direction per launch
                 fused = False
-                hband = max(1, self._loop_limit // llvmpipe_row_iterations(_max_disp(D), 16))
+                hband = max(1, self._loop_limit // llvmpipe_row_iterations(_max_disp(D), self.width))
                 if hband < nchunks:
                     # SGM_RST = MAX_DISP + 19 floats per row (sgm.cl)
                     rstate = self._scratch("_rstate", 4 * H * (_max_disp(D) + 19), "SGM row path state")
