@@ -3,7 +3,7 @@ volume; fst maps of one 367 x 1234 image), timed after a warm-up, each run
 printed (BENCHMARKS.md, "Machine C again").
 
     .venv/bin/python tools/benchmarks/stage_alone.py cbca [--iterations 4] [--select-add 0|1]
-    .venv/bin/python tools/benchmarks/stage_alone.py sgm
+    .venv/bin/python tools/benchmarks/stage_alone.py sgm [--widths 16 8 [--rounds 4]]
     .venv/bin/python tools/benchmarks/stage_alone.py wta [--chunks 1|4|8|16]
     .venv/bin/python tools/benchmarks/stage_alone.py normalise     # fst_normalise16 and fst_normalise
 
@@ -52,6 +52,9 @@ def main():
     ap.add_argument("--select-add", type=int, choices=(0, 1), default=None,
                     help="CBCA multi path's masked-term form (default: by the device)")
     ap.add_argument("--chunks", type=int, default=None, help="left WTA chunks per work-item (default: the rule)")
+    ap.add_argument("--widths", type=int, nargs="+", choices=(16, 8), default=None,
+                    help="SGM: these vector widths in turn (default: the device's one)")
+    ap.add_argument("--rounds", type=int, default=4, help="SGM --widths: rounds of the widths in turn")
     args = ap.parse_args()
     ctx = ClContext()
     print(f"device: {ctx.describe()}")
@@ -88,6 +91,21 @@ def main():
         ts = timed(ctx, lambda: wta.left(d_vol, D, H, W, out=disp), args.runs)
         print(f"WTA left ({wta.chunks} chunks of 16 pixels per work-item): "
               + " ".join(f"{t * 1000:.1f}" for t in ts) + " ms")
+    elif args.widths:  # SGM on 16- and 8-wide vectors, in turn, the outputs compared bit for bit
+        from mccnn_cl.stages.sgm import SGM
+
+        sgms = {w: SGM(ctx, width=w) for w in args.widths}
+        outs = {}
+        for w, sgm in sgms.items():
+            sgm(d_vol, d_l, d_r, D, H, W, out=d_out)
+            outs[w] = ctx.from_device(d_out, (D, H, W)).view(np.uint32)
+        first = outs[args.widths[0]]
+        print("the same bits at every width: " + str(all(np.array_equal(o, first) for o in outs.values())))
+        for r in range(args.rounds):
+            for w in (args.widths if r % 2 == 0 else args.widths[::-1]):
+                ts = timed(ctx, lambda: sgms[w](d_vol, d_l, d_r, D, H, W, out=d_out), args.runs)
+                print(f"round {r}: SGM width {w} (paired sweeps: {sgms[w].paired}): "
+                      + " ".join(f"{t * 1000:.0f}" for t in ts) + " ms", flush=True)
     else:
         from mccnn_cl.stages.sgm_select import make_sgm
 
