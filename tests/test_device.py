@@ -57,7 +57,7 @@ def test_declared_loop_limit_and_the_rules_it_changes():
     # Oclgrind's CBCA: "multi" before (its CPU bit), now the generic column's work-group passes
     # (kernels/cbca_wg.cl), bit-identical to the short and fused kernels (tests/test_cbca_gpu.py)
     ("pocl", dict(prefetch=True, cols=128, fused_rows=True, specialize=True, whole_tiles=True, paired=True,
-                  group_of_one=True, loop_limit=None, width=16), "multi", 16),
+                  group_of_one=True, loop_limit=None, width=8), "multi", 16),
     ("llvmpipe", dict(prefetch=True, cols=32, fused_rows=False, specialize=False, whole_tiles=False, paired=False,
                       group_of_one=True, loop_limit=65535, width=16), "short", 4),
     ("oclgrind", dict(prefetch=False, cols=32, fused_rows=False, specialize=True, whole_tiles=True, paired=False,

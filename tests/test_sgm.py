@@ -257,16 +257,16 @@ def test_vector_widths_are_bit_identical(ctx, D, H, W):
 
 
 def test_vector_width_rule(ctx):
-    """The width follows the rule (0 on CPUs: the device's float vector width, 16 or more
-    -> 16, else 8; PoCL on a Zen 3 reports 8), a tuned width wins, a bad one is refused."""
+    """The width follows the rule (8 on CPUs whatever their vector width, 16 on GPUs), a
+    tuned width wins, a bad one is refused."""
     from dataclasses import replace
     from mccnn_cl.opencl.device import RULES
 
-    assert RULES["sgm_width"]["cpu"] == 0 and RULES["sgm_width"]["gpu"] == 16
+    assert RULES["sgm_width"]["cpu"] == 8 and RULES["sgm_width"]["gpu"] == 16
     prof = ctx.profile
-    for kind, width, expected in (("cpu", 16, 16), ("cpu", 8, 8), ("cpu", 4, 8), ("gpu", 8, 16)):
+    for kind, width, expected in (("cpu", 16, 8), ("cpu", 8, 8), ("gpu", 8, 16), ("gpu", 16, 16)):
         assert replace(prof, kind=kind, vector_width=width, tuned={}).sgm_width() == expected
-    assert replace(prof, kind="cpu", vector_width=16, tuned={"sgm_width": 8}).sgm_width() == 8
+    assert replace(prof, kind="cpu", vector_width=16, tuned={"sgm_width": 16}).sgm_width() == 16
     assert SGM(ctx).width == prof.sgm_width()
     with pytest.raises(InputError, match="width"):
         SGM(ctx, width=4)

@@ -15,8 +15,8 @@
  *   SGM_WHOLE_TILES   [1] sgm_rows' separate path for whole 16 x 16 tiles
  *   SGM_PAIR_CW       [16] columns per chunk of sgm_paired
  *   SGM_VW            [16] lanes per vector, 16 or 8 (VW below; the host's
- *                     rule sgm_width: 8 where the device's float vectors
- *                     hold 8, e.g. PoCL with AVX2).  The text below says 16;
+ *                     rule sgm_width: 8 on CPUs, measured faster there
+ *                     with AVX2 and AVX-512 alike).  The text below says 16;
  *                     with 8, chunks, tiles and groups are 8 wide and the
  *                     same bits come out.
  *

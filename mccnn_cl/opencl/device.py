@@ -44,9 +44,10 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: (work-groups of 1, else the kernel's preferred multiple); the paired sweeps
 #: (``sgm_paired_max_units``: taken on devices with at most this many compute
 #: units; two work-items per launch); ``sgm_width``: sgm.cl's vectors, 16 or 8 floats (SGM_VW;
-#: 0 = the device's float vector width: 16 where it is 16, else 8; on the Zen 3, whose PoCL
-#: device reports 8, the paired sweeps took 189-210 ms against 214-240 ms a KITTI-sized volume
-#: at 16, the same bits); ``sgm_wg_cols``: the work-group stage's vertical
+#: 8 on CPUs by measurement on both CPU classes at hand, the same bits at either width: the
+#: paired sweeps took 189-210 ms against 214-240 ms a KITTI-sized volume at 16 on a Zen 3
+#: (AVX2), 133-140 against 143-155 ms on a Zen 4 (AVX-512, whose 16-float vectors PoCL uses
+#: elsewhere)); ``sgm_wg_cols``: the work-group stage's vertical
 #: paths with that many adjacent columns per work-group (0: one column per work-group,
 #: as its rows; :class:`~mccnn_cl.stages.sgm_wg.SGMWorkGroup`).  CBCA: ``cbca_workgroup`` (the GPU-shaped
 #: two passes of kernels/cbca_wg.cl, a work-group per row or column tile and
@@ -90,7 +91,7 @@ RULES = {
     "sgm_group_of_one":        {CPU: True,  LLVMPIPE: True,  GPU: False},
     "sgm_paired_max_units":    {CPU: 2,     LLVMPIPE: 0,     GPU: 0},
     "sgm_wg_cols":             {CPU: 0,     LLVMPIPE: 0,     GPU: 0},
-    "sgm_width":               {CPU: 0,     LLVMPIPE: 16,    GPU: 16},
+    "sgm_width":               {CPU: 8,     LLVMPIPE: 16,    GPU: 16},
     "cbca_workgroup":          {CPU: False, LLVMPIPE: False, GPU: True},
     "cbca_fused":              {CPU: True,  LLVMPIPE: False, GPU: False},
     "cbca_multi":              {CPU: True,  LLVMPIPE: True,  GPU: False},
@@ -208,10 +209,8 @@ class DeviceProfile:
                     group_of_one=self.rule("sgm_group_of_one"), width=self.sgm_width())
 
     def sgm_width(self) -> int:
-        """Lanes of sgm.cl's vectors (rule ``sgm_width``; 0: 16 where the device's float vector
-        width is 16 or more, else 8)."""
-        vw = int(self.rule("sgm_width"))
-        return vw if vw else (16 if self.vector_width >= 16 else 8)
+        """Lanes of sgm.cl's vectors (rule ``sgm_width``, 16 or 8)."""
+        return int(self.rule("sgm_width"))
 
     def cbca_path(self, max_arm: int, short_max: int, short=True, fused=None, multi=None, workgroup=None) -> str:
         """CBCA's kernel path for arms of at most ``max_arm``: "workgroup"
