@@ -232,8 +232,7 @@ def test_paths_walked_in_several_launches_are_bit_identical(ctx, D, H, W):
 
 @pytest.mark.parametrize("D,H,W", [(40, 9, 70), (21, 10, 150), (50, 5, 45), (3, 3, 16), (64, 4, 100)])
 def test_vector_widths_are_bit_identical(ctx, D, H, W):
-    """sgm.cl on 8-wide vectors (SGM_VW 8, the rule where the device's floats come 8 to a
-    vector) and on 16-wide ones: the paired sweeps, the one-direction kernels (whole
+    """sgm.cl on 8-wide vectors (SGM_VW 8, the rule on CPUs) and on 16-wide ones: the paired sweeps, the one-direction kernels (whole
     image, bands with 48 columns per work-item, specialised or not) and the paired
     sweeps on half-precision volumes give the same bits, and match the reference.  W
     not a multiple of 8 or 16, partial tiles, D > W."""

@@ -30,8 +30,7 @@ def describe_choices(device) -> list:
     if not profile.is_cpu:  # the GPU-shaped paths and the GEMM tile are tuned there
         names = ("sgm_stage", "sgm_cols", "sgm_wg_cols", "cbca_workgroup", "launch_local", "network_gemm_tile")
     for name in names:
-        value = (profile.fst_volume_width() if name == "fst_volume_width" else
-                 profile.sgm_width() if name == "sgm_width" else profile.rule(name))
+        value = profile.fst_volume_width() if name == "fst_volume_width" else profile.rule(name)
         lines.append(f"  {name:22s} {value!s:14s} ({profile.rule_source(name)})")
     if not profile.is_cpu:
         return lines

@@ -291,8 +291,6 @@ def _rules_value(profile, name):
     bare = replace(profile, tuned={})
     if name == "fst_volume_width":  # 0 in the rules: the device's vector width decides
         return bare.fst_volume_width()
-    if name == "sgm_width":
-        return bare.sgm_width()
     v = bare.network_tiles() if name == "network_tiles" else bare.rule(name)
     return list(v) if isinstance(v, tuple) else v
 
