@@ -390,9 +390,13 @@ class StereoMatcher:
         rec.frame = frame
         rec.start()
         if not plan.tiled:
-            C_CNN = rec("C_CNN", self._mask(self._matching_cost(I_L, I_R, D, out=self._take_volume(D, H, W),
-                                                                stats=rec.stats), D, H, W, rec), (D, H, W),
-                        self.vdtype)
+            volume = self._take_volume(D, H, W)
+            # SGM's output volume, first written after the cost volume is complete: lent to the
+            # cost meanwhile, which carves its scratch (the network's maps) from it
+            lent = self._take_volume(D, H, W)
+            C_CNN = self._matching_cost(I_L, I_R, D, out=volume, stats=rec.stats, scratch=lent)
+            self._pool.give(lent)
+            C_CNN = rec("C_CNN", self._mask(C_CNN, D, H, W, rec), (D, H, W), self.vdtype)
             D_SE = self._volume_stages(C_CNN, J_L, J_R, rec)
         else:
             D_SE = ctx.to_device(self._tiled_volume_stages(I_L, I_R, J_L, J_R, plan, rec))
@@ -535,10 +539,10 @@ class StereoMatcher:
         self._pool.give(C_R)
         return D_R
 
-    def _matching_cost(self, I_L, I_R, D, to_host=None, out=None, stats=None):
-        """C_CNN on the device (into ``out`` when given), or with ``to_host``
-        (bytes of device memory the bands may use; network only) as a host
-        array computed band by band."""
+    def _matching_cost(self, I_L, I_R, D, to_host=None, out=None, stats=None, scratch=None):
+        """C_CNN on the device (into ``out`` when given; ``scratch`` lent to the
+        cost for the call), or with ``to_host`` (bytes of device memory the
+        bands may use; network only) as a host array computed band by band."""
         def run(progress=None):
             if stats is not None:  # a working frame's padded images: the real images' standardisation
                 kw = {"stats": stats}
@@ -546,7 +550,7 @@ class StereoMatcher:
                 kw = {}
             if to_host is not None:
                 return self.cost.to_host(I_L, I_R, D, max_bytes=to_host, progress=progress, **kw)
-            return self.cost(I_L, I_R, D, progress=progress, out=out, **kw)
+            return self.cost(I_L, I_R, D, progress=progress, out=out, scratch=scratch, **kw)
 
         if not self.progress:
             return run()
@@ -582,7 +586,8 @@ class StereoMatcher:
             maps += stage.scratch_bytes(D, W, self.params)
         scratch = self.cost.scratch_bytes(H, W)            # the cost's own buffers besides the volume
         budget, max_alloc = self.memory_limit, self.ctx.max_alloc
-        whole = nvol * row * H + scratch + maps
+        # whole: SGM's output volume is lent to the cost, which carves scratch from it
+        whole = nvol * row * H + scratch - self.cost.lent_scratch_bytes(H, W, row * H) + maps
         overlap = self.tile_overlap
         if row * H <= max_alloc and whole <= budget:
             return MemoryPlan(row * H, nvol, whole, budget, [(0, H, 0, H)], overlap, 0, budget, False)

@@ -155,6 +155,15 @@ def case_fst(ctx, rng, chk):
         # float32 dot products of 5 unit-vector components: ~1e-7
         chk.close(f"fst {h}x{wd} D={D} width {cost.volume_width}", ctx.from_device(out, (D, H, W)), ref.fst_cost_volume(w, left, right, D),
                   atol=2e-6, rtol=0)
+    # the maps and planar features carved from a lent buffer (sub-buffers, StereoMatcher's
+    # loan of SGM's volume): the same volume; the simulator checks every access against
+    # each sub-buffer's own bounds
+    cost.release_buffers()
+    lent = _poisoned(ctx, sum(cost._pooled_scratch(H, W)) + 8 * ctx.sub_buffer_align)
+    again = _poisoned(ctx, D * H * W * 4)
+    cost(left, right, D, out=again, scratch=lent)
+    chk.close(f"fst {h}x{wd} D={D}, maps in a lent buffer", ctx.from_device(again, (D, H, W)),
+              ctx.from_device(out, (D, H, W)))
 
 
 def case_acrt(ctx, rng, chk):

@@ -51,12 +51,19 @@ class MatchingCost:
         """The cost for ``weights`` (a network's :class:`~mccnn_cl.weights.Weights`)."""
         return cls(ctx, weights, tiles=tiles, half=half)
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None):
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None):
         """The volume ``[D][H_img - 2m][W_img - 2m]`` on the device (into ``out``
         when given); ``progress(done, D)`` as disparities or bands complete;
         ``stats``: ``((mean, std), (mean, std))`` of the left and right images to
-        standardise with instead of the inputs' own (None: their own)."""
+        standardise with instead of the inputs' own (None: their own);
+        ``scratch``: a device buffer lent for the call's own buffers (a cost
+        may leave it unused; its contents are overwritten)."""
         raise NotImplementedError
+
+    def lent_scratch_bytes(self, H: int, W: int, lent: int) -> int:
+        """Of :meth:`scratch_bytes`, the bytes a lent ``scratch`` buffer of ``lent``
+        bytes surely holds (none: a cost that does not use the loan)."""
+        return 0
 
     def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None) -> np.ndarray:
         """The volume in host memory, using at most ``max_bytes`` of device memory at a time."""

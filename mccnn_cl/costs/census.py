@@ -77,10 +77,11 @@ class CensusCost(MatchingCost):
         d.release()
         return out
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None):
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None):
         """Cost volume of the host images ``left`` vs ``right``; ``progress`` is
-        accepted as every cost's and not called (one launch), so is ``stats``
-        (census compares intensities, it standardises nothing)."""
+        accepted as every cost's and not called (one launch), so are ``stats``
+        (census compares intensities, it standardises nothing) and ``scratch``
+        (its bit planes are small: 16 bytes a pixel)."""
         if not (isinstance(left, np.ndarray) and isinstance(right, np.ndarray)):
             raise InputError("census needs host images (numpy arrays)")
         if left.shape != right.shape or left.ndim != 2:

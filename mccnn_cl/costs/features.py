@@ -46,7 +46,7 @@ from collections import namedtuple
 
 import numpy as np
 
-from ..opencl.context import BufferPool, launch_sizes, round_up
+from ..opencl.context import Arena, BufferPool, launch_sizes, round_up
 from ..errors import InputError, OpenCLError, WeightsError
 from ..validate import check_cost_inputs
 from ..imageops import standardise as normalise  # noqa: F401 (one standardisation: training's too)
@@ -322,11 +322,54 @@ class ConvNetCost(MatchingCost):
             return normalise(L), normalise(R)
         return normalise(L, stats[0]), normalise(R, stats[1])
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None):
+    def _pools(self) -> list:
+        """The pools the cost's scratch comes from (a lent buffer is carved through them)."""
+        return [self.stack._pool]
+
+    def _pooled_scratch(self, h: int, w: int) -> list:
+        """Upper bounds of the buffers the pools hold at once for an h x w
+        volume (what a lent buffer can hold): the conv stack's two maps."""
+        one = self.stack.scratch_bytes(self.band_rows(h, w), w) // 2
+        return [one, one]
+
+    def lent_scratch_bytes(self, h: int, w: int, lent: int) -> int:
+        """Of :meth:`scratch_bytes`, the bytes surely carved from a lent buffer of
+        ``lent`` bytes: all the pools' buffers when they fit, else at least
+        the arena's size less its largest buffer and the alignment gaps (a
+        buffer is made afresh only when it does not fit behind those carved
+        before it)."""
+        items = self._pooled_scratch(h, w)
+        sure = int(lent) - max(items) - len(items) * self.ctx.sub_buffer_align
+        return max(0, min(sum(items), sure))
+
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None):
         """Inputs checked, the volume's buffer (``out`` or a new one), :meth:`_enqueue`
         over :meth:`band_rows` bands; ``stats``: ``((mean, std) of the left, (mean, std)
         of the right)`` to standardise with instead of the images' own
-        (:func:`mccnn_cl.imageops.standardise`; None: their own)."""
+        (:func:`mccnn_cl.imageops.standardise`; None: their own).  ``scratch``: a
+        device buffer (not ``out``) lent for this call: the conv maps (and fst's
+        planar features) that no kept buffer holds are carved from it
+        (:class:`~mccnn_cl.opencl.context.Arena`); its contents are overwritten, and
+        it is the caller's again when the call returns (later commands of the
+        in-order queue run after the cost's)."""
+        if scratch is None:
+            return self._call(left, right, max_disparity, out, progress, stats)
+        if scratch is out:
+            raise InputError("the lent scratch buffer must not be the volume's buffer")
+        arena = Arena(self.ctx, scratch)
+        pools = self._pools()
+        for pool in pools:
+            pool.lend(arena)
+        done = False
+        try:
+            volume = self._call(left, right, max_disparity, out, progress, stats)
+            done = True
+            return volume
+        finally:  # after an error (Ctrl-C too) the maps still taken are released, not reported
+            for pool in pools:
+                pool.end_loan(check=done)
+
+    def _call(self, left, right, max_disparity, out, progress, stats):
         ctx = self.ctx
         L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
         nbytes = D * h * w * self.vdtype.itemsize

@@ -168,6 +168,14 @@ class FstCost(ConvNetCost):
         finally:
             self._planes.clear()
 
+    def _pools(self) -> list:
+        return [self.stack._pool, self._planes]
+
+    def _pooled_scratch(self, h: int, w: int) -> list:
+        """The conv stack's two maps and both images' planar features of one band."""
+        plane = self.band_rows(h, w) * self.nk * self._wp(w) * 4
+        return super()._pooled_scratch(h, w) + [plane, plane]
+
     def release_buffers(self) -> None:
         """Free the conv stack's kept maps (see ConvStack) and the kept planar features."""
         self.stack.release_buffers()

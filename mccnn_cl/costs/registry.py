@@ -32,9 +32,15 @@ Every one of them is a :class:`~.base.MatchingCost` (one registry:
     measures costs from it (:mod:`mccnn_cl.stages.confidence`).
 ``scratch_bytes(H, W)``
     upper bound of the device bytes a call allocates besides the H x W volume.
-``__call__(I_L, I_R, D, out=None, progress=None) -> device buffer``
+``__call__(I_L, I_R, D, out=None, progress=None, stats=None, scratch=None) -> device buffer``
     the volume on the device (into ``out`` when given);
-    ``progress(done, D)`` is called as disparities or bands complete.
+    ``progress(done, D)`` is called as disparities or bands complete;
+    ``scratch``, a device buffer lent for the call (the stereo method lends
+    SGM's output volume, first written after the cost): the networks carve
+    their conv maps from it instead of holding buffers of their own.
+``lent_scratch_bytes(H, W, lent)``
+    of ``scratch_bytes(H, W)``, the bytes a loan of ``lent`` bytes surely
+    holds (the memory planner counts the rest).
 ``to_host(I_L, I_R, D, max_bytes=None, progress=None) -> ndarray``
     the volume in host memory, using at most ``max_bytes`` of device memory
     for it at a time where the cost can band (census computes then copies).

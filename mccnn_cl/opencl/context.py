@@ -97,10 +97,39 @@ class MemoryTracker:
         self.peak = self.live
 
 
+class Arena:
+    """Sub-buffers carved front to back from one lent buffer (``parent``),
+    each at an offset aligned for sub-buffers (the device's
+    ``CL_DEVICE_MEM_BASE_ADDR_ALIGN``, at least a page).
+
+    Why: a stage's scratch that is dead before another stage's buffer is
+    first written can live inside that buffer (the network's maps inside the
+    SGM output volume, which is written only after the cost volume is
+    complete): fewer device bytes at once, and on CPU devices fewer fresh
+    pages to map on a first call.  The sub-buffers are not counted in
+    ``ctx.memory`` (the parent is)."""
+
+    def __init__(self, ctx: "ClContext", parent):
+        self.ctx = ctx
+        self.parent = parent
+        self.size = int(parent.size)
+        self.offset = 0
+        self.align = ctx.sub_buffer_align
+
+    def carve(self, nbytes: int):
+        """A sub-buffer of ``nbytes`` at the next aligned offset, or None when it does not fit."""
+        start = round_up(self.offset, self.align)
+        if start + int(nbytes) > self.size:
+            return None
+        self.offset = start + int(nbytes)
+        return self.parent.get_sub_region(start, int(nbytes))
+
+
 class BufferPool:
     """Device buffers kept for reuse between the stages of a run and between
     runs: :meth:`take` hands out a free buffer of at least ``nbytes`` (the
-    smallest such), else frees the (too small) free ones and makes a new one;
+    smallest such), else carves one from a lent :class:`Arena` (see
+    :meth:`lend`), else frees the (too small) free ones and makes a new one;
     :meth:`give` returns buffers.
 
     Why: a fresh buffer's pages are mapped on first touch, which on CPU
@@ -113,12 +142,19 @@ class BufferPool:
     def __init__(self, ctx: "ClContext"):
         self.ctx = ctx
         self._free: list = []
+        self._arena = None
+        self._carved: list = []  # sub-buffers of the lent arena, until end_loan
 
     def take(self, nbytes: int, what: str = "buffer"):
         nbytes = max(int(nbytes), 4)
         fits = [i for i, b in enumerate(self._free) if b.size >= nbytes]
         if fits:
             return self._free.pop(min(fits, key=lambda i: self._free[i].size))
+        if self._arena is not None:
+            sub = self._arena.carve(nbytes)
+            if sub is not None:
+                self._carved.append(sub)
+                return sub
         self.clear()  # every free buffer is too small for this size: don't hold them beside the new one
         return self.ctx.empty(nbytes, what)
 
@@ -127,9 +163,31 @@ class BufferPool:
             if b is not None and not any(b is f for f in self._free):
                 self._free.append(b)
 
+    def lend(self, arena: Arena) -> None:
+        """Carve buffers from ``arena`` (shared by several pools, front to back)
+        when no free buffer fits, until :meth:`end_loan`."""
+        if self._arena is not None:
+            raise RuntimeError("this pool already holds a lent arena")
+        self._arena = arena
+
+    def end_loan(self, check: bool = True) -> None:
+        """Release the sub-buffers carved from the lent arena and stop carving;
+        the arena's buffer is its owner's again.  ``check``: raise if one was
+        not given back (False after an error, when some may still be out).
+        Work already queued on the sub-buffers still runs (OpenCL keeps a
+        released object until its commands complete)."""
+        out = [b for b in self._carved if not any(b is f for f in self._free)] if check else []
+        self._free = [f for f in self._free if not any(f is b for b in self._carved)]
+        for b in self._carved:
+            b.release()
+        self._carved, self._arena = [], None
+        if out:
+            raise RuntimeError(f"{len(out)} buffer(s) carved from a lent arena were not given back before its end")
+
     @property
     def free_bytes(self) -> int:
-        return sum(int(b.size) for b in self._free)
+        """Bytes of the free buffers this pool owns (carved sub-buffers not counted)."""
+        return sum(int(b.size) for b in self._free if not any(b is c for c in self._carved))
 
     def trim(self, keep=None) -> None:
         """Release the free buffers whose size is not ``keep`` (all if None)."""
@@ -139,6 +197,7 @@ class BufferPool:
                 kept.append(b)
             else:
                 b.release()
+                self._carved = [c for c in self._carved if c is not b]
         self._free = kept
 
     def clear(self) -> None:
@@ -348,6 +407,12 @@ class ClContext:
     def max_alloc(self) -> int:
         """CL_DEVICE_MAX_MEM_ALLOC_SIZE in bytes."""
         return int(self.device.max_mem_alloc_size)
+
+    @property
+    def sub_buffer_align(self) -> int:
+        """Byte alignment of a sub-buffer's offset: CL_DEVICE_MEM_BASE_ADDR_ALIGN
+        (given in bits), at least 4096 (both powers of two)."""
+        return max(4096, int(self.device.mem_base_addr_align) // 8)
 
     @property
     def global_mem(self) -> int:
