@@ -53,9 +53,9 @@ class CostReuse:
 
         orig = matcher._matching_cost
 
-        def cost(I_L, I_R, D, to_host=None, out=None, stats=None):
+        def cost(I_L, I_R, D, to_host=None, out=None, stats=None, scratch=None):
             if to_host is not None or out is None or stats is not None:
-                return orig(I_L, I_R, D, to_host=to_host, out=out, stats=stats)
+                return orig(I_L, I_R, D, to_host=to_host, out=out, stats=stats, scratch=scratch)
             key = (weights, int(D), hashlib.sha1(np.ascontiguousarray(I_L).tobytes()).hexdigest(),
                    hashlib.sha1(np.ascontiguousarray(I_R).tobytes()).hexdigest())
             host = self.volumes.get(key)
@@ -63,7 +63,7 @@ class CostReuse:
                 ctx.cl.enqueue_copy(ctx.queue, out, host)
                 rec_flag["reused"] = True
                 return out
-            res = orig(I_L, I_R, D, out=out)
+            res = orig(I_L, I_R, D, out=out, scratch=scratch)
             host = np.empty(res.size, np.uint8)
             ctx.wait()
             ctx.cl.enqueue_copy(ctx.queue, host, res)

@@ -21,7 +21,7 @@ def registered() -> dict:
 
 
 class MatchingCost:
-    """``cost(left, right, max_disparity, out=None, progress=None, stats=None) -> device buffer``.
+    """``cost(left, right, max_disparity, out=None, progress=None, stats=None, scratch=None) -> device buffer``.
 
     Subclasses set ``margin``, ``local``, ``floor`` and ``kind`` or
     ``architecture``, and implement :meth:`__call__`, :meth:`to_host`,
