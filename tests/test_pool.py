@@ -241,3 +241,35 @@ def test_an_error_inside_a_loan_is_the_error_raised(ctx, shared_data, monkeypatc
     out = ctx.empty(16 * h * w * 4, "volume")
     cost(left, right, 16, out=out, scratch=lent)
     same(ctx.from_device(out, (16, h, w)), want, "volume after an interrupted call")
+
+
+def test_a_refused_sub_buffer_falls_back_to_a_buffer_of_its_own(ctx, caplog):
+    """A runtime that refuses a sub-buffer costs the loan, not the call: one
+    warning, and the pool makes its own buffers from then on.  The refusal is
+    real: an arena that believes its buffer larger than it is asks for a
+    sub-buffer past the end (CL_INVALID_VALUE on every runtime)."""
+    align = ctx.sub_buffer_align
+
+    class Overstated:
+        def __init__(self, buf):
+            self.buf, self.size = buf, 64 * align
+
+        def get_sub_region(self, origin, size):
+            return self.buf.get_sub_region(origin, size)
+
+    arena = Arena(ctx, Overstated(ctx.empty(align, "lent")))
+    pool = BufferPool(ctx)
+    pool.lend(arena)
+    live = ctx.memory.live
+    first = pool.take(100, "first")  # offset 0: inside the buffer, carved
+    assert ctx.memory.live == live
+    with caplog.at_level("WARNING", logger="mccnn_cl.opencl.context"):
+        second = pool.take(100, "second")  # offset align: past the buffer's end, refused
+        third = pool.take(100, "third")
+    assert arena.refused and ctx.memory.live == live + 2 * 100
+    assert sum("refused a sub-buffer" in r.getMessage() for r in caplog.records) == 1
+    pool.give(first, second, third)
+    pool.end_loan()
+    assert pool.free_bytes == 200
+    pool.clear()
+    assert ctx.memory.live == live

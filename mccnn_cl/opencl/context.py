@@ -115,14 +115,24 @@ class Arena:
         self.size = int(parent.size)
         self.offset = 0
         self.align = ctx.sub_buffer_align
+        self.refused = False
 
     def carve(self, nbytes: int):
-        """A sub-buffer of ``nbytes`` at the next aligned offset, or None when it does not fit."""
+        """A sub-buffer of ``nbytes`` at the next aligned offset, or None when it
+        does not fit, or when the runtime refuses sub-buffers (then never again
+        from this arena: one warning, and the caller makes a buffer of its own)."""
         start = round_up(self.offset, self.align)
-        if start + int(nbytes) > self.size:
+        if self.refused or start + int(nbytes) > self.size:
+            return None
+        try:
+            sub = self.parent.get_sub_region(start, int(nbytes))
+        except self.ctx.cl.Error as exc:
+            self.refused = True
+            log.warning("%s refused a sub-buffer (%s); the network's maps get buffers of their own",
+                        self.ctx.describe(), str(exc).splitlines()[0])
             return None
         self.offset = start + int(nbytes)
-        return self.parent.get_sub_region(start, int(nbytes))
+        return sub
 
 
 class BufferPool:
