@@ -273,3 +273,30 @@ def test_a_refused_sub_buffer_falls_back_to_a_buffer_of_its_own(ctx, caplog):
     assert pool.free_bytes == 200
     pool.clear()
     assert ctx.memory.live == live
+
+
+def test_no_loan_where_the_runtime_makes_no_sub_buffers(ctx, shared_data, monkeypatch):
+    """Where the context's probe found no sub-buffers, the cost ignores a lent
+    buffer (it stays as it was) and the memory plan counts no lent bytes, so a
+    run there stays within its plan as before the loan existed."""
+    from conftest import POISON
+    from helpers import kitti_crop
+
+    assert ctx.sub_buffers  # PoCL, Oclgrind, Intel's runtime and Rusticl make them
+    left, right = kitti_crop(shared_data, 100, 300, 100, 360)
+    m = StereoMatcher("general-fst", max_disparity=160, device=ctx)
+    H, W = left.shape[0] - 2 * m.margin, left.shape[1] - 2 * m.margin
+    vol = m.memory_plan(left.shape).volume_bytes
+    lent_plan = m.memory_plan(left.shape).peak_bytes
+    held = m.cost.lent_scratch_bytes(H, W, vol)
+    assert held > 0
+    monkeypatch.setattr(ctx, "_sub_buffers", False)
+    assert m.cost.lent_scratch_bytes(H, W, vol) == 0
+    plan = m.memory_plan(left.shape)
+    assert plan.peak_bytes == lent_plan + held  # the maps counted beside the volumes again
+    lent = ctx.empty(vol, "lent")
+    ctx.fill(lent, POISON, vol)
+    m.cost(left, right, 160, out=ctx.empty(vol, "volume"), scratch=lent)
+    assert (ctx.from_device(lent, (vol // 4,)) == POISON).all()  # untouched
+    got = m.compute(left, right, timings=True)
+    assert got.peak_device_bytes <= got.plan.peak_bytes == plan.peak_bytes

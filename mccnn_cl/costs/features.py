@@ -338,6 +338,8 @@ class ConvNetCost(MatchingCost):
         the arena's size less its largest buffer and the alignment gaps (a
         buffer is made afresh only when it does not fit behind those carved
         before it)."""
+        if not self.ctx.sub_buffers:
+            return 0
         items = self._pooled_scratch(h, w)
         sure = int(lent) - max(items) - len(items) * self.ctx.sub_buffer_align
         return max(0, min(sum(items), sure))
@@ -352,7 +354,7 @@ class ConvNetCost(MatchingCost):
         (:class:`~mccnn_cl.opencl.context.Arena`); its contents are overwritten, and
         it is the caller's again when the call returns (later commands of the
         in-order queue run after the cost's)."""
-        if scratch is None:
+        if scratch is None or not self.ctx.sub_buffers:
             return self._call(left, right, max_disparity, out, progress, stats)
         if scratch is out:
             raise InputError("the lent scratch buffer must not be the volume's buffer")

@@ -408,6 +408,7 @@ class ClContext:
         self._kernels: dict = {}
         self.memory = MemoryTracker()
         self._buffer = _tracked_buffer_class(cl)
+        self._sub_buffers = None  # probed on first use (sub_buffers)
         self._exit = ExitStack()
         self.kernel_dir = str(self._exit.enter_context(kernel_source_dir()))
         log.info("mccnn_cl OpenCL device: %s (%s)", self.describe(), self.reason)
@@ -423,6 +424,26 @@ class ClContext:
         """Byte alignment of a sub-buffer's offset: CL_DEVICE_MEM_BASE_ADDR_ALIGN
         (given in bits), at least 4096 (both powers of two)."""
         return max(4096, int(self.device.mem_base_addr_align) // 8)
+
+    @property
+    def sub_buffers(self) -> bool:
+        """Whether the runtime makes a sub-buffer at an aligned offset
+        (:attr:`sub_buffer_align`), probed once with a small buffer; where it
+        does not, nothing is lent (:class:`Arena`) and the memory plan counts
+        no lent bytes."""
+        if self._sub_buffers is None:
+            align = self.sub_buffer_align
+            probe = self.cl.Buffer(self.context, self.cl.mem_flags.READ_WRITE, size=2 * align)
+            try:
+                probe.get_sub_region(align, align).release()
+                self._sub_buffers = True
+            except self.cl.Error as exc:
+                self._sub_buffers = False
+                log.warning("%s makes no sub-buffers (%s); the network's maps get buffers of their own",
+                            self.describe(), str(exc).splitlines()[0])
+            finally:
+                probe.release()
+        return self._sub_buffers
 
     @property
     def global_mem(self) -> int:
