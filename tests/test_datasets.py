@@ -116,6 +116,12 @@ def test_every_family_is_found(shared_data):
     assert dataset_of("middlebury/trainingH/Motorcycle") == "middeval3"
     assert scene_family("middlebury/trainingF/MotorcycleE") == "middeval3/Motorcycle"
     assert scene_family("middlebury/Midd2") == "middlebury/Midd"
+    # the same scene under another rectification or exposure (not in the shared data)
+    assert scene_family("middlebury/trainingQ/PlaytableP") == scene_family("middlebury/trainingQ/Playtable")
+    assert scene_family("middlebury/testH/Classroom2E") == "middeval3/Classroom2"
+    assert scene_family("middlebury/trainingQ/ArtL") == "middeval3/Art"
+    assert scene_family("middlebury/Adirondack-perfect") == scene_family("middlebury/Adirondack-imperfect") \
+        == "middlebury/Adirondack"
 
 
 @pytest.mark.full_data

@@ -63,6 +63,10 @@ def test_lineage_of_a_fine_tuned_network_counts_the_start_as_trained(tmp_path):
     assert training_status(meta, "kitti2015/e00001", "e00001") == "trained"   # the start's pair
     assert training_status(meta, "middlebury/Venus", "Venus") == "trained"    # this run's
     assert training_status(meta, "middlebury/Cones", "Cones") == "held out"
+    # a pair this run held out but its start trained on is not held out of the network
+    start.meta["training"]["held_out"] = ["kitti2015/e00001", "middlebury/Cones"]
+    assert training_status(start.meta, "kitti2015/e00001", "e00001") == "trained"
+    assert training_status(start.meta, "middlebury/Cones", "Cones") == "held out"
     with pytest.raises(InputError, match="already"):
         ship.ship(out, tmp_path / "again.npz", "n", "paper", "d", init=shipped_models()["kitti-fst"])
 

@@ -349,9 +349,11 @@ def dataset_of(key: str) -> str:
 def scene_family(key: str) -> str:
     """``"<dataset>/<stem>"``: pairs of one scene family share it (hold them out together).
 
-    Middlebury: the name without trailing digits (Cloth1-4 -> Cloth, Baby1-3 -> Baby);
-    MiddEval3: the scene without its lighting/exposure suffix (PianoL -> Piano,
-    MotorcycleE -> Motorcycle); ETH3D: the place without ``_<n><l|s>`` (delivery_area_1l
+    Middlebury: the name without trailing digits (Cloth1-4 -> Cloth, Baby1-3 -> Baby) and
+    without 2014's rectification suffix (Adirondack-perfect, -imperfect -> Adirondack);
+    MiddEval3: the scene without its lighting / exposure / perfect-rectification suffix
+    (PianoL -> Piano, MotorcycleE -> Motorcycle, PlaytableP -> Playtable, Classroom2E ->
+    Classroom2); ETH3D: the place without ``_<n><l|s>`` (delivery_area_1l
     -> delivery_area); KITTI: the frame itself (``kitti2015/000000``).
     """
     ds = dataset_of(key)
@@ -362,7 +364,8 @@ def scene_family(key: str) -> str:
     if ds == "eth3d":
         return "eth3d/" + re.sub(r"_\d+[ls]?$", "", base)
     if ds == "middeval3":
-        return "middeval3/" + re.sub(r"(?<=[a-z])[LE]$", "", base)
+        return "middeval3/" + re.sub(r"(?<=[a-z0-9])[LEP]$", "", base)
+    base = re.sub(r"-(perfect|imperfect)$", "", base)
     return "middlebury/" + (re.sub(r"\d+$", "", base) or base)
 
 

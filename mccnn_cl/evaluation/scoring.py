@@ -88,13 +88,17 @@ def _match(names, pair_key, pair_name):
 
 
 def training_status(meta, pair_key: str, pair_name: str) -> str:
-    """"trained", "held out" or "unknown" (the weights do not say) for one pair."""
+    """"trained", "held out" or "unknown" (the weights do not say) for one pair.
+
+    Trained wins: a run may hold out a pair that the weights it started from
+    (``--init``, counted in ``trained_on``) were trained on; such a pair is
+    not held out of the network."""
     trained, held = training_pairs(meta)
+    if _match(trained, pair_key, pair_name):
+        return "trained"
     if _match(held, pair_key, pair_name):
         return "held out"
-    if trained is None:
-        return "unknown"
-    return "trained" if _match(trained, pair_key, pair_name) else "held out"
+    return "unknown" if trained is None else "held out"
 
 
 def default_max_disparity(pair) -> int:
