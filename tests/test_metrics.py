@@ -109,9 +109,14 @@ def test_fill_invalid_like_kitti_devkit():
     # row 0: border takes the nearest valid, interior gap the smaller neighbour (background)
     np.testing.assert_array_equal(f[0], [5, 5, 3, 3, 3, 3])
     np.testing.assert_array_equal(f[2], [1, 1, 2, 2, 2, 2])
-    # row 1 (empty) filled along columns from rows 0 and 2: min of the neighbours
-    np.testing.assert_array_equal(f[1], [1, 1, 2, 2, 2, 2])
+    # row 1 (empty, between valid rows): the devkit leaves it unfilled, read as 0
+    np.testing.assert_array_equal(f[1], [0, 0, 0, 0, 0, 0])
     assert np.isnan(d[0, 0])  # input untouched
+    # empty rows above the first and below the last valid row take the column's nearest value
+    e = np.full((5, 3), nan, np.float32)
+    e[1] = [4, nan, 6]
+    e[3] = [7, 8, nan]
+    np.testing.assert_array_equal(metrics.fill_invalid(e), [[4, 4, 6], [4, 4, 6], [0, 0, 0], [7, 8, 8], [7, 8, 8]])
     np.testing.assert_array_equal(metrics.fill_invalid(np.full((2, 2), nan)), np.zeros((2, 2)))
 
 
@@ -129,6 +134,22 @@ def test_mean_and_table():
     text = format_table([r1, r2], mean)
     assert "ours" in text and "sgbm" in text and "mean" in text and "held out" in text
     assert "50.00" in text and "90.0" in text
+    assert "over the" not in text  # every mean covers both pairs (the noc ones none)
+
+
+def test_means_say_when_they_cover_fewer_pairs():
+    """A mean over the pairs that have a metric (e.g. KITTI frames without disp_noc) says so."""
+    from mccnn_cl.evaluation.scoring import family_means, format_family_tables, metric_counts
+    with_noc = {**metrics.evaluate_disparity(PRED, GT, GT > 0), "seconds": 1.0}
+    without = {**metrics.evaluate_disparity(GT, GT), "seconds": 1.0}
+    rows = [{"pair": f"kitti2015/00000{i}", "size": [5, 2], "max_disparity": 16, "training": "held out",
+             "methods": {"mccnn": m}} for i, m in enumerate((with_noc, without))]
+    assert metric_counts(rows)["mccnn"]["bad3_noc"] == 1 and metric_counts(rows)["mccnn"]["bad3_all"] == 2
+    fam = family_means(rows)["kitti"]
+    assert fam["mean"]["mccnn"]["bad3_noc"] == pytest.approx(with_noc["bad3_noc"])
+    assert fam["mean_pairs"]["mccnn"]["bad3_noc"] == 1
+    text = format_family_tables(rows)
+    assert "3px-noc: over the 1 of 2 pairs that have it" in text and "3px-all: over" not in text
 
 
 def test_table_cells_fit():

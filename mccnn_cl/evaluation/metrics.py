@@ -164,17 +164,26 @@ def fill_invalid(disp) -> np.ndarray:
 
     Along each row, a gap between two valid pixels takes the *smaller* of
     their disparities (the background); a gap at a row's end takes the nearest
-    valid value.  Rows with no valid pixel are then filled along columns the
-    same way.  A map with no valid pixel at all is returned as zeros.
+    valid value.  Then, in each column, the rows above its first and below its
+    last valid pixel (whole rows with no valid pixel) take that pixel's value;
+    as in the devkit (``interpolateBackground``), an empty row *between* valid
+    rows is not filled, and it and a map with no valid pixel at all are
+    returned as zeros (counted wrong wherever the ground truth is above the
+    threshold).
     """
     d = np.array(disp, dtype=np.float32, copy=True)
     if d.ndim != 2:
         raise InputError(f"fill_invalid: expected an (H, W) map, got shape {d.shape}")
 
-    def fill_lines(a):  # fill along axis 1, in place; rows without data untouched
+    def fill_lines(a, interior=True):  # fill along axis 1, in place; rows without data untouched
         for row in a:
             ok = np.isfinite(row)
             if ok.all() or not ok.any():
+                continue
+            if not interior:  # only beyond the first and the last valid pixel
+                first, last = np.flatnonzero(ok)[[0, -1]]
+                row[:first] = row[first]
+                row[last + 1:] = row[last]
                 continue
             idx = np.arange(row.size)
             # nearest valid index to the left and to the right of every pixel
@@ -188,7 +197,7 @@ def fill_invalid(disp) -> np.ndarray:
 
     fill_lines(d)
     if not np.isfinite(d).all():
-        fill_lines(d.T)
+        fill_lines(d.T, interior=False)
     d[~np.isfinite(d)] = 0.0
     return d
 

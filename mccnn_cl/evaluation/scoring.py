@@ -183,8 +183,21 @@ def evaluate_pair(pair, matcher, max_disparity, baseline="sgbm", fill=True, erro
     return result
 
 
+def metric_counts(results) -> dict:
+    """Per method, how many pairs each metric's mean covers (:func:`mean_metrics` skips NaN
+    entries: a pair without a non-occluded mask has no ``*_noc`` figure)."""
+    out = {}
+    for r in results:
+        for m, row in r["methods"].items():
+            c = out.setdefault(m, {})
+            for k, v in row.items():
+                c[k] = c.get(k, 0) + int(v is not None and not math.isnan(v))
+    return out
+
+
 def mean_metrics(results) -> dict:
-    """Per method, the mean of every metric over the pairs (NaN entries skipped)."""
+    """Per method, the mean of every metric over the pairs (NaN entries skipped: the pairs each
+    mean covers are :func:`metric_counts`)."""
     out = {}
     methods = sorted({m for r in results for m in r["methods"]}, key=lambda m: m != "mccnn")
     for m in methods:
@@ -257,13 +270,21 @@ def format_table(results, mean=None, columns=None, extra_means=()) -> str:
         lines.append(row("mean", "", "", mean))
     for label, m in extra_means:
         lines.append(row(label, "", "", m))
+    if mean is not None and len(results) > 1:  # say which means cover fewer pairs than the rows
+        counts = metric_counts(results)
+        short = sorted({(title, n) for key, title in cols for m in methods
+                        if 0 < (n := counts.get(m, {}).get(key, 0)) < len(results)})
+        if short:
+            lines.append("(" + "; ".join(f"{title}: over the {n} of {len(results)} pairs that have it"
+                                         for title, n in short) + ")")
     return "\n".join(lines)
 
 
 def family_means(results) -> dict:
     """Per dataset family (kitti, middlebury, middeval3, eth3d) found in ``results``: the number of
-    pairs, the per-method means over all of them (``mean``) and over the held-out ones
-    (``mean_held_out``, absent when none is held out)."""
+    pairs, the per-method means over all of them (``mean``; ``mean_pairs``: how many pairs
+    each metric's mean covers, fewer where a pair lacks it, e.g. a non-occluded mask) and over
+    the held-out ones (``mean_held_out``, absent when none is held out)."""
     out = {}
     for ds in DATASETS:
         rows = [r for r in results if r.get("dataset", dataset_of(r["pair"])) == ds]
@@ -271,7 +292,7 @@ def family_means(results) -> dict:
             continue
         held = [r for r in rows if r["training"] == "held out"]
         out[ds] = {"pairs": len(rows), "held_out": len(held), "metrics": list(FAMILY_METRICS[ds]),
-                   "mean": mean_metrics(rows)}
+                   "mean": mean_metrics(rows), "mean_pairs": metric_counts(rows)}
         if held:
             out[ds]["mean_held_out"] = mean_metrics(held)
     return out
