@@ -137,9 +137,20 @@ def test_validation_set_and_wta(venus):
     assert census_wta_error(dataclasses.replace(vset, pixels=[shifted]))["err3"] == 0
 
 
+def test_resume_names_changed_settings():
+    """A resume with other settings is allowed (a shorter schedule) but said, field by field."""
+    from mccnn_cl.train.train import resume_changes
+    saved = dataclasses.asdict(TrainConfig())
+    assert resume_changes(saved, TrainConfig()) == ""
+    assert resume_changes(saved, TrainConfig(progress=False, checkpoint_minutes=1)) == ""
+    assert resume_changes(saved, TrainConfig(epochs=5, seed=3)) == "epochs 16 -> 5, seed 0 -> 3"
+    assert resume_changes({**saved, "lr_steps": [11 / 16, 14 / 16]}, TrainConfig()) == ""  # list vs tuple
+
+
 def test_lr_schedule_and_augment():
     cfg = TrainConfig()
-    lrs = [lr_at(cfg, i, 160) for i in (0, 119, 120, 149, 150, 159)]
+    # the paper: 16 epochs, lr / 10 from the 12th and again from the 15th (1-based, as the released loop)
+    lrs = [lr_at(cfg, i, 160) for i in (0, 109, 110, 139, 140, 159)]
     assert lrs == pytest.approx([0.01, 0.01, 0.001, 0.001, 0.0001, 0.0001])
     x = torch.randn(16, 1, 9, 9)
     g1, g2 = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
@@ -175,8 +186,10 @@ def test_training_learns_resumes_and_exports(tsukuba, venus, tmp_path):
     assert json.loads((tmp_path / "a" / "history.json").read_text())[-1]["epoch"] == 3
     # Interrupted after one epoch, then resumed: bit-identical to the uninterrupted run.
     train(cfg, [train_pair], [val_pair], "cpu", tmp_path / "b", log=quiet, stop_after=1)
-    resumed = train(cfg, [train_pair], [val_pair], "cpu", tmp_path / "b", log=quiet,
+    said = []
+    resumed = train(cfg, [train_pair], [val_pair], "cpu", tmp_path / "b", log=lambda *a: said.append(" ".join(a)),
                     resume=tmp_path / "b" / "checkpoint.pt")
+    assert not [line for line in said if "warning" in line]   # the same settings: nothing to warn of
     for k, v in full["model"].state_dict().items():
         assert torch.equal(v, resumed["model"].state_dict()[k]), k
     assert [e["train_loss"] for e in resumed["history"]] == [e["train_loss"] for e in h]
@@ -363,6 +376,33 @@ def test_crop_warp_keeps_matches_aligned():
     assert min(corr) > 0.999, corr
     torch.testing.assert_close(b.qp, b.ql + torch.tensor([float(sp), 0.0]), atol=1e-4, rtol=0)
     assert (b.ql.std(0) > 1).all()   # the warp moved the positions (not the identity grid)
+
+
+def test_crop_right_vertical_shift_moves_the_right_patches():
+    """d_vtrans (the released code's right-image vertical translation, imperfect rectification):
+    the positive and negatives come from a row ty off the left pixel's, one ty per crop; without
+    it they stay on the left pixel's row.  The image's intensity is linear in y (constant in x),
+    so the right value at the positive measures the row it came from."""
+    from mccnn_cl.train.crops import Augment, CropSampler, gather
+    h, w, D = 120, 200, 6
+    img = (np.mgrid[0:h, 0:w + D][0] * 2).astype(np.uint8)
+    left, right = img[:, :w].copy(), img[:, D:].copy()   # the same rows: normalised alike
+    pair = StereoPair(name="lin", left=left, right=right, disp=np.full((h, w), float(D), np.float32),
+                      valid_noc=None, valid_all=np.ones((h, w), bool), ndisp=None, calib=None, kind="middlebury")
+    row = 2.0 / float(np.std(left))   # one row in normalised intensity
+    shifts = {}
+    for vt in (0.0, 3.0):
+        aug = Augment(rotate=0, hscale=1, hshear=0, brightness=0, contrast=1, d_brightness=0, d_vtrans=vt)
+        s = CropSampler([pair], 1, p_hi=0, n_lo=2, n_hi=4, crop=(15, 17), spread=8, subpixel=True, augment=aug)
+        b = s.sample(np.random.default_rng(1), 6)
+        dy = ((gather(b.right, b.crop, b.qp, False) - gather(b.left, b.crop, b.ql, False))[:, 0] / row).numpy()
+        inside = (b.src["y"] > 8) & (b.src["y"] < h - 8)   # the shifted row inside the image
+        crops = b.crop.numpy()[inside]
+        per_crop = [dy[inside][crops == c] for c in np.unique(crops)]
+        assert all(np.ptp(d) < 1e-3 for d in per_crop)   # one shift per crop
+        shifts[vt] = [float(d.mean()) for d in per_crop]
+    assert max(abs(t) for t in shifts[0.0]) < 1e-3
+    assert max(abs(t) for t in shifts[3.0]) <= 3.0 + 1e-3 and max(abs(t) for t in shifts[3.0]) > 0.5
 
 
 def _crop_cfg(arch, **kw):

@@ -62,8 +62,9 @@ class Augment:
 
 
 KITTI_AUGMENT = Augment()
-MIDDLEBURY_AUGMENT = Augment(hscale=0.8, d_vtrans=1.0, d_rotate=3.0, d_hscale=0.9, d_hshear=0.3,
-                             d_brightness=0.7, d_contrast=1.1)
+MIDDLEBURY_AUGMENT = Augment(rotate=28.0, hscale=0.8, scale=0.8, hshear=0.1, brightness=1.3, contrast=1.1,
+                             d_vtrans=1.0, d_rotate=3.0, d_hscale=0.9, d_hshear=0.3, d_brightness=0.7,
+                             d_contrast=1.1)
 
 #: How a sampler spreads its crops over the pairs (``CropSampler(balance=)``).
 BALANCES = ("pixels", "pair", "dataset")
@@ -305,9 +306,12 @@ class CropSampler:
             # Feature-map positions (x, y): crop centre pixel at (w // 2, h // 2) in the feature map.
             qlx, qly = A @ np.stack([px - xa, py - ya])
             qlx, qly = qlx + w // 2, qly + h // 2
-            qpx, qpy = B @ np.stack([xp - xra, py - ya - ty])
+            # The right crop is cut ty rows lower (d_vtrans): the right patches sit at the left
+            # pixel's crop row, so they come from image row py + ty, as the released make_patch
+            # shifts the right patch by trans_[2] (imperfect rectification).
+            qpx, qpy = B @ np.stack([xp - xra, py - ya])
             qpx, qpy = qpx + wr // 2, qpy + h // 2
-            qn = np.einsum("ij,jmk->imk", B, np.stack([xn - xra, np.broadcast_to((py - ya - ty)[:, None], xn.shape)]))
+            qn = np.einsum("ij,jmk->imk", B, np.stack([xn - xra, np.broadcast_to((py - ya)[:, None], xn.shape)]))
             qnx, qny = qn[0] + wr // 2, qn[1] + h // 2
             lo = float(r)
             ok = ((px >= lo) & (px <= W - 1 - r) & (py >= lo) & (py <= H - 1 - r)

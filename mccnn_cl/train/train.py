@@ -75,7 +75,9 @@ class TrainConfig:
     examples_per_epoch: int | None = None   # patch pairs (pos + neg); None: all GT pixels x2
     batch_size: int = 128                   # pos + neg; must be even
     lr: float = 0.01
-    lr_steps: tuple = (12 / 16, 15 / 16)    # fractions of the run where lr is multiplied by lr_factor
+    lr_steps: tuple = (11 / 16, 14 / 16)    # fractions of the run where lr is multiplied by lr_factor:
+    #                                         the paper's "on the 12th and 15th" epoch of 16 (1-based, as the
+    #                                         released loop divides at the start of its 12th epoch)
     lr_factor: float = 0.1
     momentum: float = 0.9
     weight_decay: float = 0.0
@@ -131,6 +133,20 @@ FAMILY_OFFSETS = {
 #: Per-dataset augmentation of ``augment_preset="family"`` (ETH3D: the Middlebury ranges).
 FAMILY_AUGMENT = {"kitti": KITTI_AUGMENT, "middlebury": MIDDLEBURY_AUGMENT, "middeval3": MIDDLEBURY_AUGMENT,
                   "eth3d": MIDDLEBURY_AUGMENT}
+
+
+#: Settings a resumed run may change without changing what it computes.
+RESUME_FREE = ("progress", "checkpoint_minutes")
+
+
+def resume_changes(saved: dict, cfg: TrainConfig) -> str:
+    """The settings in which ``cfg`` differs from a checkpoint's ``config`` ("epochs 16 -> 5, seed 0 -> 1"),
+    "" when none (besides :data:`RESUME_FREE`)."""
+    now = asdict(cfg)
+    norm = lambda v: json.loads(json.dumps(v))  # noqa: E731 - tuples as lists, as the checkpoint holds them
+    diffs = [f"{k} {saved[k]!r} -> {now[k]!r}" for k in now
+             if k not in RESUME_FREE and k in saved and norm(saved[k]) != norm(now[k])]
+    return ", ".join(diffs)
 
 
 def lr_at(cfg: TrainConfig, it: int, total: int) -> float:
@@ -502,6 +518,10 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         if ck.get("mid") is not None and ck.get("world_size", 1) != world:
             raise InputError(f"{resume}: a mid-epoch checkpoint of a run with {ck.get('world_size', 1)} "
                              f"process(es): resume it with as many (here {world}), or from an epoch's end")
+        changed = resume_changes(c, cfg)
+        if changed:  # allowed (e.g. a shorter schedule when the machine slows), never silent
+            log(f"warning: resuming {resume} with settings the run did not start with ({changed}): "
+                "the result is not the one an uninterrupted run would give")
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         history, elapsed0 = ck["history"], ck.get("elapsed", 0.0)
@@ -661,8 +681,9 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
                 _export(model, out_dir / "best.npz", snap)
             save_ck(epoch, None)
             last_ck = time.time()
-            with open(out_dir / "history.json", "w") as f:
+            with open(out_dir / "history.json.tmp", "w") as f:  # whole or not at all
                 json.dump(history, f, indent=1)
+            os.replace(out_dir / "history.json.tmp", out_dir / "history.json")
             plot_history(history, out_dir / "training.png",
                          title=f"MC-CNN-{cfg.arch} training ({cfg.sampler} sampler)",
                          loss_name={"paper": "cross-entropy", "fst": "hinge loss",
