@@ -26,6 +26,22 @@ def test_ship_adds_metadata_and_keeps_weights(tmp_path):
     Hyperparameters(**w.stereo)  # valid names and values
 
 
+def test_licence_names_every_dataset_trained_on(tmp_path):
+    """The licence line follows the training pairs, the start's included (kitti-paper's lineage
+    holds 5 Middlebury scenes; the line said KITTI only)."""
+    src = Weights.load(shipped_models()["kitti-fst"])
+    assert ship.licence_for(src.meta) == "BSD-3-Clause (mccnn_cl); trained on KITTI (CC BY-NC-SA 3.0) images"
+    src.meta["training"]["trained_on"] = {"kitti2015/000001": 5, "eth3d/electro_1s": 3}
+    path = tmp_path / "mixed.npz"
+    src.save(path)
+    out = ship.ship(path, tmp_path / "m.npz", "m", "paper", "d")
+    assert out.meta["licence"].endswith("KITTI (CC BY-NC-SA 3.0) and ETH3D (CC BY-NC-SA 4.0) images")
+    assert ship.ship(path, tmp_path / "n.npz", "n", "paper", "d", licence="mine").meta["licence"] == "mine"
+    for name, file in shipped_models().items():  # the shipped files carry their own datasets' line
+        w = Weights.load(file)
+        assert w.meta["licence"] == ship.licence_for(w.meta), name
+
+
 def test_ship_paper_settings_are_the_defaults(tmp_path):
     out = tmp_path / "p.npz"
     ship.ship(shipped_models()["kitti-fst"], out, "p", "paper", "d")

@@ -27,7 +27,27 @@ from mccnn_cl.settings import AUTHORS, authors_settings
 from mccnn_cl.models import resolve
 from mccnn_cl.weights import Weights
 
-LICENCE = "BSD-3-Clause (mccnn_cl); trained on KITTI (CC BY-NC-SA 3.0) images"
+#: The data licences of the shared data's datasets (its README), in the order a licence line names them.
+DATA_LICENCES = (("kitti", "KITTI (CC BY-NC-SA 3.0)"),
+                 ("middlebury", "Middlebury 2001-2014 (research use)"),
+                 ("middeval3", "MiddEval3 (research use)"),
+                 ("eth3d", "ETH3D (CC BY-NC-SA 4.0)"))
+
+
+def licence_for(meta: dict) -> str:
+    """The licence line of weights trained on the pairs ``meta["training"]`` lists (the run's and,
+    for a fine-tuned run, its start's): the code's licence and each dataset's."""
+    from mccnn_cl.evaluation.datasets import dataset_of
+    from mccnn_cl.evaluation.scoring import training_pairs
+
+    trained, _ = training_pairs(meta)
+    if not trained:
+        raise InputError("the weights list no training pairs (meta['training']['trained_on']): "
+                         "give --licence")
+    found = {dataset_of(k) for k in trained}
+    names = [text for ds, text in DATA_LICENCES if ds in found]
+    body = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+    return f"BSD-3-Clause (mccnn_cl); trained on {body} images"
 
 
 def settings_table(spec: str) -> tuple[dict, str]:
@@ -42,12 +62,14 @@ def settings_table(spec: str) -> tuple[dict, str]:
                                              "(jzbontar/mc-cnn main.lua)")
 
 
-def ship(src, out, name: str, settings: str, description: str, licence: str = LICENCE,
+def ship(src, out, name: str, settings: str, description: str, licence: str | None = None,
          settings_note: str | None = None, init=None, overrides: dict | None = None) -> Weights:
     """Read ``src``, add the shipping metadata, write ``out``; returns the Weights.
 
     ``overrides``: single settings that replace the table's (names and values
     checked as a matcher checks them).
+
+    ``licence``: None: :func:`licence_for` the pairs the weights were trained on.
 
     ``init``: the weights (name or path) the run started from (its ``--init``),
     for a run whose provenance does not record them yet (:func:`.train.record_init`).
@@ -71,6 +93,8 @@ def ship(src, out, name: str, settings: str, description: str, licence: str = LI
         source += " with these changed here: " + ", ".join(f"{k}={v}" for k, v in overrides.items())
     elif settings != "paper":
         source += ", used here unchanged"
+    if licence is None:
+        licence = licence_for(w.meta)
     w.meta.update(name=name, description=description, licence=licence, stereo=stereo,
                   stereo_source=source + (f"; {settings_note}" if settings_note else ""))
     w.save(out)
@@ -87,7 +111,8 @@ def main(argv=None) -> int:
                    help="change one setting of the --settings table (repeatable)")
     p.add_argument("--description", required=True)
     p.add_argument("--settings-note", default=None, help="why these settings (appended to stereo_source)")
-    p.add_argument("--licence", default=LICENCE)
+    p.add_argument("--licence", default=None,
+                   help="default: the code's licence and that of each dataset the weights were trained on")
     p.add_argument("--init", default=None, metavar="WEIGHTS",
                    help="the weights the run started from (its --init), if its provenance lacks them")
     args = p.parse_args(argv)
