@@ -140,15 +140,56 @@ def write_kitti_disparity(path, disp) -> None:
 
 # -- images ---------------------------------------------------------------
 
+def jpeg_complete(data: bytes) -> bool:
+    """Whether JPEG bytes reach their end-of-image marker: the segments are walked by their
+    lengths (EXIF thumbnails are skipped whole) and each scan's entropy-coded data to the next
+    marker.  False for a truncated file, which cv2 decodes anyway, grey below the cut, with
+    only a libjpeg message on stderr.  Data after the marker (e.g. a motion photo's video)
+    does not matter."""
+    n, i = len(data), 2
+    if data[:2] != b"\xff\xd8":
+        return False
+    while True:
+        while i < n and data[i] == 0xFF and i + 1 < n and data[i + 1] == 0xFF:
+            i += 1  # fill bytes before a marker
+        if i + 1 >= n or data[i] != 0xFF:
+            return False
+        marker = data[i + 1]
+        if marker == 0xD9:
+            return True
+        if 0xD0 <= marker <= 0xD7 or marker == 0x01:  # RSTn, TEM: no length
+            i += 2
+            continue
+        if i + 3 >= n:
+            return False
+        i += 2 + int.from_bytes(data[i + 2:i + 4], "big")
+        if marker != 0xDA:
+            continue
+        while True:  # entropy-coded data of a scan: up to a marker other than 0x00 stuffing or RSTn
+            i = data.find(b"\xff", i)
+            if i < 0 or i + 1 >= n:
+                return False
+            nxt = data[i + 1]
+            if nxt == 0x00 or 0xD0 <= nxt <= 0xD7 or nxt == 0xFF:
+                i += 1 if nxt == 0xFF else 2
+                continue
+            break
+
+
 def read_image(path, gray: bool = False) -> np.ndarray:
     """Read an 8-bit image with cv2: (H, W) uint8 if ``gray`` else as stored (BGR or gray).
 
-    16-bit images are rejected (stereo images are 8-bit here).
+    16-bit images are rejected (stereo images are 8-bit here), and so is a JPEG cut short
+    (:func:`jpeg_complete`; cv2 would return it grey below the cut).
     """
     path = _check_exists(path)
     img = cv2.imread(path, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError(f"{path}: unreadable image (not a format cv2 can decode)")
+    with open(path, "rb") as f:
+        head = f.read(2)
+        if head == b"\xff\xd8" and not jpeg_complete(head + f.read()):
+            raise InputError(f"{path}: the JPEG file ends before its end-of-image marker (truncated?)")
     if img.dtype != np.uint8:
         raise InputError(f"{path}: expected an 8-bit image, got {img.dtype}")
     if img.ndim == 3 and img.shape[2] == 4:

@@ -97,6 +97,7 @@ def test_match_npy_depth_and_point_cloud(crops, tmp_path, shared_data):
     rc, so, se = run("match", crops / "kt_l.png", crops / "kt_r.png", "-o", out, "--cost", "census",
                      "--max-disp", 48, "--calib", calib)
     assert rc == 0, se
+    assert "is for 1242x375 images" in se and "kt_l.png is 160x96" in se  # a crop: said, not refused
     disp = np.load(out)
     assert disp.dtype == np.float32 and disp.shape == (96, 160)
     c = read_calib(calib)
@@ -158,6 +159,8 @@ def test_input_errors(crops, tmp_path):
         (("match", l, r, "-o", tmp_path / "o.tif", "--cost", "census"), (".pfm",)),
         (("match", l, r, "-o", tmp_path / "nodir/o.pfm", "--cost", "census"), ("does not exist",)),
         (("match", l, r, "-o", o, "--calib", crops / "garbage.png", "--cost", "census"), ("not a KITTI",)),
+        (("match", crops, r, "-o", o, "--cost", "census"), ("not a file",)),
+        (("demo", "--cost", "census", "--max-disp", 0, "-o", tmp_path / "d.png"), ("--max-disp must be >= 1",)),
         (("evaluate", tmp_path, "--cost", "census"), ("no stereo pairs",)),
         (("match", l, r, "-o", o, "--cost", "census", "--max-disp", 16, "--set", "no_such=1"),
          ("unknown hyperparameter", "no_such")),

@@ -1,5 +1,6 @@
 """Readers and writers of mccnn_cl.io: round trips, the PFM byte order and row order, errors."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -101,3 +102,21 @@ def test_read_image(tmp_path, shared_data):
     (tmp_path / "junk.png").write_bytes(b"garbage")
     with pytest.raises(InputError, match="unreadable"):
         read_image(tmp_path / "junk.png")
+
+
+@pytest.mark.parametrize("params", [[], [cv2.IMWRITE_JPEG_PROGRESSIVE, 1], [cv2.IMWRITE_JPEG_RST_INTERVAL, 4]],
+                         ids=["baseline", "progressive", "restarts"])
+def test_truncated_jpeg_is_refused(tmp_path, shared_data, params):
+    """cv2 decodes a JPEG cut short (grey below the cut, a libjpeg line on stderr): refuse it.
+    Whole files, with data after their end (a motion photo's video), still read."""
+    from mccnn_cl.io import jpeg_complete
+    img = read_image(shared_data / "middlebury/Tsukuba/im0.png")
+    ok, buf = cv2.imencode(".jpg", img, params)
+    data = buf.tobytes()
+    (tmp_path / "whole.jpg").write_bytes(data + b"appended\xff\xda\x00\xff")
+    assert read_image(tmp_path / "whole.jpg").shape == img.shape
+    (tmp_path / "cut.jpg").write_bytes(data[: len(data) * 2 // 3])
+    assert cv2.imread(str(tmp_path / "cut.jpg")) is not None  # what cv2 alone would have matched
+    with pytest.raises(InputError, match="truncated"):
+        read_image(tmp_path / "cut.jpg")
+    assert not any(jpeg_complete(data[:k]) for k in range(2, len(data), 61))

@@ -125,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
     _matcher_options(m, "default: ndisp from --calib if given, else 228 (KITTI)")
     _range_options(m)
     m.add_argument("--color", nargs="?", const="", default=None, metavar="FILE.png",
-                   help="also write a colour picture with a disparity legend (default name: <OUT>_color.png)")
+                   help="also write a colour picture with a disparity legend (default name: OUT without its extension + _color.png)")
     m.add_argument("--confidence", nargs="?", const="", default=None, metavar="FILE",
                    help="also write the per-pixel confidence in [0, 1], 0 where the left-right check failed: "
                         ".pfm/.npy float or .png 16-bit (confidence * 65535) (default name: <OUT>_confidence.pfm)")

@@ -44,6 +44,7 @@ from .common import (  # noqa: F401 (re-exported: the commands' helpers)
     _range_text,
     _check_outputs,
     _check_png_range,
+    _check_calib_size,
     write_disparity,
     _write_depth,
     _expand,
@@ -96,7 +97,7 @@ def cmd_match(args):
     for lp, rp, out in jobs:
         for f in (lp, rp):
             if not os.path.isfile(f):
-                raise InputError(f"file not found: {f}")
+                raise InputError(f"not a file: {f}" if os.path.exists(f) else f"file not found: {f}")
         if os.path.splitext(out)[1].lower() not in DISPARITY_FORMATS:
             raise InputError(f"{out}: output must end in {', '.join(DISPARITY_FORMATS)}")
         if request != "auto":
@@ -120,6 +121,7 @@ def cmd_match(args):
         for lp, rp, out in jobs:
             left_img = read_image(lp)
             right_img = read_image(rp)
+            _check_calib_size(calib, left_img, lp, args.calib)
             if request == "auto":
                 key, min_disp, max_disp = "auto", 0, "auto"
                 _check_pair(left_img, right_img, 1, weights, (lp, rp))

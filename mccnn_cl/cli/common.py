@@ -23,6 +23,22 @@ def _say(*args):
     print(*args, flush=True)
 
 
+def _check_calib_size(calib, img, image_path, calib_path) -> None:
+    """Warn (stderr, one line) when a calibration file that states an image size (Middlebury /
+    MiddEval3 / ETH3D ``width`` and ``height``, KITTI ``S_rect``) states another than this
+    image's: for a resized image the disparity range, depth and point cloud would be wrong with no
+    other sign.  A warning, not an error: a crop keeps focal length and baseline (its depth is
+    right, its points are shifted by the crop's offset)."""
+    if calib is None or calib.width is None or calib.height is None:
+        return
+    h, w = img.shape[:2]
+    if (calib.width, calib.height) != (w, h):
+        print(f"mccnn-cl: warning: {calib_path} is for {calib.width}x{calib.height} images, {image_path} is "
+              f"{w}x{h}: for a resized image give the calibration of its resolution (focal length, principal "
+              "point, doffs and ndisp scale with it); a crop's depth is right, its points shifted",
+              file=sys.stderr)
+
+
 def _positive(name, value):
     if value is not None and value < 1:
         raise InputError(f"{name} must be >= 1, got {value}")

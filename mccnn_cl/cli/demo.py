@@ -88,7 +88,7 @@ def run(args) -> int:
     commands._check_outputs([out], args.force or args.output is None)
     with ExitStack() as stack:
         pair = load_demo_pair(stack.enter_context(demo_dir()))
-    max_disp = args.max_disp or pair.ndisp
+    max_disp = pair.ndisp if args.max_disp is None else commands._positive("--max-disp", args.max_disp)
     weights = commands._load_weights(args)
     left, right = pair.gray()
     check_pair(left, right, max_disp, patch_size(weights))
