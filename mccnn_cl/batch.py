@@ -5,12 +5,15 @@ summary.  One process runs them here (:func:`run_batch`); with ``--workers`` or
 same jobs, the same per-pair computation and the same writer.
 
 Pairing (:func:`pair_globs`, :func:`pair_folders`): a left and a right image
-are a pair when the text the wildcards of their globs matched is the same:
-``image_2/*.png`` and ``image_3/*.png`` pair equal file names (KITTI);
-``trainingQ/*/im0.png`` and ``trainingQ/*/im1.png`` pair the images of one
-folder (Middlebury, ETH3D); ``cam/L*.png`` and ``cam/R*.png`` pair ``L0001``
-with ``R0001``.  A folder given instead of a glob stands for its images, keyed
-by file name without the extension.  ``--pairs-dir DIR`` pairs ``im0.*`` with
+are a pair when the text the wildcards of their globs matched is the same (in
+each path component the text of its wildcards, ``*``, ``?`` and ``[...]``
+alike, concatenated; components joined with "/"): ``image_2/*.png`` and
+``image_3/*.png`` pair equal file names (KITTI); ``trainingQ/*/im0.png`` and
+``trainingQ/*/im1.png`` pair the images of one folder (Middlebury, ETH3D);
+``cam/L*.png`` (or ``cam/L????.png``) and ``cam/R*.png`` pair ``L0001`` with
+``R0001``.  A folder given instead of a glob stands for its images, keyed
+by file name without the extension; a file named without wildcards on both
+sides is one pair.  ``--pairs-dir DIR`` pairs ``im0.*`` with
 ``im1.*`` in every folder at or under DIR.  Images without a partner are listed
 and the batch is refused before any work (:class:`InputError`, exit 2).
 
@@ -19,8 +22,11 @@ labels, depth, point cloud) are written first, the disparity map last, each to
 a temporary name renamed when complete; so a pair whose every output exists is
 complete, and one with only some is redone whole (``--resume`` skips complete
 pairs).  A failure or an interrupt while a pair is written removes the side
-files it has, so an interrupted run leaves complete pairs only (a process
-killed outright can leave side files, which ``--resume`` rewrites).
+files that write made -- beside an old disparity map too (``--force``), so
+the pair is then incomplete -- and an interrupted run leaves complete pairs
+only (a process killed outright can leave side files, which ``--resume``
+rewrites).  No output may be an input image of the batch, even with
+``--force`` or ``--resume``.
 """
 
 from __future__ import annotations
@@ -61,13 +67,38 @@ class Job:
     def started(self) -> bool:
         return any(os.path.exists(p) for p in self.outputs)
 
-    def remove_partial(self) -> None:
-        """Delete the side files of a pair whose disparity map is not written."""
-        if os.path.exists(self.out):
-            return
+    def state(self) -> dict:
+        """Each output's identity on disk (None: absent), taken before a write so
+        that :meth:`remove_partial` knows which files that write made."""
+        return {p: _file_identity(p) for p in self.outputs}
+
+    def remove_partial(self, before=None) -> None:
+        """After a failed or interrupted write: unless the disparity map was
+        written (then the pair is complete), delete the side files this write
+        made -- those whose identity differs from ``before`` (:meth:`state`
+        before the write; None: every side file, unless a disparity map exists).
+        Side files of an earlier run that were not rewritten stay; with one of
+        them rewritten and removed, the pair is incomplete and ``--resume``
+        redoes it, even when an old disparity map remains (``--force``)."""
+        if before is None:
+            if os.path.exists(self.out):
+                return
+            before = {}
+        if os.path.exists(self.out) and _file_identity(self.out) != before.get(self.out):
+            return  # written by this attempt: the pair is complete
         for p in self.sides:
-            if os.path.isfile(p):
+            if os.path.isfile(p) and _file_identity(p) != before.get(p):
                 os.unlink(p)
+
+
+def _file_identity(path):
+    """(device, inode, size, mtime) of ``path``, None when absent: every output is
+    written to a temporary file and renamed, so a rewritten file differs."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
 
 
 @dataclass
@@ -123,25 +154,42 @@ class Summary:
 
 def _image_files(spec, what, image_extensions):
     """(files, keys): a folder's images keyed by stem, or a glob's matches keyed
-    by the text its wildcards matched."""
+    by the text its wildcards matched (:func:`_wildcard_key`; a glob without
+    wildcards: the file's stem)."""
     if os.path.isdir(spec):
         files = sorted(os.path.join(spec, f) for f in os.listdir(spec)
                        if f.lower().endswith(image_extensions) and os.path.isfile(os.path.join(spec, f)))
         keys = [os.path.splitext(os.path.basename(f))[0] for f in files]
     else:
         files = sorted(f for f in glob.glob(spec) if os.path.isfile(f))
-        pattern = _wildcard_regex(spec)
+        pattern, components = _wildcard_regex(spec)
         keys = []
         for f in files:
             m = pattern.fullmatch(f)
             if m is None or not m.groups():
                 key = os.path.splitext(os.path.basename(f))[0]
             else:
-                key = "/".join(m.groups())
+                key = _wildcard_key(m, components)
             keys.append(_strip_extension(key, image_extensions))
     if not files:
         raise InputError(f"no {what} images match {spec!r}")
     return files, keys
+
+
+def _wildcard_key(match, components):
+    """A glob match's key: in each path component that holds wildcards, the
+    text they matched, concatenated; the components joined with "/"
+    (``cam/L????.png`` on ``cam/L0001.png``: ``0001``; ``*/im0.png`` on
+    ``Adirondack/im0.png``: ``Adirondack``)."""
+    parts = {}
+    for group, component in enumerate(components, start=1):
+        parts.setdefault(component, []).append(match.group(group))
+    return "/".join("".join(parts[c]) for c in sorted(parts))
+
+
+def _is_wildcard_free(spec):
+    """A ``-l``/``-r`` value that names one file (no folder, no wildcard)."""
+    return not os.path.isdir(spec) and not _wildcard_regex(spec)[1]
 
 
 def _strip_extension(key, image_extensions):
@@ -149,19 +197,27 @@ def _strip_extension(key, image_extensions):
 
 
 def _wildcard_regex(pattern):
-    """A regex matching what ``glob`` matches for ``pattern``, one group per wildcard."""
-    out, i = [], 0
+    """(regex, components): a regex matching what (non-recursive) ``glob``
+    matches for ``pattern``, one group per wildcard (``*``, ``?``, ``[...]``),
+    and for each group the index of the path component it lies in."""
+    out, components, i, component = [], [], 0, 0
+    seps = "/" if os.sep == "/" else "/" + os.sep
+    not_sep = "[^/]" if os.sep == "/" else r"[^/\\]"
     while i < len(pattern):
         c = pattern[i]
+        if c in seps:
+            component += 1
         if c == "*":
             j = i
             while j < len(pattern) and pattern[j] == "*":
                 j += 1
-            out.append("(.*)" if j - i > 1 else "([^/]*)" if os.sep == "/" else r"([^/\\]*)")
+            out.append(f"({not_sep}*)")  # glob without recursive=True: ** is * (one component)
+            components.append(component)
             i = j
             continue
         if c == "?":
-            out.append("(.)")
+            out.append(f"({not_sep})")
+            components.append(component)
         elif c == "[":
             j = pattern.find("]", i + 2)
             if j < 0:
@@ -171,12 +227,13 @@ def _wildcard_regex(pattern):
                 if body.startswith("!"):
                     body = "^" + body[1:]
                 out.append("([" + body.replace("\\", "\\\\") + "])")
+                components.append(component)
                 i = j + 1
                 continue
         else:
             out.append(re.escape(c))
         i += 1
-    return re.compile("".join(out))
+    return re.compile("".join(out)), components
 
 
 def _unpartnered(lefts_only, rights_only, how):
@@ -213,6 +270,8 @@ def pair_globs(left_spec, right_spec, image_extensions):
     else the pair's key (``Adirondack`` for ``trainingQ/*/im0.png``)."""
     lefts, lkeys = _image_files(left_spec, "left", image_extensions)
     rights, rkeys = _image_files(right_spec, "right", image_extensions)
+    if _is_wildcard_free(left_spec) and _is_wildcard_free(right_spec):  # one file each side: one pair
+        return [(os.path.splitext(os.path.basename(lefts[0]))[0], lefts[0], rights[0])]
     pairs = _pair_keys(lefts, lkeys, rights, rkeys, "the text the globs' wildcards match (file name, or folder)")
     stems = [os.path.splitext(os.path.basename(lp))[0] for _, lp, _ in pairs]
     if len(set(stems)) == len(stems):  # outputs named after the left images when their names differ
@@ -253,8 +312,9 @@ def output_name(key) -> str:
 
 # -- jobs --------------------------------------------------------------------
 
-def make_jobs(args):
-    """The batch's :class:`Job` list from ``args`` (pairing, output names, checks);
+def make_jobs(args, calib=None):
+    """The batch's :class:`Job` list from ``args`` (pairing, output names, checks:
+    a ``.png`` format refuses a stated range it cannot hold, :func:`check_png_range`);
     nothing is read or written."""
     from .cli.common import DISPARITY_FORMATS, IMAGE_EXTENSIONS, _confidence_outputs, _side_outputs
     if args.pairs_dir is not None:
@@ -273,6 +333,7 @@ def make_jobs(args):
             raise InputError(f"pairs {names[name]!r} and {key!r} would both write {name}{ext}")
         names[name] = key
         out = os.path.join(args.output_dir, name + ext)
+        check_png_range(out, args, calib)
         color, depth, ply = _side_outputs(out, args)
         sides = [p for p in (color, *_confidence_outputs(out, args), depth, ply) if p is not None]
         jobs.append(Job(name, lp, rp, out, sides))
@@ -280,26 +341,53 @@ def make_jobs(args):
 
 
 def plan_outputs(jobs, args):
-    """Jobs to run, and the complete ones ``--resume`` skips; existing outputs
-    without ``--resume``/``--force`` are refused before any work."""
+    """Jobs to run, and the complete ones ``--resume`` skips; refused before any
+    work: an output that is an input image of any pair (even with
+    ``--force``/``--resume``), two outputs that are the same file, and existing
+    outputs without ``--resume``/``--force``."""
     from .cli.common import _check_outputs
     if not os.path.isdir(args.output_dir):
         try:
             os.makedirs(args.output_dir, exist_ok=True)
         except OSError as exc:
             raise InputError(f"--output-dir {args.output_dir}: cannot create it ({exc.strerror or exc})") from exc
+    inputs = [f for job in jobs for f in (job.left, job.right)]
+    taken = {}  # real path -> output, across the batch
+    for job in jobs:
+        _check_outputs(job.outputs, args.resume or args.force, inputs, taken)
     todo, skipped = [], []
     for job in jobs:
-        for p in job.outputs:
-            if os.path.isdir(p):
-                raise InputError(f"{p} is a folder, not a file")
         if args.resume and job.complete():
             skipped.append(job)
             continue
-        if not (args.resume or args.force):
-            _check_outputs(job.outputs, False)
         todo.append(job)
     return todo, skipped
+
+
+def check_png_range(out, args, calib=None) -> None:
+    """A ``.png`` output and a stated range (not ``--disp-range auto``) it cannot
+    hold (a negative minimum, or past 255.996 px): refused before any work, as
+    for one pair (:func:`mccnn_cl.cli.common._check_png_range`)."""
+    from .cli.common import _check_png_range
+    low, levels = batch_range(args, calib)
+    if levels != "auto":
+        _check_png_range(out, levels, low)
+
+
+def read_calibration(args):
+    """``--calib`` parsed (None without it).  A file without focal length and
+    baseline (Middlebury 2001-2006: width, height, ndisp) gives the range only:
+    a note, and ``args.no_depth`` set so no depth or point cloud is asked, as
+    for one pair."""
+    if not args.calib:
+        return None
+    from .depth import read_calib
+    calib = read_calib(args.calib)
+    if not calib.has_depth:
+        args.no_depth = True
+        print(f"mccnn-cl: note: {args.calib} has no focal length/baseline: it gives the disparity range "
+              f"(ndisp={calib.ndisp}); no depth or point cloud is written", file=sys.stderr)
+    return calib
 
 
 # -- one pair -----------------------------------------------------------------
@@ -365,19 +453,27 @@ def done_line(job, result) -> str:
             f"{fin.mean():.1%} valid, {result.seconds:.2f} s")
 
 
+#: (calibration file, image size) pairs whose size check has run (:func:`write_pair`).
+_CALIB_SIZES_SAID: set = set()
+
+
 def write_pair(job, result, args, calib) -> None:
     """Every output of ``job``: side files first, the disparity map last (each
     atomic); on any failure or interrupt the pair's side files are removed."""
-    from .cli.common import _save_confidence, _save_outputs
+    from .cli.common import _check_calib_size, _save_confidence, _save_outputs
     from .io import read_image
+    before = job.state()
     try:
         left_img = read_image(job.left) if calib is not None else None  # point-cloud colours
+        if left_img is not None and (args.calib, left_img.shape[:2]) not in _CALIB_SIZES_SAID:
+            _CALIB_SIZES_SAID.add((args.calib, left_img.shape[:2]))  # once per image size, not per pair
+            _check_calib_size(calib, left_img, job.left, args.calib)
         if result.confidence is not None:
             _save_confidence(job.out, result, args)
         lo = result.min_disp
         _save_outputs(job.out, result.disparity, left_img, args, calib, (lo, lo + result.max_disp - 1))
     except BaseException:
-        job.remove_partial()
+        job.remove_partial(before)
         raise
 
 
@@ -408,12 +504,8 @@ def prepare(args):
         raise InputError("in a batch, --confidence and --labels take no file name (maps go next to each output)")
     if args.resume and args.force:
         raise InputError("--resume keeps complete outputs and --force overwrites them: give one")
-    calib = None
-    if args.calib:
-        from .depth import read_calib
-        calib = read_calib(args.calib)
-        calib.require_depth()
-    jobs = make_jobs(args)
+    calib = read_calibration(args)
+    jobs = make_jobs(args, calib)
     todo, skipped = plan_outputs(jobs, args)
     return todo, skipped, calib
 

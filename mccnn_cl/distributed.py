@@ -328,8 +328,11 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
             b.close()
 
 
-def _single_job(args):
-    """The one pair of ``match LEFT RIGHT -o OUT --workers N`` as a :class:`Job` (checked as the one-process path)."""
+def _single_job(args, calib=None):
+    """The one pair of ``match LEFT RIGHT -o OUT --workers N`` as a :class:`Job` (checked as the
+    one-process path: an output that is an input, even with ``--force``, and a ``.png`` for a
+    stated range it cannot hold are refused)."""
+    from .batch import check_png_range
     from .cli.common import DISPARITY_FORMATS, _check_outputs, _confidence_outputs, _side_outputs
     if args.left is None or args.right is None or args.output is None:
         raise InputError("match needs LEFT RIGHT and -o OUT")
@@ -341,17 +344,18 @@ def _single_job(args):
     out = args.output
     if os.path.splitext(out)[1].lower() not in DISPARITY_FORMATS:
         raise InputError(f"{out}: output must end in {', '.join(DISPARITY_FORMATS)}")
+    check_png_range(out, args, calib)
     color, depth, ply = _side_outputs(out, args)
     if color is not None and not color.lower().endswith((".png", ".jpg", ".jpeg", ".bmp")):
         raise InputError(f"{color}: the colour picture must be a .png/.jpg/.bmp file")
     sides = [p for p in (color, *_confidence_outputs(out, args), depth, ply) if p is not None]
-    _check_outputs([*sides, out], args.force)
+    _check_outputs([*sides, out], args.force, (args.left, args.right))
     return Job(os.path.splitext(os.path.basename(out))[0], args.left, args.right, out, sides)
 
 
 def run(args, single: bool) -> int:
     """``mccnn-cl match`` with ``--workers N`` (a LocalCluster) or ``--scheduler ADDRESS``."""
-    from .batch import prepare
+    from .batch import prepare, read_calibration
     from .cli.common import _hyperparameters, _load_weights, _say
     if args.workers is not None and args.scheduler is not None:
         raise InputError("give --workers N (a cluster on this machine) or --scheduler ADDRESS, not both")
@@ -360,12 +364,8 @@ def run(args, single: bool) -> int:
     if single:
         if getattr(args, "resume", False):
             raise InputError("--resume is for batches")
-        calib = None
-        if args.calib:
-            from .depth import read_calib
-            calib = read_calib(args.calib)
-            calib.require_depth()
-        todo, skipped = [_single_job(args)], []
+        calib = read_calibration(args)  # Middlebury 2001-2006: the range only, no depth (a note)
+        todo, skipped = [_single_job(args, calib)], []
     else:
         todo, skipped, calib = prepare(args)
     _load_weights(args)  # a bad weights file fails here, before any cluster starts
@@ -395,7 +395,15 @@ def run(args, single: bool) -> int:
                         summary.failed.append((job.name, reason, bad))
                         _say(f"{job.name}: failed: {reason}")
                         continue
-                    write_pair(job, outcome, args, calib)
+                    try:
+                        write_pair(job, outcome, args, calib)
+                    except Exception as exc:  # noqa: BLE001 - as the one-process batch: this pair fails
+                        if single:
+                            raise
+                        reason, bad = describe_failure(exc)
+                        summary.failed.append((job.name, reason, bad))
+                        _say(f"{job.name}: failed: {reason}")
+                        continue
                     summary.done.append(job.name)
                     if args.verbose or single or outcome.auto is not None:  # an automatic range is always said
                         _say(f"{done_line(job, outcome)}, {outcome.where}")

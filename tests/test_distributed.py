@@ -9,6 +9,7 @@ the one-process batch's, and the tiled pair's maps bit for bit with
 """
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -379,3 +380,203 @@ def test_worker_devices(monkeypatch, capsys):
     assert main(["devices", "--workers", "2"]) == 0
     out = capsys.readouterr().out
     assert "worker 0: " in out and "worker 1: " in out
+
+
+# -- checks every path makes before any work; a failed --force rewrite --------------------------
+
+def _copy_pairs(kitti, root, n=2):
+    """root/l/NAME.png and root/r/NAME.png: copies (not links) of the first n pairs."""
+    for side, src in (("l", "image_2"), ("r", "image_3")):
+        (root / side).mkdir(parents=True)
+        for f in FRAMES[:n]:
+            shutil.copyfile(kitti / src / f"{f}_10.png", root / side / f"{f}.png")
+    return root
+
+
+@pytest.mark.parametrize("mode", ["--force", "--resume"])
+def test_outputs_never_overwrite_inputs(kitti, cluster, tmp_path, capsys, mode):
+    """An output naming an input image is refused before any work, even with --force or --resume:
+    in the one-process batch, on a cluster, and for one pair with --workers."""
+    root = _copy_pairs(kitti, tmp_path / "in")
+    before = files(root / "l"), files(root / "r")
+    for side in ("l", "r"):
+        for extra in ([], ["--scheduler", cluster.scheduler.address], ["--workers", "1"]):
+            rc = main(["match", "-l", str(root / "l/*.png"), "-r", str(root / "r/*.png"), "--output-dir",
+                       str(root / side), "--format", "png", mode, *extra, *COMMON])
+            err = capsys.readouterr().err
+            assert rc == 2, (side, extra, err)
+            assert "is the input image" in err
+        if mode == "--force":  # one pair on a cluster (refused before the cluster starts)
+            one = root / side / f"{FRAMES[0]}.png"
+            rc = main(["match", str(root / "l" / one.name), str(root / "r" / one.name), "-o", str(one), "--force",
+                       "--workers", "1", *COMMON])
+            assert rc == 2 and "is the input image" in capsys.readouterr().err
+    assert (files(root / "l"), files(root / "r")) == before
+
+
+def test_png_range_refused_before_any_work(kitti, cluster, tmp_path, capsys):
+    """A .png batch (and one .png pair on a cluster) with a stated range a KITTI PNG cannot hold is
+    refused before any work, as for one pair in one process; --disp-range auto is not (per pair)."""
+    root = _copy_pairs(kitti, tmp_path / "in")
+    lr = ["-l", str(root / "l/*.png"), "-r", str(root / "r/*.png")]
+    for rng, words in ((["--min-disp", "-24", "--max-disp", "40"], "cannot store negative disparities"),
+                       (["--disp-range=-24:15"], "cannot store negative disparities"),
+                       (["--max-disp", "300"], "holds disparities 0..255.996")):
+        for extra in ([], ["--scheduler", cluster.scheduler.address], ["--workers", "1"]):
+            out = tmp_path / "out"
+            rc = main(["match", *lr, "--output-dir", str(out), "--format", "png", "--cost", "census", *rng, *extra])
+            err = capsys.readouterr().err
+            assert rc == 2, (rng, extra, err)
+            assert words in err
+            assert not out.exists()
+        one = tmp_path / "one.png"
+        rc = main(["match", str(root / f"l/{FRAMES[0]}.png"), str(root / f"r/{FRAMES[0]}.png"), "-o", str(one),
+                   "--cost", "census", *rng, "--workers", "1"])
+        assert rc == 2 and words in capsys.readouterr().err and not one.exists()
+
+
+def test_pairing_question_marks_classes_and_single_files(kitti, reference, tmp_path, capsys):
+    """?, [...] and * in one component give one key (the text they matched, concatenated); keys of
+    components with wildcards are joined with '/'; one file named on each side is one pair."""
+    cam = tmp_path / "cam"
+    cam.mkdir()
+    for n in ("L0001.png", "R0001.png", "L0002.png", "R0002.png"):
+        (cam / n).write_bytes(b"")
+    want = [("L0001", "L0001.png", "R0001.png"), ("L0002", "L0002.png", "R0002.png")]
+    for left in ("L????.png", "L*.png", "L[0-9]???.png", "L?[0-9]*.png", "L*[!x].png"):
+        for right in ("R*.png", "R??[0-9]?.png", "R[0-9][0-9]*"):
+            pairs = pair_globs(str(cam / left), str(cam / right), IMAGE_EXTENSIONS)
+            assert [(n, os.path.basename(lp), os.path.basename(rp)) for n, lp, rp in pairs] == want, (left, right)
+    with pytest.raises(InputError, match="without a right partner"):  # keys 01, 02 beside 0001, 0002
+        pair_globs(str(cam / "L[0-9]00?.png"), str(cam / "R*.png"), IMAGE_EXTENSIONS)
+    for scene in ("A1", "B2"):
+        for c in ("cam0", "cam1"):
+            (tmp_path / "scenes" / scene / c).mkdir(parents=True)
+            (tmp_path / "scenes" / scene / c / "im.png").write_bytes(b"")
+    pairs = pair_globs(str(tmp_path / "scenes/??/cam0/*.png"), str(tmp_path / "scenes/*/cam1/??.png"),
+                       IMAGE_EXTENSIONS)
+    assert [n for n, _, _ in pairs] == ["A1/im", "B2/im"]
+    # one file each side, without wildcards: one pair, named after the left file
+    assert pair_globs(str(cam / "L0001.png"), str(cam / "R0002.png"), IMAGE_EXTENSIONS) == [
+        ("L0001", str(cam / "L0001.png"), str(cam / "R0002.png"))]
+    out = tmp_path / "one"
+    f = FRAMES[0]
+    assert main(["match", "-l", str(kitti / f"image_2/{f}_10.png"), "-r", str(kitti / f"image_3/{f}_10.png"),
+                 "--output-dir", str(out), *COMMON]) == 0
+    assert os.listdir(out) == [f"{f}_10.pfm"]
+    assert (out / f"{f}_10.pfm").read_bytes() == (reference / f"{f}_10.pfm").read_bytes()
+
+
+@pytest.mark.parametrize("where", ["one process", "cluster"])
+def test_calib_without_focal_length_gives_the_range(kitti, shared_data, cluster, tmp_path, capsys, where):
+    """A Middlebury 2001-2006 calib.txt (width, height, ndisp only) in a batch and for one pair on a
+    cluster: a note, ndisp as the range, no depth or point cloud -- as for one pair in one process."""
+    ts = shared_data / "middlebury/Tsukuba"
+    calib = str(ts / "calib.txt")
+    root = tmp_path / "in"
+    names = ("tsukuba", "upside_down")  # pairs of the calibration's size (384x288)
+    for side, im in (("l", "im0.png"), ("r", "im1.png")):
+        (root / side).mkdir(parents=True)
+        img = read_image(ts / im)
+        write_image(root / side / f"{names[0]}.png", img)
+        write_image(root / side / f"{names[1]}.png", np.ascontiguousarray(img[::-1]))
+    extra = ["--scheduler", cluster.scheduler.address] if where == "cluster" else []
+    pairs = [(str(root / f"l/{n}.png"), str(root / f"r/{n}.png")) for n in names]
+    single = []
+    for i, (lp, rp) in enumerate(pairs):  # the one-process single pair: the reference
+        single.append(tmp_path / f"single{i}.pfm")
+        assert main(["match", lp, rp, "-o", str(single[i]), "--cost", "census", "--calib", calib]) == 0
+    capsys.readouterr()
+    out = tmp_path / "out"
+    args = ["match", "-l", str(root / "l/*.png"), "-r", str(root / "r/*.png"), "--output-dir", str(out),
+            "--cost", "census", "--calib", calib, "--color", "--verbose", *extra]
+    assert main(args) == 0
+    cap = capsys.readouterr()
+    assert "has no focal length/baseline" in cap.err and "ndisp=32" in cap.err
+    assert "done 2, skipped 0" in cap.out
+    assert sorted(os.listdir(out)) == sorted(f"{n}{s}" for n in names for s in (".pfm", "_color.png"))
+    for i, n in enumerate(names):
+        assert (out / f"{n}.pfm").read_bytes() == single[i].read_bytes()  # ndisp = 32 levels
+    assert cap.out.count("384x288, 32 disparities") == 2  # --verbose: a line per pair
+    assert main(args + ["--resume"]) == 0  # complete without depth files
+    assert "done 0, skipped 2" in capsys.readouterr().out
+    if where == "cluster":
+        one = tmp_path / "one.pfm"
+        assert main(["match", *pairs[0], "-o", str(one), "--cost", "census", "--calib", calib, *extra]) == 0
+        assert "has no focal length/baseline" in capsys.readouterr().err
+        assert one.read_bytes() == single[0].read_bytes()
+        assert sorted(os.listdir(tmp_path)) == ["in", "one.pfm", "out", "single0.pfm", "single1.pfm"]
+
+
+def test_batch_says_once_when_calib_is_for_another_size(shared_data, tmp_path, capsys):
+    """--calib for 384x288 images on a batch of 120x96 crops: one warning for the size, not one per pair."""
+    ts = shared_data / "middlebury/Tsukuba"
+    root = tmp_path / "in"
+    for side, im in (("l", "im0.png"), ("r", "im1.png")):
+        (root / side).mkdir(parents=True)
+        img = read_image(ts / im)
+        for i in range(2):
+            write_image(root / side / f"c{i}.png", np.ascontiguousarray(img[100 + 40 * i:196 + 40 * i, 150:270]))
+    assert main(["match", "-l", str(root / "l/*.png"), "-r", str(root / "r/*.png"), "--output-dir",
+                 str(tmp_path / "out"), "--cost", "census", "--calib", str(ts / "calib.txt")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("is for 384x288 images") == 1 and "is 120x96" in err
+
+
+def test_remove_partial_removes_only_what_the_write_made(tmp_path):
+    def put(p, data):
+        tmp = tmp_path / ".tmp"
+        tmp.write_bytes(data)
+        os.replace(tmp, p)  # as the writers do: a temporary file renamed
+
+    job = Job("a", "l.png", "r.png", str(tmp_path / "a.pfm"),
+              [str(tmp_path / "a_color.png"), str(tmp_path / "a_confidence.pfm")])
+    for p in job.outputs:
+        put(p, b"old")
+    before = job.state()
+    put(job.sides[0], b"new")  # a --force rewrite fails after its first side file
+    job.remove_partial(before)
+    assert [os.path.exists(p) for p in job.outputs] == [False, True, True]
+    assert not job.complete()  # --resume redoes it
+    put(job.sides[0], b"old")
+    before = job.state()
+    for p in job.outputs:  # a write that got as far as the disparity map: complete, kept
+        put(p, b"new")
+    job.remove_partial(before)
+    assert job.complete()
+    os.unlink(job.out)
+    before = job.state()  # no map yet (first run): every side file the write made goes
+    os.unlink(job.sides[1])
+    put(job.sides[1], b"new")
+    job.remove_partial(before)
+    assert [os.path.exists(p) for p in job.outputs] == [True, False, False]
+
+
+@pytest.mark.parametrize("where", ["one process", "cluster"])
+def test_failed_force_rewrite_leaves_pair_incomplete(kitti, reference, cluster, tmp_path, monkeypatch, capsys,
+                                                     where):
+    """--force over complete pairs, one pair's rewrite failing before its disparity map: the side
+    files the rewrite made go though the old map remains, so --resume redoes that pair."""
+    import mccnn_cl.cli.common as common  # the writer batches call
+    out = tmp_path / "out"
+    args = ["match", *glob_args(kitti), "--output-dir", str(out), "--color", "--confidence", *COMMON]
+    assert main(args) == 0
+    real = common.write_disparity
+
+    def failing(path, disp):
+        if os.path.basename(path).startswith(FRAMES[0]):
+            raise OSError(28, "No space left on device")
+        real(path, disp)
+
+    monkeypatch.setattr(common, "write_disparity", failing)
+    extra = ["--scheduler", cluster.scheduler.address] if where == "cluster" else []
+    old_map = (out / f"{FRAMES[0]}_10.pfm").read_bytes()
+    capsys.readouterr()
+    assert main(args + ["--force", *extra]) == 1
+    assert f"done {len(FRAMES) - 1}, skipped 0 (outputs complete), failed 1" in capsys.readouterr().out
+    assert sorted(p for p in os.listdir(out) if p.startswith(FRAMES[0])) == [f"{FRAMES[0]}_10.pfm"]
+    assert (out / f"{FRAMES[0]}_10.pfm").read_bytes() == old_map
+    monkeypatch.setattr(common, "write_disparity", real)
+    assert main(args + ["--resume", *extra]) == 0
+    assert f"done 1, skipped {len(FRAMES) - 1}" in capsys.readouterr().out
+    assert files(out) == {p: b for p, b in files(reference).items() if not p.endswith("_labels.png")}
