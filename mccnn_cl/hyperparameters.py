@@ -40,7 +40,8 @@ class Hyperparameters:
     ``lr_threshold`` 1.0 (code: 1.1, identical on integer maps);
     ``interpolation`` "paper" | "code" (half-pixel direction steps, walk stops
     at any non-mismatch pixel); ``subpixel_min_denominator`` 0.0 (code 1e-5)
-    and ``subpixel_clamp`` False (code True); ``bilateral_guide`` "image" |
+    and ``subpixel_clamp`` True (the paper is silent; unclamped, the step at a pixel whose
+    D_INT was interpolated, not a cost minimum, reached hundreds of pixels); ``bilateral_guide`` "image" |
     "disparity" (code); ``blur_radius`` None = ceil(3 sigma).
     """
 
@@ -62,7 +63,7 @@ class Hyperparameters:
     lr_threshold: float = 1.0         # |d - D^R(pd)| <= this is consistent
     interpolation: str = "paper"      # "paper" | "code"
     subpixel_min_denominator: float = 0.0
-    subpixel_clamp: bool = False
+    subpixel_clamp: bool = True        # code as well; the paper gives no bound
     median_size: int = 5
     blur_sigma: float = 5.656         # sigma of the bilateral filter
     blur_tau: float = 5.0             # tau_BF (0..255 scale for the image guide)
