@@ -483,9 +483,14 @@ class StereoMatcher:
         D_L = rec("D_L", self.wta.left(C, D, H, W), crop, np.int32)
         if p.right_reference == "derived":
             D_R = rec("D_R", self.wta.right(C, D, H, W), crop, np.int32)
-        labels = rec("labels", self.lr_check(D_L, D_R, D, H, W, p.lr_threshold), crop, np.int32)
-        D_INT = rec("D_INT", self.interpolate(D_L, labels, H, W, p.interpolation), crop, np.int32)
-        D_SE = rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp), crop)
+        # a working frame with padding (M < 0): the right image's real columns 0 .. f.W-1, the left's f.p ..
+        # W-1; the check, interpolation and subpixel see only real pixels (docs/method.md, "Disparity ranges")
+        f = rec.frame
+        Wr, lo = (f.W, f.p) if f is not None and f.masked else (W, 0)
+        labels = rec("labels", self.lr_check(D_L, D_R, D, H, W, p.lr_threshold, right_width=Wr), crop, np.int32)
+        D_INT = rec("D_INT", self.interpolate(D_L, labels, H, W, p.interpolation, first_column=lo), crop, np.int32)
+        D_SE = rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp,
+                                         right_width=Wr), crop)
         if "confidence" in rec.wanted:
             rec("confidence", self.confidence(C, labels, D, H, W, self.cost.floor), crop)
         self._pool.give(C)  # the in-order queue runs any later user after subpixel

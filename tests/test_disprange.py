@@ -9,9 +9,14 @@ automatic range (mccnn_cl.disprange, kernels/range.cl).
   matched with min_disparity = -s, gives the original's error on the same
   pixels within 0.5 points and the original's map (minus s) within 0.5 px on
   >= 98 % of the pixels away from the borders;
-* M = 0 is the unchanged method: outputs hashed on main before the change;
+* M = 0 is the unchanged method: the same outputs as a matcher given no minimum;
 * row tiles, intermediates in the image's frame, the automatic range,
-  bad input (one line, exit status 2), dataset ranges (calib.txt vmin/vmax).
+  bad input (one line, exit status 2), dataset ranges (calib.txt vmin/vmax);
+* the stages after the WTA in the working frame of M < 0 (right_width,
+  first_column): kernels against their twins on random inputs, the real columns
+  against the rules in the image's frame (a cell whose right pixel is past the
+  right image is no match), real pairs (Tsukuba swapped, a KITTI crop) following
+  those rules, and the neutral arguments (M >= 0) giving the stages as they were.
 """
 
 import json
@@ -139,6 +144,15 @@ SHIFT_CASES = {  # cost -> (crop y0, x0, H, W, D, s)
 }
 
 
+#: Columns next to the shifted right image's border left out of the shift test's
+#: score.  It was 4 while the left-right check took cells whose right pixel is the
+#: padding (labelling the padding's SGM-extrapolated matches correct); with those
+#: cells invalid, kitti-fst's shifted error at 4 rose from 0.53 to 0.79 % (the
+#: original's: 0.13 %).  At 12: kitti-fst 0.16 before / 0.18 % now against 0.13 %,
+#: census 0.43 / 0.42 % against 0.37 %, kitti-paper and acrt 0.52 % both against 0.37 %.
+RIGHT_BAND = 12
+
+
 @pytest.mark.parametrize("name", list(SHIFT_CASES))
 def test_shift_negative_min_disparity(ctx, shared_data, name):
     y0, x0, H, W, D, s = SHIFT_CASES[name]
@@ -151,10 +165,15 @@ def test_shift_negative_min_disparity(ctx, shared_data, name):
     assert shifted.shape == (H, W - s)
     # the same pixels: the original's columns s.. are the shifted pair's 0.., scored
     # where the true match is in both pairs (the shifted right image lost its last
-    # s columns: left pixels matching there have no match left, in either method)
+    # s columns: left pixels matching there have no match left, in either method),
+    # RIGHT_BAND px or more inside the shifted right image: the pixels matching its
+    # last columns have right-hand neighbours that are occlusions in the shifted pair
+    # (their match was dropped; the left-right check does not take the padding's
+    # cells, docs/method.md) but correct in the original, so interpolation fills
+    # them from other pixels than the original does
     g = gt[:, s:] - s
     x = np.arange(W - s)[None, :]
-    g = np.where(x - g <= W - s - 1 - 4, g, np.nan)
+    g = np.where(x - g <= W - s - 1 - RIGHT_BAND, g, np.nan)
     e_orig, e_shift = _bad3(orig[:, s:] - s, g), _bad3(shifted, g)
     assert np.isfinite(g).sum() > 500
     assert abs(e_orig - e_shift) <= 0.5, (e_orig, e_shift)
@@ -426,3 +445,265 @@ def test_stated_ranges_of_shared_pairs_unchanged(shared_data):
         pair = load_middlebury(scene)
         assert pair.disp_range is not None
         assert default_range(pair) == (0, pair.ndisp), scene.name
+
+
+# -- the stages after the WTA in the working frame (M < 0) ---------------------------
+# With M < 0 the right image has p = -M columns of padding on the right (working
+# columns W .. W+p-1, W the real cropped width) and the left image p on the left
+# (working columns 0 .. p-1).  The left-right check and subpixel enhancement take
+# the real right width (right_width), interpolation the first real left column
+# (first_column): a cell whose right pixel is padding is no candidate, padding
+# columns end a walk; at their neutral values (right_width=W, first_column=0:
+# every M >= 0) they are the stages as they were.
+I32_POISON = np.int32(-123456789)
+
+
+def _poisoned(ctx, n, dtype=np.float32):
+    from conftest import POISON
+
+    value = I32_POISON if dtype == np.int32 else POISON
+    buf = ctx.empty(n * 4, "poisoned output")
+    ctx.fill(buf, value, n * 4, dtype)
+    return buf
+
+
+def _run_lr(ctx, DL, DR, D, **kw):
+    from mccnn_cl.stages.disparity import LeftRightCheck
+
+    H, W = DL.shape
+    out = LeftRightCheck(ctx)(ctx.to_device(DL), ctx.to_device(DR), D, H, W, out=_poisoned(ctx, H * W, np.int32), **kw)
+    return ctx.from_device(out, (H, W), np.int32)
+
+
+def _run_interp(ctx, DL, labels, directions, **kw):
+    from mccnn_cl.stages.disparity import Interpolate
+
+    H, W = DL.shape
+    out = Interpolate(ctx)(ctx.to_device(DL), ctx.to_device(labels), H, W, directions,
+                           out=_poisoned(ctx, H * W, np.int32), **kw)
+    return ctx.from_device(out, (H, W), np.int32)
+
+
+def _run_subpixel(ctx, C, DINT, **kw):
+    from mccnn_cl.stages.disparity import Subpixel
+
+    D, H, W = C.shape
+    out = Subpixel(ctx)(ctx.to_device(C), ctx.to_device(DINT), D, H, W, out=_poisoned(ctx, H * W), **kw)
+    return ctx.from_device(out, (H, W))
+
+
+def _working_volume(rng, M, D, H, W):
+    """A working-frame volume of a real W-column pair and range M .. M+D-1 (M < 0):
+    Ww = W - M columns, NaN where x' - d' < 0, the padding's cells at CEILING
+    (range_mask's twin), the rest a noisy valley around a random disparity per
+    pixel (so that all three labels occur) with a few exact ties."""
+    p, Ww = -M, W - M
+    t = rng.integers(0, D, (H, Ww))[None]
+    d = np.arange(D)[:, None, None]
+    C = (0.6 * np.minimum(np.abs(d - t), 4) / 4 + 0.4 * rng.random((D, H, Ww))).astype(np.float32)
+    C = (np.round(C * 64) / 64).astype(np.float32)
+    x = np.arange(Ww)[None, None, :]
+    C[np.broadcast_to(x - d < 0, C.shape)] = np.nan
+    return mask_reference(C, p, W)
+
+
+def _image_rule_labels(DL, DR, M, D, threshold=1.0):
+    """docs/method.md's left-right check in the image's frame (maps in disparities
+    M .. M+D-1, W columns): pd = x - d must lie in 0 .. W-1."""
+    H, W = DL.shape
+    y, x = np.arange(H)[:, None], np.arange(W)[None, :]
+
+    def consistent(dd):
+        u = x - dd
+        return (u >= 0) & (u < W) & (np.abs(dd - DR[y, np.clip(u, 0, W - 1)]) <= threshold)
+
+    labels = np.full((H, W), 2, np.int32)
+    mismatch = np.zeros((H, W), bool)
+    for e in range(M, M + D):
+        mismatch |= consistent(np.full((H, W), e)) & (DL != e)
+    labels[mismatch] = 1
+    labels[consistent(DL)] = 0
+    return labels
+
+
+def _image_rule_subpixel(C, DINT, M, min_denominator, clamp):
+    """Subpixel enhancement in the image's frame: fitted where the levels d-1, d,
+    d+1 exist and their three cells are valid (finite: both pixels in the image),
+    float32 as the kernel."""
+    D, H, W = C.shape
+    k = DINT.astype(np.int64) - M
+    kk = np.clip(k, 1, D - 2)
+    y, x = np.mgrid[:H, :W]
+    cm, c0, cp = C[kk - 1, y, x], C[kk, y, x], C[kk + 1, y, x]
+    two = np.float32(2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        denom = cp - two * c0 + cm
+        ok = (k >= 1) & (k <= D - 2) & np.isfinite(cm) & np.isfinite(c0) & np.isfinite(cp)
+        ok &= denom > np.float32(min_denominator)
+        step = (cp - cm) / (two * denom)
+    if clamp:
+        step = np.clip(step, np.float32(-1), np.float32(1))
+    out = DINT.astype(np.float32)
+    out[ok] = (out - step)[ok]
+    return out
+
+
+@pytest.mark.parametrize("M,D,H,W", [(-6, 12, 9, 31), (-17, 24, 5, 40), (-3, 8, 4, 9), (-9, 30, 3, 14)])
+def test_stages_in_working_frame_match_reference(ctx, M, D, H, W):
+    """Kernels against their twins with right_width / first_column (poisoned
+    outputs), and the twins' real columns against the rule in the image's frame."""
+    rng = np.random.default_rng(D * W - M)
+    p = -M
+    C = _working_volume(rng, M, D, H, W)
+    DL, DR = ref.wta_left(C), ref.wta_right(C)
+    lab = _run_lr(ctx, DL, DR, D, right_width=W)
+    want = ref.lr_check(DL, DR, D, right_width=W)
+    np.testing.assert_array_equal(lab, want)
+    assert {0, 1, 2} <= set(np.unique(want[:, p:]))
+    # the real columns follow the rule on the image's maps (D^R: the right image's real columns)
+    np.testing.assert_array_equal(want[:, p:], _image_rule_labels(DL[:, p:] + M, DR[:, :W] + M, M, D))
+    for directions in ("paper", "code"):
+        got = _run_interp(ctx, DL, lab, directions, first_column=p)
+        want_i = ref.interpolate(DL, lab, directions, stop_at_any=directions == "code", first_column=p)
+        np.testing.assert_array_equal(got, want_i)
+        # the real columns: as if the padding were not there
+        np.testing.assert_array_equal(want_i[:, p:], ref.interpolate(DL[:, p:], lab[:, p:], directions,
+                                                                     stop_at_any=directions == "code"))
+    DINT = rng.integers(0, D, DL.shape).astype(np.int32)  # any level, near the right edge too
+    DINT[:, -3:] = rng.integers(0, min(D, p + 2), (H, 3))
+    Creal = np.array(C[:, :, p:])  # the image's frame: padding cells NaN (outside the right image)
+    xr = np.arange(W)[None, None, :]
+    dr = M + np.arange(D)[:, None, None]
+    Creal[np.broadcast_to(xr - dr >= W, Creal.shape)] = np.nan
+    for mind, clamp in ((0.0, False), (1e-5, True)):
+        got = _run_subpixel(ctx, C, DINT, min_denominator=mind, clamp_step=clamp, right_width=W)
+        want_s = ref.subpixel(C, DINT, mind, clamp, right_width=W)
+        np.testing.assert_allclose(got, want_s, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(want_s[:, p:] + M, _image_rule_subpixel(Creal, DINT[:, p:] + M, M, mind, clamp),
+                                   rtol=0, atol=1e-5)
+
+
+def test_working_frame_cases_exercise_the_padding(ctx):
+    """Without the new arguments the same inputs give other labels, D_INT and
+    D_SE on real columns: the cases above test what changed."""
+    M, D, H, W = -17, 24, 5, 40
+    p = -M
+    C = _working_volume(np.random.default_rng(D * W - M), M, D, H, W)
+    DL, DR = ref.wta_left(C), ref.wta_right(C)
+    lab, lab0 = ref.lr_check(DL, DR, D, right_width=W), ref.lr_check(DL, DR, D)
+    assert (lab[:, p:] != lab0[:, p:]).sum() > 5
+    assert (ref.interpolate(DL, lab, "code", True, first_column=p)[:, p:]
+            != ref.interpolate(DL, lab, "code", True)[:, p:]).any()
+    DINT = np.full(DL.shape, 5, np.int32)  # x' - 4 >= W at the last few real columns
+    assert (ref.subpixel(C, DINT, right_width=W) != ref.subpixel(C, DINT)).any()
+
+
+@pytest.mark.parametrize("D,H,W", [(16, 11, 37), (30, 3, 11), (5, 2, 9)])
+def test_neutral_arguments_are_the_old_stages(ctx, D, H, W):
+    """right_width = W and first_column = 0 (every M >= 0) give the stages as they
+    were, bit for bit: kernel with and without them, and the pre-change rules
+    (written out here: candidates x - d' >= 0 only, fits where d+1 <= x)."""
+    rng = np.random.default_rng(D * H * W)
+    C = rng.random((D, H, W), dtype=np.float32)
+    for d in range(D):
+        C[d, :, :min(d, W)] = np.nan
+    DL, DR = ref.wta_left(C), ref.wta_right(C)
+    lab = _run_lr(ctx, DL, DR, D)
+    np.testing.assert_array_equal(_run_lr(ctx, DL, DR, D, right_width=W), lab)
+    np.testing.assert_array_equal(ref.lr_check(DL, DR, D, right_width=W), lab)
+    y, x = np.arange(H)[:, None], np.arange(W)[None, :]
+
+    def consistent(dd):  # the old rule: pd inside iff x - d >= 0
+        return (x - dd >= 0) & (np.abs(dd - DR[y, np.clip(x - dd, 0, W - 1)]) <= 1.0)
+
+    old = np.full((H, W), 2, np.int32)
+    mis = np.zeros((H, W), bool)
+    for e in range(D):
+        mis |= consistent(np.full((H, W), e)) & (DL != e)
+    old[mis] = 1
+    old[consistent(DL)] = 0
+    np.testing.assert_array_equal(lab, old)
+    for directions in ("paper", "code"):
+        a = _run_interp(ctx, DL, lab, directions)
+        np.testing.assert_array_equal(_run_interp(ctx, DL, lab, directions, first_column=0), a)
+        np.testing.assert_array_equal(ref.interpolate(DL, lab, directions, directions == "code"), a)
+    DINT = rng.integers(0, D, (H, W)).astype(np.int32)
+    for mind, clamp in ((0.0, False), (1e-5, True)):
+        a = _run_subpixel(ctx, C, DINT, min_denominator=mind, clamp_step=clamp)
+        np.testing.assert_array_equal(_run_subpixel(ctx, C, DINT, min_denominator=mind, clamp_step=clamp,
+                                                    right_width=W), a)
+        k = np.clip(DINT, 1, D - 2)
+        cm, c0, cp = (C[k + i, y, x] for i in (-1, 0, 1))
+        two = np.float32(2)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            denom = cp - two * c0 + cm
+            step = (cp - cm) / (two * denom)
+        if clamp:
+            step = np.clip(step, np.float32(-1), np.float32(1))
+        fit = (DINT >= 1) & (DINT + 1 <= D - 1) & (DINT + 1 <= x) & (denom > np.float32(mind))
+        np.testing.assert_allclose(a, np.where(fit, DINT - step, DINT).astype(np.float32), rtol=0, atol=1e-6)
+
+
+def test_stage_arguments_checked(ctx):
+    from mccnn_cl.stages.disparity import Interpolate, LeftRightCheck
+
+    d = ctx.to_device(np.zeros((2, 5), np.int32))
+    with pytest.raises(InputError, match="right_width"):
+        LeftRightCheck(ctx)(d, d, 3, 2, 5, right_width=6)
+    with pytest.raises(InputError, match="first_column"):
+        Interpolate(ctx)(d, d, 2, 5, first_column=5)
+
+
+def _pipeline_follows_image_rules(res, m, M, D, directions):
+    """labels, D_INT and D_SE of ``res`` (intermediates in the image's frame) are
+    the documented stages applied in the image's coordinates."""
+    it = res.intermediates
+    labels = _image_rule_labels(it["D_L"], it["D_R"], M, D, m.params.lr_threshold)
+    np.testing.assert_array_equal(it["labels"], labels)
+    np.testing.assert_array_equal(it["D_INT"], ref.interpolate(it["D_L"], labels, directions,
+                                                               stop_at_any=directions == "code"))
+    want = _image_rule_subpixel(it["C"], it["D_INT"], M, m.params.subpixel_min_denominator, m.params.subpixel_clamp)
+    np.testing.assert_allclose(it["D_SE"], want, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("directions", ["paper", "code"])
+def test_tsukuba_swapped_negative_range_image_rules(ctx, shared_data, directions):
+    """Tsukuba swapped (right image as the left one: disparities -15 .. 0), range
+    -24 .. 7: before the fix 1246 labels (columns 366 .. 375) differed from the
+    rule, 1429 D_SE were fitted through padding cells and ("code") 6 D_INT came
+    from the padding; now every label, D_INT and D_SE follows the image's rules."""
+    d = shared_data / "middlebury" / "Tsukuba"
+    right, left = (cv2.imread(str(d / f), cv2.IMREAD_GRAYSCALE) for f in ("im0.png", "im1.png"))
+    M, D = -24, 32
+    m = StereoMatcher(cost="census", max_disparity=D, min_disparity=M, interpolation=directions, device=ctx)
+    res = m.compute(left, right, return_intermediates=True)
+    _pipeline_follows_image_rules(res, m, M, D, directions)
+    it = res.intermediates
+    W = it["D_L"].shape[1]
+    x = np.arange(W)[None, :]
+    assert (x - it["D_L"] >= W).sum() > 100  # the case reaches past the right image's edge
+    assert ((x - (it["D_INT"] - 1) >= W) & (it["labels"] != 0)).sum() > 100
+
+
+@pytest.mark.filterwarnings("ignore::mccnn_cl.errors.InputWarning")  # a crop at the edge: many mismatches
+@pytest.mark.parametrize("right_reference", ["aggregated", "derived"])
+def test_kitti_crop_negative_range_image_rules(ctx, shared_data, right_reference):
+    """KITTI 000000's right edge, range -17 .. 46 (76 labels off the rule before the fix)."""
+    left, right = kitti_crop(shared_data, 150, 1042, 100, 200)
+    M, D = -17, 64
+    m = StereoMatcher(cost="census", max_disparity=D, min_disparity=M, right_reference=right_reference,
+                      interpolation="code", device=ctx)
+    res = m.compute(left, right, return_intermediates=True)
+    _pipeline_follows_image_rules(res, m, M, D, "code")
+
+
+@pytest.mark.filterwarnings("ignore::mccnn_cl.errors.InputWarning")  # a crop at the edge: many mismatches
+@pytest.mark.parametrize("M", [0, 4])
+def test_nonnegative_range_image_rules(ctx, shared_data, M):
+    """M >= 0 (no padding; the stages' neutral arguments): the same rules hold,
+    for M = 0 the pre-change stages."""
+    left, right = kitti_crop(shared_data, 150, 1042, 60, 160)
+    D = 40
+    m = StereoMatcher(cost="census", max_disparity=D, min_disparity=M, device=ctx)
+    res = m.compute(left, right, return_intermediates=True)
+    _pipeline_follows_image_rules(res, m, M, D, "paper")

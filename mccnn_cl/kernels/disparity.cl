@@ -102,11 +102,16 @@ __kernel void disparity_wta_right(
 /* Left-right check (paper): with d = D^L(p) and pd = (x - d, y),
  *   correct   if |d - D^R(pd)| <= threshold,
  *   mismatch  if |d' - D^R(pd')| <= threshold for any other d' in [0, D)
- *             with x - d' >= 0,
+ *             with 0 <= x - d' < Wr,
  *   occlusion otherwise.
- * The paper's threshold is 1; the released code's "< 1.1" selects the same
- * pixels on integer maps.  A D^L(p) outside [0, x] (never produced by the WTA)
- * is treated as not correct.  Global size (W, H). */
+ * Wr: columns of the real right image (pd' must lie inside it).  W for a map
+ * of the real pair (x - d' < W always holds there); in the working frame of a
+ * range with M < 0 (mccnn_cl/disprange.py) the real cropped width, so that
+ * the right image's padding columns Wr .. W-1 are never searched: a pixel
+ * whose only consistent candidates lie there is an occlusion, as in the
+ * image's frame.  The paper's threshold is 1; the released code's "< 1.1"
+ * selects the same pixels on integer maps.  A D^L(p) outside
+ * [max(0, x - Wr + 1), x] is treated as not correct.  Global size (W, H). */
 __kernel void disparity_lr_check(
     __global const int *disp_l, /* D^L, H x W */
     __global const int *disp_r, /* D^R, H x W */
@@ -114,7 +119,8 @@ __kernel void disparity_lr_check(
     const int D,                /* disparity levels */
     const int H,                /* rows */
     const int W,                /* columns */
-    const float threshold)      /* max |d - D^R(pd)| of a consistent pair */
+    const float threshold,      /* max |d - D^R(pd)| of a consistent pair */
+    const int Wr)               /* columns of the real right image (<= W) */
 {
     const int x = get_global_id(0);
     const int y = get_global_id(1);
@@ -122,12 +128,13 @@ __kernel void disparity_lr_check(
         return;
     const size_t row = (size_t)y * W;
     const int d = disp_l[row + x];
+    const int dmin = max(0, x - Wr + 1); /* smallest d' with x - d' < Wr */
     int label = LABEL_OCCLUSION;
-    if (d >= 0 && d <= x && fabs((float)(d - disp_r[row + x - d])) <= threshold) {
+    if (d >= dmin && d <= x && fabs((float)(d - disp_r[row + x - d])) <= threshold) {
         label = LABEL_CORRECT;
     } else {
         const int dmax = min(D - 1, x);
-        for (int e = 0; e <= dmax; e++) {
+        for (int e = dmin; e <= dmax; e++) {
             if (e != d && fabs((float)(e - disp_r[row + x - e])) <= threshold) {
                 label = LABEL_MISMATCH;
                 break;

@@ -16,6 +16,15 @@
  *   released code).  The result is the upper median (element n/2 of the
  *   ascending sort, 0-based) of the n <= 16 values, an integer; n = 0 keeps
  *   D^L(p).  round() is OpenCL's: half-way cases away from zero.
+ *
+ * Columns x < lo are not part of the image: the working frame's padding of a
+ * range with M < 0 (mccnn_cl/disprange.py; lo = 0 on the real pair).  A walk
+ * that reaches one ends as at the map's edge, so padding pixels neither stop
+ * a walk nor give a value (a walk never comes back from the padding: its
+ * steps keep the sign of dx), and q_n's column is rounded in the real
+ * image's columns, lo + round(x - lo + n dx) (half-way cases at -0.5 round
+ * away from zero there, not at lo - 0.5), so D_INT of the real columns is
+ * the one of the real pair's maps.
  */
 #include "common.h"
 
@@ -32,7 +41,8 @@ __kernel void interpolate_fill(
     __global int *out,             /* out: D_INT, H x W */
     const int H,                   /* rows */
     const int W,                   /* columns */
-    const int stop_at_any)         /* 0: stop at correct (paper); 1: at non-mismatch (code) */
+    const int stop_at_any,         /* 0: stop at correct (paper); 1: at non-mismatch (code) */
+    const int lo)                  /* first real column (columns < lo: padding) */
 {
     const int x = get_global_id(0);
     const int y = get_global_id(1);
@@ -44,14 +54,14 @@ __kernel void interpolate_fill(
 
     if (label == LABEL_OCCLUSION) {
         int xx = x - 1;
-        while (xx >= 0 && labels[row + xx] != LABEL_CORRECT)
+        while (xx >= lo && labels[row + xx] != LABEL_CORRECT)
             xx--;
-        if (xx < 0) {
-            xx = x + 1;
+        if (xx < lo) {
+            xx = max(x, lo - 1) + 1;
             while (xx < W && labels[row + xx] != LABEL_CORRECT)
                 xx++;
         }
-        if (xx >= 0 && xx < W)
+        if (xx >= lo && xx < W)
             value = disp[row + xx];
     } else if (label == LABEL_MISMATCH) {
         int vals[NUM_DIRECTIONS];
@@ -60,9 +70,11 @@ __kernel void interpolate_fill(
             const float dx = dirs[2 * k];
             const float dy = dirs[2 * k + 1];
             for (int s = 1;; s++) {
-                const int qx = (int)round((float)x + (float)s * dx);
+                /* rounded in the real image's columns (x - lo): half-way cases
+                 * then round as they do there (lo = 0: the plain position) */
+                const int qx = lo + (int)round((float)(x - lo) + (float)s * dx);
                 const int qy = (int)round((float)y + (float)s * dy);
-                if (qx < 0 || qx >= W || qy < 0 || qy >= H)
+                if (qx < lo || qx >= W || qy < 0 || qy >= H)
                     break;
                 const int lq = labels[(size_t)qy * W + qx];
                 if (lq == LABEL_CORRECT || (stop_at_any && lq != LABEL_MISMATCH)) {

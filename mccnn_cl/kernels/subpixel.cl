@@ -8,6 +8,10 @@
  *   - d - 1 < 0 or d + 1 > D - 1 (range ends),
  *   - d + 1 > x (a neighbour, or d itself, is an invalid cell: x - d' < 0;
  *     D_INT may hold a disparity interpolated from another pixel),
+ *   - x - (d - 1) >= Wr (a neighbour, or d itself, compares with a right
+ *     pixel past the real right image: Wr = W on the real pair, where this
+ *     never holds; the real cropped width in the working frame of a range
+ *     with M < 0, whose padding cells hold a made-up cost, mccnn_cl/disprange.py),
  *   - the denominator C+ - 2C + C- is not > min_denom (zero or negative:
  *     no minimum to fit; the paper's case is min_denom = 0, the released
  *     code uses 1e-5).
@@ -28,7 +32,8 @@ __kernel void subpixel_refine(
     const int H,                /* rows */
     const int W,                /* columns */
     const float min_denom,      /* fit only when C+ - 2C + C- > min_denom */
-    const int clamp_step)       /* nonzero: clamp the correction to [-1, 1] */
+    const int clamp_step,       /* nonzero: clamp the correction to [-1, 1] */
+    const int Wr)               /* columns of the real right image (<= W) */
 {
     const int x = get_global_id(0);
     const int y = get_global_id(1);
@@ -36,7 +41,7 @@ __kernel void subpixel_refine(
         return;
     const int d = disp[(size_t)y * W + x];
     float result = (float)d;
-    if (d >= 1 && d + 1 <= D - 1 && d + 1 <= x) {
+    if (d >= 1 && d + 1 <= D - 1 && d + 1 <= x && x - d + 1 < Wr) {
         const float cm = VOL_GET(cost, VIDX(d - 1, y, x, H, W));
         const float c0 = VOL_GET(cost, VIDX(d, y, x, H, W));
         const float cp = VOL_GET(cost, VIDX(d + 1, y, x, H, W));

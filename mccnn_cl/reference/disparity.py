@@ -58,18 +58,23 @@ def wta_right(C: np.ndarray) -> np.ndarray:
 
 
 # -- left-right check and interpolation ----------------------------------
-def lr_check(DL: np.ndarray, DR: np.ndarray, D: int, threshold: float = 1.0) -> np.ndarray:
+def lr_check(DL: np.ndarray, DR: np.ndarray, D: int, threshold: float = 1.0,
+             right_width: int | None = None) -> np.ndarray:
     """Labels: CORRECT if |d - D^R(x-d)| <= threshold for d = D^L(p); MISMATCH if
-    that holds for another d' in [0, D) with x - d' >= 0; OCCLUSION otherwise."""
+    that holds for another d' in [0, D) with 0 <= x - d' < right_width; OCCLUSION
+    otherwise.  ``right_width``: columns of the real right image (None: W, the
+    real pair; in the working frame of a range with M < 0 the real width, so
+    that the right image's padding columns are never a candidate's pd')."""
     H, W = DL.shape
+    Wr = W if right_width is None else int(right_width)
     labels = np.full((H, W), OCCLUSION, np.int32)
     for y in range(H):
         for x in range(W):
             d = int(DL[y, x])
-            if 0 <= d <= x and abs(d - int(DR[y, x - d])) <= threshold:
+            if 0 <= x - d < Wr and d >= 0 and abs(d - int(DR[y, x - d])) <= threshold:
                 labels[y, x] = CORRECT
                 continue
-            for e in range(min(D - 1, x) + 1):
+            for e in range(max(0, x - Wr + 1), min(D - 1, x) + 1):
                 if e != d and abs(e - int(DR[y, x - e])) <= threshold:
                     labels[y, x] = MISMATCH
                     break
@@ -81,22 +86,27 @@ def _round_half_away(v: float) -> int:
 
 
 def interpolate(DL: np.ndarray, labels: np.ndarray, directions="paper",
-                stop_at_any: bool = False) -> np.ndarray:
+                stop_at_any: bool = False, first_column: int = 0) -> np.ndarray:
     """D_INT from D^L and the labels (both read, never updated while filling).
 
     occlusion: first CORRECT pixel moving left, else moving right, else keep.
     mismatch: along each of the 16 directions the first pixel that is CORRECT
     (or, ``stop_at_any``, not MISMATCH) gives one value; the result is the
     upper median ``sorted(vals)[n // 2]``; no value -> keep.
+    ``first_column``: columns before it are not part of the image (the working
+    frame's padding of a range with M < 0): searches and walks end there as at
+    the map's edge; on the columns from it on, D_INT is the one of the maps
+    without those columns.
     """
     dirs = DIRECTIONS[directions] if isinstance(directions, str) else np.asarray(directions, np.float32)
     H, W = DL.shape
+    lo = int(first_column)
     out = DL.astype(np.int32).copy()
     for y in range(H):
         for x in range(W):
             if labels[y, x] == OCCLUSION:
-                left = [xx for xx in range(x - 1, -1, -1) if labels[y, xx] == CORRECT]
-                right = [xx for xx in range(x + 1, W) if labels[y, xx] == CORRECT]
+                left = [xx for xx in range(x - 1, lo - 1, -1) if labels[y, xx] == CORRECT]
+                right = [xx for xx in range(max(x, lo - 1) + 1, W) if labels[y, xx] == CORRECT]
                 if left:
                     out[y, x] = DL[y, left[0]]
                 elif right:
@@ -106,9 +116,9 @@ def interpolate(DL: np.ndarray, labels: np.ndarray, directions="paper",
                 for dx, dy in dirs:
                     s = 1
                     while True:
-                        qx = _round_half_away(np.float32(x) + np.float32(s) * dx)
+                        qx = lo + _round_half_away(np.float32(x - lo) + np.float32(s) * dx)  # real columns
                         qy = _round_half_away(np.float32(y) + np.float32(s) * dy)
-                        if not (0 <= qx < W and 0 <= qy < H):
+                        if not (lo <= qx < W and 0 <= qy < H):
                             break
                         lq = labels[qy, qx]
                         if lq == CORRECT or (stop_at_any and lq != MISMATCH):
@@ -122,16 +132,19 @@ def interpolate(DL: np.ndarray, labels: np.ndarray, directions="paper",
 
 # -- subpixel enhancement --------------------------------------------------
 def subpixel(C: np.ndarray, DINT: np.ndarray, min_denominator: float = 0.0,
-             clamp_step: bool = False) -> np.ndarray:
-    """D_SE = d - (C+ - C-) / (2 (C+ - 2C + C-)) where 1 <= d <= D-2, d+1 <= x and
-    the denominator > min_denominator; otherwise d.  float32 arithmetic."""
+             clamp_step: bool = False, right_width: int | None = None) -> np.ndarray:
+    """D_SE = d - (C+ - C-) / (2 (C+ - 2C + C-)) where 1 <= d <= D-2, d+1 <= x,
+    x - (d-1) < right_width (the three cells' right pixels inside the real right
+    image; None: W, the real pair, where it always holds) and the denominator >
+    min_denominator; otherwise d.  float32 arithmetic."""
     D, H, W = C.shape
+    Wr = W if right_width is None else int(right_width)
     out = DINT.astype(np.float32)
     two = np.float32(2.0)
     for y in range(H):
         for x in range(W):
             d = int(DINT[y, x])
-            if 1 <= d and d + 1 <= D - 1 and d + 1 <= x:
+            if 1 <= d and d + 1 <= D - 1 and d + 1 <= x and x - (d - 1) < Wr:
                 cm, c0, cp = C[d - 1, y, x], C[d, y, x], C[d + 1, y, x]
                 denom = cp - two * c0 + cm
                 if denom > np.float32(min_denominator):

@@ -107,18 +107,22 @@ class LeftRightCheck:
 
     ``threshold``: |d - D^R(pd)| <= threshold counts as consistent; the
     paper's 1 (default).  The released code's ``< 1.1`` selects the same
-    pixels on integer maps.
+    pixels on integer maps.  ``right_width``: columns of the real right image
+    (default W, the real pair: nothing changes); in the working frame of a
+    range with M < 0 the real cropped width, so that a candidate whose right
+    pixel is the padding (x - d' >= right_width) is not one.
     """
 
     def __init__(self, ctx):
         self.ctx = ctx
         self.kernel = ctx.kernel("disparity.cl", "disparity_lr_check")
 
-    def __call__(self, d_disp_l, d_disp_r, D, H, W, threshold=1.0, out=None):
+    def __call__(self, d_disp_l, d_disp_r, D, H, W, threshold=1.0, out=None, right_width=None):
+        Wr = _right_width(W, right_width)
         if out is None:
             out = self.ctx.empty(H * W * _I32, "left-right check labels")
         launch(self.ctx, "left-right check", self.kernel, (W, H), d_disp_l, d_disp_r, out,
-               np.int32(D), np.int32(H), np.int32(W), np.float32(threshold))
+               np.int32(D), np.int32(H), np.int32(W), np.float32(threshold), np.int32(Wr))
         return out
 
 
@@ -129,6 +133,9 @@ class Interpolate:
     ``directions``: ``"paper"`` (the 16 SGM directions, integer steps, walk
     stops at a correct pixel) or ``"code"`` (the released code: half-pixel
     steps, the walk stops at any pixel that is not a mismatch).
+    ``first_column``: columns before it are not part of the image (the
+    working frame's padding of a range with M < 0): a walk ends there as at
+    the map's edge.  Default 0 (the real pair: nothing changes).
     """
 
     def __init__(self, ctx):
@@ -137,31 +144,49 @@ class Interpolate:
         self._dirs = {name: ctx.to_device(np.ascontiguousarray(v, np.float32))
                       for name, v in DIRECTIONS.items()}
 
-    def __call__(self, d_disp, d_labels, H, W, directions="paper", out=None):
+    def __call__(self, d_disp, d_labels, H, W, directions="paper", out=None, first_column=0):
         if directions not in self._dirs:
             raise ValueError(f"directions must be one of {sorted(self._dirs)}, not {directions!r}")
+        if not 0 <= int(first_column) < W:
+            raise InputError(f"first_column must be in [0, {W}), not {first_column}")
         if out is None:
             out = self.ctx.empty(H * W * _I32, "D_INT")
         launch(self.ctx, "interpolation", self.kernel, (W, H), d_disp, d_labels, self._dirs[directions],
-               out, np.int32(H), np.int32(W), np.int32(directions == "code"))
+               out, np.int32(H), np.int32(W), np.int32(directions == "code"), np.int32(first_column))
         return out
 
 
 class Subpixel:
     """D_SE = d - (C+ - C-) / (2 (C+ - 2C + C-)) at d = D_INT(p).
 
-    Paper defaults: ``min_denominator=0`` (fit only a true minimum),
-    ``clamp_step=False``; released code: ``1e-5`` and ``True`` (step clamped
-    to [-1, 1]).  d is kept at the range ends and where d+1 > x.
+    ``min_denominator=0`` (the paper's: zero or negative curvature keeps d),
+    ``clamp_step=False`` here (the paper gives no bound; the matcher's
+    default, ``Hyperparameters.subpixel_clamp``, is True, as in the released
+    code: the step clamped to [-1, 1]); released code: ``1e-5``.  d is kept at the range ends, where d+1 > x and where
+    x - (d-1) >= ``right_width`` (a cell of the fit compares with a right
+    pixel past the real right image: the working frame's padding of a range
+    with M < 0; default W, the real pair, where that never holds).
     """
 
     def __init__(self, ctx, half: bool = False):
         self.ctx = ctx
         self.kernel = ctx.kernel("subpixel.cl", "subpixel_refine", VOL_HALF=int(half))
 
-    def __call__(self, d_cost, d_disp, D, H, W, min_denominator=0.0, clamp_step=False, out=None):
+    def __call__(self, d_cost, d_disp, D, H, W, min_denominator=0.0, clamp_step=False, out=None,
+                 right_width=None):
+        Wr = _right_width(W, right_width)
         if out is None:
             out = self.ctx.empty(H * W * _F32, "D_SE")
         launch(self.ctx, "subpixel enhancement", self.kernel, (W, H), d_cost, d_disp, out,
-               np.int32(D), np.int32(H), np.int32(W), np.float32(min_denominator), np.int32(bool(clamp_step)))
+               np.int32(D), np.int32(H), np.int32(W), np.float32(min_denominator), np.int32(bool(clamp_step)),
+               np.int32(Wr))
         return out
+
+
+def _right_width(W, right_width):
+    """Columns of the real right image: W (None) or 1 .. W."""
+    if right_width is None:
+        return W
+    if not 0 < int(right_width) <= W:
+        raise InputError(f"right_width must be in [1, {W}], not {right_width}")
+    return int(right_width)
