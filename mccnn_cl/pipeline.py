@@ -600,15 +600,21 @@ class StereoMatcher:
         # tile; the network runs once, before the tiles, into host memory)
         per_row = nvol * row + (self.cost.scratch_bytes(1, W) if self.cost.local else 0)
         ext = min(max_alloc // row, max(0, budget - maps) // per_row)
-        core = H if ext >= H else ext - 2 * overlap
-        if core < MIN_TILE_ROWS:
-            need = per_row * (2 * overlap + MIN_TILE_ROWS) + maps
+        n = 1 if ext >= H else None
+        for k in range(2, H + 1) if n is None else ():  # fewest tiles: the end tiles overlap on one side only
+            c = -(-H // k)
+            if c < MIN_TILE_ROWS:
+                break
+            if min(H, c + overlap * (1 if k == 2 else 2)) <= ext:
+                n = k
+                break
+        if n is None:
+            need = per_row * (min(H, 2 * overlap + MIN_TILE_ROWS)) + maps
             raise InputError(
                 f"{Wi}x{Hi} with {D} disparities does not fit: row tiles of {MIN_TILE_ROWS} rows plus "
                 f"{overlap} rows of overlap on each side need {need / 2**20:.1f} MiB of device memory "
                 f"(memory_limit {budget / 2**20:.1f} MiB, max allocation {max_alloc / 2**20:.0f} MiB on "
                 f"{self.ctx.describe()}); reduce the disparity range or the image width, or raise memory_limit")
-        n = -(-H // core)
         core = -(-H // n)
         tiles = [(c0, min(H, c0 + core), max(0, c0 - overlap), min(H, c0 + core + overlap))
                  for c0 in range(0, H, core)]
