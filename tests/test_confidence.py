@@ -122,16 +122,22 @@ def test_kernel_matches_reference_on_random_volumes(ctx, D, H, W, levels):
         assert want.max() > 0.1  # the all-correct run measured something
 
 
-def test_invalid_cells_are_never_read(ctx):
-    """Validity by index: invalid cells holding a value below every cost
-    (instead of NaN) change nothing."""
+@pytest.mark.parametrize("floor", [0.0, -1.0])
+def test_invalid_cells_are_never_read(ctx, floor):
+    """Validity by index: invalid cells holding a value below every cost (the
+    minima), the floor, one inside the cost range, or one above every cost (the
+    largest cost, taken when a curve has one local minimum) instead of NaN
+    change nothing, bit for bit.  Plateaus (levels) and D > W columns included."""
     rng = np.random.default_rng(11)
-    C = random_volume(rng, 20, 7, 29)
-    lab = np.zeros((7, 29), np.int32)
-    low = random_volume(rng, 20, 7, 29, invalid=-1000.0)
-    low[np.isfinite(C)] = C[np.isfinite(C)]
-    np.testing.assert_array_equal(run_conf(ctx, low, lab), run_conf(ctx, C, lab))
-    np.testing.assert_allclose(run_conf(ctx, C, lab), ref.confidence(C, lab), atol=ATOL)
+    for D, H, W, levels in ((20, 7, 29, None), (16, 5, 23, 4), (24, 3, 17, None)):
+        C = random_volume(rng, D, H, W, levels)
+        lab = np.zeros((H, W), np.int32)
+        base = run_conf(ctx, C, lab, floor)
+        np.testing.assert_allclose(base, ref.confidence(C, lab, floor), atol=ATOL)
+        for value in (-1000.0, floor, 0.5, 1000.0):
+            dirty = np.where(np.isnan(C), np.float32(value), C)
+            np.testing.assert_array_equal(run_conf(ctx, dirty, lab, floor).view(np.uint32), base.view(np.uint32),
+                                          err_msg=f"{D}x{H}x{W}: invalid cells = {value}")
 
 
 def test_half_storage(ctx):

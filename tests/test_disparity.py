@@ -108,6 +108,27 @@ def test_wta_left_chunks_per_work_item(ctx, chunks):
         WinnerTakeAll(ctx, chunks=0)
 
 
+@pytest.mark.parametrize("chunks", [1, 3, 8])
+def test_wta_invalid_cells_holding_finite_values(ctx, chunks):
+    """Validity by index, never by value: a volume whose invalid cells (x < d)
+    hold -1000 (below every cost), 0 or +1000 instead of NaN gives both WTAs the
+    reference's maps of the NaN-filled volume (a comparison with NaN is false,
+    so a kernel that forgets the index rule passes on NaN-filled volumes alone).
+    Left WTA with 1, 3 and 8 chunks per work-item; D > W; ties."""
+    rng = np.random.default_rng(31 + chunks)
+    wta = WinnerTakeAll(ctx, chunks=chunks)
+    for D, H, W, levels in ((40, 5, 83, None), (9, 3, 40, 3), (30, 4, 11, None)):
+        C = random_volume(rng, D, H, W, levels)
+        want_l, want_r = ref.wta_left(C), ref.wta_right(C)
+        for value in (-1000.0, 0.0, 1000.0):
+            d_c = ctx.to_device(np.where(np.isnan(C), np.float32(value), C))
+            dl = wta.left(d_c, D, H, W, out=poisoned(ctx, H * W * 4, I32_POISON, np.int32))
+            dr = wta.right(d_c, D, H, W, out=poisoned(ctx, H * W * 4, I32_POISON, np.int32))
+            msg = f"{D}x{H}x{W}: invalid cells = {value}"
+            np.testing.assert_array_equal(ctx.from_device(dl, (H, W), np.int32), want_l, err_msg=msg)
+            np.testing.assert_array_equal(ctx.from_device(dr, (H, W), np.int32), want_r, err_msg=msg)
+
+
 def test_wta_right_matches_materialised_right_volume(ctx):
     rng = np.random.default_rng(5)
     C = random_volume(rng, 12, 6, 29)
@@ -245,10 +266,15 @@ def test_subpixel_guards(ctx):
 def test_census_volume_with_stages(ctx, cones):
     """The census kernel's volume feeds the WTA kernels like the reference's."""
     left, right, C = cones
-    d_cost = CensusCost(ctx)(left, right, 32)
     D, H, W = C.shape
+    d_cost = poisoned(ctx, C.nbytes)  # every output poisoned: a cell left unwritten fails
+    assert CensusCost(ctx)(left, right, 32, out=d_cost) is d_cost
+    got = ctx.from_device(d_cost, C.shape)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(C))
+    np.testing.assert_array_equal(got[~np.isnan(C)], C[~np.isnan(C)])
     wta = WinnerTakeAll(ctx)
-    DL = ctx.from_device(wta.left(d_cost, D, H, W), (H, W), np.int32)
+    dl = wta.left(d_cost, D, H, W, out=poisoned(ctx, H * W * 4, I32_POISON, np.int32))
+    DL = ctx.from_device(dl, (H, W), np.int32)
     np.testing.assert_array_equal(DL, ref.wta_left(C))
 
 

@@ -28,8 +28,26 @@ from mccnn_cl.settings import authors_settings
 from mccnn_cl.weights import ACRT, FST, Weights, resolve, shipped_models
 
 REPO = Path(__file__).resolve().parents[1]
-MODELS = Path(os.environ.get("MCCNN_MODELS", REPO.parent / "shared" / "models"))
-#: the published networks are not in the repository: without their folder these tests are skipped
+
+
+def models_folder() -> Path:
+    """The published networks' folder, as conftest treats ``$MCCNN_DATA``:
+    ``$MCCNN_MODELS`` when set (``.ci/run`` sets ``../shared/models``), and then
+    it must exist (a usage error otherwise, never a skip); unset, the
+    ``../shared/models`` of a checkout beside ``../shared``."""
+    value = os.environ.get("MCCNN_MODELS")
+    if not value:
+        return REPO.parent / "shared" / "models"
+    p = Path(value).resolve()
+    if not p.is_dir():
+        raise pytest.UsageError(f"MCCNN_MODELS={value}: no such folder")
+    return p
+
+
+MODELS = models_folder()
+#: the published networks are not in the repository: a clone without ../shared
+#: (and MCCNN_MODELS unset) skips these tests with this reason (-rs lists it),
+#: as conftest skips the full_data tests without MCCNN_DATA
 pytestmark = pytest.mark.skipif(not MODELS.is_dir(), reason=f"needs the published networks: set MCCNN_MODELS "
                                  f"to their folder (CI: ../shared/models); {MODELS} not found")
 T7 = MODELS / "net_kitti_fast_-a_train_all.t7"
@@ -51,7 +69,13 @@ def t7_weights(t7_bytes):
 
 @pytest.fixture(scope="module")
 def torch():
-    return pytest.importorskip("torch", reason="torch is a training dependency; the .pt tests need it")
+    """torch (the train extra, which the set-up installs): missing, the .pt tests fail, never skip."""
+    try:
+        import torch
+    except ImportError as exc:
+        pytest.fail(f"the .pt importer tests need torch, which the set-up installs (bash scripts/setup.sh: "
+                    f"torch and the train extra); import failed: {exc}", pytrace=False)
+    return torch
 
 
 @pytest.fixture(scope="module")

@@ -255,6 +255,67 @@ def test_vector_widths_are_bit_identical(ctx, D, H, W):
     np.testing.assert_array_equal(np.isnan(halves[0]), invalid_mask(D, H, W))
 
 
+#: Values held by invalid cells (x < d) instead of NaN: below, inside and far
+#: above every cost.  fmin drops NaN, so a kernel that lets an invalid cell
+#: into a minimum (or into the path state) passes on NaN-filled volumes alone.
+FINITE_FILLS = (-1000.0, 0.0, 1000.0)
+
+#: The stage forms the other tests parametrise: the paired sweeps and the
+#: one-direction kernels (sgm_rows, sgm_columns), both vector widths, bands and
+#: column strips, specialised or not, fused row directions or not, the whole
+#: tile path or the general one, prefetches, paths walked in several launches
+#: (loop_limit), half storage; each a build the other tests make on CPUs too.
+FILL_FORMS = [
+    dict(paired=True, width=16), dict(paired=True, width=8),
+    dict(paired=False, width=16), dict(paired=False, width=8),
+    dict(paired=False, width=8, band=3, cols=48, specialize=False),
+    dict(paired=False, band=1, cols=128, fused_rows=True, whole_tiles=False),
+    dict(paired=False, cols=16, fused_rows=False, whole_tiles=True, specialize=True, prefetch=True),
+    dict(paired=False, loop_limit=700),
+    dict(paired=True, half=True), dict(paired=False, half=True),
+]
+
+
+def with_invalid(cost, value):
+    """``cost`` with ``value`` in its invalid cells (x < d) instead of NaN."""
+    dirty = cost.copy()
+    dirty[invalid_mask(*cost.shape)] = value
+    return dirty
+
+
+def run_form(ctx, form, cost, img_l, img_r):
+    """SGM(ctx, **form) on ``cost`` (stored as half with half=True) into a poisoned output."""
+    D, H, W = cost.shape
+    dtype = np.float16 if form.get("half") else np.float32
+    c = cost.astype(dtype)
+    d_out = ctx.empty(c.nbytes)
+    ctx.fill(d_out, np.float16(-65504.0) if dtype == np.float16 else POISON, c.nbytes, dtype)
+    SGM(ctx, **form)(ctx.to_device(c), ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=d_out)
+    return ctx.from_device(d_out, cost.shape, dtype)
+
+
+@pytest.mark.parametrize("form", FILL_FORMS, ids=lambda f: "-".join(f"{k}={v}" for k, v in f.items()))
+def test_invalid_cells_holding_finite_values_change_nothing(ctx, form):
+    """Validity by index, never by value (sgm.cl's header): a volume whose
+    invalid cells hold -1000, 0 or +1000 instead of NaN gives the same bits as
+    the NaN-filled one (NaN in the invalid output cells included), which matches
+    the reference.  D = 21 over W = 45 (whole and partial tiles and chunks) and
+    D = 30 > W = 23 (planes with no valid cell)."""
+    rng = np.random.default_rng(23)
+    for D, H, W in ((21, 5, 45), (30, 4, 23)):
+        cost = random_volume(rng, D, H, W, scale=3.0)
+        img_l, img_r = blocky_image(rng, H, W, 3, 0.08), blocky_image(rng, H, W, 3, 0.08)
+        base = run_form(ctx, form, cost, img_l, img_r)
+        np.testing.assert_array_equal(np.isnan(base), invalid_mask(D, H, W))
+        if not form.get("half"):  # half storage: test_half.py's bound; here the bits below
+            np.testing.assert_allclose(base, sgm(cost, img_l, img_r), rtol=0, atol=2e-5 * (3.0 + 32.0))
+        bits = np.uint16 if form.get("half") else np.uint32
+        for value in FINITE_FILLS:
+            got = run_form(ctx, form, with_invalid(cost, value), img_l, img_r)
+            np.testing.assert_array_equal(got.view(bits), base.view(bits),
+                                          err_msg=f"{D}x{H}x{W}, invalid cells = {value}")
+
+
 def test_vector_width_rule(ctx):
     """The width follows the rule (8 on CPUs whatever their vector width, 16 on GPUs), a
     tuned width wins, a bad one is refused."""
@@ -351,7 +412,7 @@ def test_chain_arms_cbca_sgm_cbca_on_real_images(ctx, shared_data):
     (now on costs of the SGM's larger range), against the references."""
     from mccnn_cl.reference.aggregation import cbca, cross_arms
     from mccnn_cl.stages.cbca import CBCA
-    from mccnn_cl.stages.cross import CrossArms, max_arm
+    from mccnn_cl.stages.cross import CrossArms, arms_from_device, max_arm
 
     H, W, D = 21, 43, 12
     imgs = []
@@ -362,12 +423,22 @@ def test_chain_arms_cbca_sgm_cbca_on_real_images(ctx, shared_data):
     arms_l, arms_r = cross_arms(imgs[0]), cross_arms(imgs[1])
     want = cbca(sgm(cbca(cost, arms_l, arms_r), imgs[0], imgs[1]), arms_l, arms_r)
 
+    def poisoned(nbytes, value=POISON, dtype=np.float32):  # every stage writes into a poisoned buffer
+        buf = ctx.empty(nbytes)
+        ctx.fill(buf, value, nbytes, dtype)
+        return buf
+
     d_l, d_r = ctx.to_device(imgs[0]), ctx.to_device(imgs[1])
-    d_al, d_ar = CrossArms(ctx)(d_l, H, W), CrossArms(ctx)(d_r, H, W)
+    # arms are bytes 0 .. 255; 0xAB = 171 exceeds any arm of a 43-column image
+    d_al, d_ar = (CrossArms(ctx)(d, H, W, out=poisoned(4 * H * W, 0xAB, np.uint8)) for d in (d_l, d_r))
+    np.testing.assert_array_equal(arms_from_device(ctx, d_al, H, W), arms_l)
+    np.testing.assert_array_equal(arms_from_device(ctx, d_ar, H, W), arms_r)
     aggregate, smooth = CBCA(ctx), SGM(ctx)
-    d_c = aggregate(ctx.to_device(cost), d_al, d_ar, D, H, W, max_arm=max_arm(4))
-    d_s = smooth(d_c, d_l, d_r, D, H, W)
-    d_out = aggregate(d_s, d_al, d_ar, D, H, W, max_arm=max_arm(4))
+    d_c = aggregate(ctx.to_device(cost), d_al, d_ar, D, H, W, max_arm=max_arm(4), out=poisoned(cost.nbytes))
+    d_s = smooth(d_c, d_l, d_r, D, H, W, out=poisoned(cost.nbytes))
+    for name, buf in (("C_CBCA", d_c), ("C_SGM", d_s)):  # every cell written: NaN exactly where invalid
+        np.testing.assert_array_equal(np.isnan(ctx.from_device(buf, cost.shape)), invalid_mask(D, H, W), err_msg=name)
+    d_out = aggregate(d_s, d_al, d_ar, D, H, W, max_arm=max_arm(4), out=poisoned(cost.nbytes))
     got = ctx.from_device(d_out, cost.shape)
     np.testing.assert_array_equal(np.isnan(got), invalid_mask(D, H, W))
     np.testing.assert_allclose(got, want, rtol=0, atol=2e-5 * (1.0 + 32.0))

@@ -7,7 +7,11 @@ from mccnn_cl.pipeline import Hyperparameters
 from mccnn_cl.settings import authors_settings
 from mccnn_cl.weights import Weights, shipped_models
 
-pytest.importorskip("torch")  # mccnn_cl.train needs torch (the train extra); set-up installs it
+try:  # mccnn_cl.train needs torch (the train extra); the set-up installs it: missing is an error, not a skip
+    import torch  # noqa: F401
+except ImportError as exc:
+    raise ImportError(f"tests/test_ship.py needs torch, which the set-up installs (bash scripts/setup.sh: torch and "
+                      f"the train extra); import failed: {exc}") from exc
 from mccnn_cl.train import ship  # noqa: E402
 
 
