@@ -213,12 +213,12 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("-o", "--output", required=True, metavar="OUT.npz", help="adapted weights to write")
     a.add_argument("--ndisp", type=int, required=True, metavar="D",
                    help="disparity levels of your pairs (disparities 0..D-1), as for match --max-disp")
-    a.add_argument("--rounds", type=int, default=2, help="label -> fine-tune rounds")
-    a.add_argument("--steps", type=int, default=250, help="crop-sampler SGD steps per round")
+    a.add_argument("--rounds", type=int, default=2, help="label -> fine-tune rounds (default: %(default)s)")
+    a.add_argument("--steps", type=int, default=250, help="crop-sampler SGD steps per round (default: %(default)s)")
     a.add_argument("--min-confidence", type=float, default=None, metavar="C",
                    help="confidence a pseudo-labeled pixel needs, in [0, 1] (default: the threshold chosen "
                         "on labeled training pairs, train.selftrain.DEFAULT_MIN_CONFIDENCE; docs/training.md)")
-    a.add_argument("--lr", type=float, default=2e-4, help="fine-tuning learning rate (constant)")
+    a.add_argument("--lr", type=float, default=2e-4, help="fine-tuning learning rate, constant (default: %(default)s)")
     a.add_argument("--seed", type=int, default=0)
     a.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     a.add_argument("--device", metavar="SPEC", default=None, help="OpenCL device for the labelling (as for match)")
