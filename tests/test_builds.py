@@ -124,12 +124,28 @@ def test_stored_binaries(ctx, monkeypatch, tmp_path, caplog):
     loader = ClContext(ctx.device)
     np.testing.assert_array_equal(_arms(loader, img), expected)
     assert (loader.builds, loader.binary_loads) == (0, 1)
-    with open(files[0], "wb") as f:
-        f.write(b"not a binary")
+    with open(files[0], "wb") as f:  # whole, with its header, but not a program: the runtime refuses it
+        f.write(binaries._pack(b"not a binary"))
     other = ClContext(ctx.device)
     with caplog.at_level("WARNING", logger="mccnn_cl.opencl.context"):
         np.testing.assert_array_equal(_arms(other, img), expected)
     assert (other.builds, other.binary_loads) == (1, 0)
     assert "refused" in caplog.text and not os.path.exists(files[0])
+    # a file cut short or changed is never handed to the runtime (PoCL crashed on a truncated
+    # binary, in every later run): it is deleted and the program built from source
+    saver.save_binaries = True
+    saver._programs.clear()
+    saver.program("cross.cl")
+    whole = open(files[0], "rb").read()
+    assert whole.startswith(binaries.MAGIC)
+    for damaged in (whole[: len(whole) // 2], whole[:-1] + bytes([whole[-1] ^ 1]), whole[len(binaries.MAGIC):]):
+        with open(files[0], "wb") as f:
+            f.write(damaged)
+        fresh = ClContext(ctx.device)
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="mccnn_cl.opencl.binaries"):
+            np.testing.assert_array_equal(_arms(fresh, img), expected)
+        assert (fresh.builds, fresh.binary_loads) == (1, 0) and "damaged" in caplog.text
+        assert not os.path.exists(files[0])
     monkeypatch.setenv("MCCNN_BINARY_CACHE", "off")
     assert not binaries.enabled()

@@ -11,9 +11,14 @@ it for a run of the default method after tuning), and loaded whenever present.
 A binary's file name is a hash of everything its build depends on: the
 package version, the platform (name, version), the device (name, driver
 version), the build options, the kernel source and every header of the
-kernel directory.  Files are written to a temporary name and renamed (two
-processes may write the same binary; readers never see half a file).  A
-binary the runtime refuses is deleted and the program built from source.
+kernel directory.  Files are written to a temporary name, flushed to disk
+and renamed (two processes may write the same binary; readers never see
+half a file).  Each file holds a header (magic, payload length, SHA-256 of
+the payload) that :func:`load` checks: a file cut short or changed (a copy
+or sync of the cache folder, a power loss, a disk error) is deleted and the
+program built from source, never handed to the runtime (PoCL crashed the
+process on a truncated binary, and again in every later run).  A binary the
+runtime refuses is deleted too.
 ``MCCNN_BINARY_CACHE=off`` disables the cache; ``MCCNN_CACHE_DIR`` moves it.
 """
 
@@ -41,21 +46,16 @@ def enabled() -> bool:
     return os.environ.get("MCCNN_BINARY_CACHE", "on").lower() not in ("off", "0", "no", "false")
 
 
-_HEADERS: dict = {}
-
-
 def _headers_digest(kernel_dir: str) -> str:
-    """Hash of every header (``*.h``) of the kernel directory (once per directory)."""
-    digest = _HEADERS.get(kernel_dir)
-    if digest is None:
-        h = hashlib.sha256()
-        for name in sorted(os.listdir(kernel_dir)):
-            if name.endswith(".h"):
-                h.update(name.encode())
-                with open(os.path.join(kernel_dir, name), "rb") as f:
-                    h.update(f.read())
-        digest = _HEADERS[kernel_dir] = h.hexdigest()
-    return digest
+    """Hash of every header (``*.h``) of the kernel directory, read each time (a few KB; a header
+    changed while a process runs must not key its programs to the old binaries)."""
+    h = hashlib.sha256()
+    for name in sorted(os.listdir(kernel_dir)):
+        if name.endswith(".h"):
+            h.update(name.encode())
+            with open(os.path.join(kernel_dir, name), "rb") as f:
+                h.update(f.read())
+    return h.hexdigest()
 
 
 def device_identity(device) -> list:
@@ -78,13 +78,40 @@ def path(k: str) -> str:
     return os.path.join(cache_root(), "binaries", k[:2], k + ".bin")
 
 
+#: A stored file: MAGIC, the payload's length (8 bytes, little-endian), its SHA-256, the payload.
+MAGIC = b"MCCNNBIN1"
+_HEAD = len(MAGIC) + 8 + 32
+
+
+def _pack(binary: bytes) -> bytes:
+    return MAGIC + len(binary).to_bytes(8, "little") + hashlib.sha256(binary).digest() + binary
+
+
+def _unpack(data: bytes):
+    """The payload of a stored file, or None when it is not whole (header, length or hash wrong)."""
+    if len(data) < _HEAD or not data.startswith(MAGIC):
+        return None
+    n = int.from_bytes(data[len(MAGIC):len(MAGIC) + 8], "little")
+    payload = data[_HEAD:]
+    if len(payload) != n or hashlib.sha256(payload).digest() != data[len(MAGIC) + 8:_HEAD]:
+        return None
+    return payload
+
+
 def load(k: str):
-    """The stored binary of key ``k``, or None."""
+    """The stored binary of key ``k``, or None (none stored, or a file that is not whole: then it
+    is deleted, with a warning)."""
     try:
         with open(path(k), "rb") as f:
-            return f.read()
+            data = f.read()
     except OSError:
         return None
+    payload = _unpack(data)
+    if payload is None:
+        log.warning("a stored kernel binary is damaged (%s, %d bytes); deleting it and building from source",
+                    path(k), len(data))
+        discard(k)
+    return payload
 
 
 def store(k: str, binary: bytes) -> None:
@@ -95,7 +122,9 @@ def store(k: str, binary: bytes) -> None:
         fd, tmp = tempfile.mkstemp(dir=os.path.dirname(p), prefix=".tmp-")
         try:
             with os.fdopen(fd, "wb") as f:
-                f.write(binary)
+                f.write(_pack(bytes(binary)))
+                f.flush()
+                os.fsync(f.fileno())
             os.replace(tmp, p)
         except BaseException:
             os.unlink(tmp)

@@ -68,8 +68,8 @@ def record(device):
             data = json.load(f)
     except FileNotFoundError:
         return None
-    except (OSError, ValueError) as exc:
-        _warn_once(path, f"unreadable: {exc}")
+    except (OSError, ValueError, RecursionError) as exc:  # RecursionError: absurdly nested JSON
+        _warn_once(path, f"unreadable: {type(exc).__name__}: {str(exc)[:200]}")
         return None
     if not isinstance(data, dict) or data.get("identity") != identity(device) \
             or not isinstance(data.get("choices"), dict):
