@@ -138,7 +138,7 @@ def test_stored_binaries(ctx, monkeypatch, tmp_path, caplog):
     saver.program("cross.cl")
     whole = open(files[0], "rb").read()
     assert whole.startswith(binaries.MAGIC)
-    for damaged in (whole[: len(whole) // 2], whole[:-1] + bytes([whole[-1] ^ 1]), whole[len(binaries.MAGIC):]):
+    for damaged in (whole[: len(whole) // 2], whole[:-1] + bytes([whole[-1] ^ 1]), whole[:20]):
         with open(files[0], "wb") as f:
             f.write(damaged)
         fresh = ClContext(ctx.device)
@@ -147,5 +147,12 @@ def test_stored_binaries(ctx, monkeypatch, tmp_path, caplog):
             np.testing.assert_array_equal(_arms(fresh, img), expected)
         assert (fresh.builds, fresh.binary_loads) == (1, 0) and "damaged" in caplog.text
         assert not os.path.exists(files[0])
+    with open(files[0], "wb") as f:  # a file of the format before the header: rebuilt, no warning
+        f.write(whole[len(binaries.MAGIC) + 40:])
+    caplog.clear()
+    older = ClContext(ctx.device)
+    with caplog.at_level("WARNING", logger="mccnn_cl.opencl.binaries"):
+        np.testing.assert_array_equal(_arms(older, img), expected)
+    assert (older.builds, older.binary_loads) == (1, 0) and not caplog.text and not os.path.exists(files[0])
     monkeypatch.setenv("MCCNN_BINARY_CACHE", "off")
     assert not binaries.enabled()

@@ -108,8 +108,11 @@ def load(k: str):
         return None
     payload = _unpack(data)
     if payload is None:
-        log.warning("a stored kernel binary is damaged (%s, %d bytes); deleting it and building from source",
-                    path(k), len(data))
+        if data.startswith(MAGIC[:5]) or len(data) < _HEAD:
+            log.warning("a stored kernel binary is damaged (%s, %d bytes); deleting it and building from source",
+                        path(k), len(data))
+        else:  # written before the header existed: replaced once, quietly
+            log.info("a stored kernel binary without a header (%s); building it anew", path(k))
         discard(k)
     return payload
 
