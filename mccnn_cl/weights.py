@@ -149,12 +149,15 @@ class Weights:
         for i, (w, b) in enumerate(self.conv):
             if w.ndim != 4 or w.shape[2] != w.shape[3] or b.shape != (w.shape[0],):
                 raise WeightsError(f"{source}: conv{i} has shapes {w.shape}/{b.shape}")
+            if w.shape[2] % 2 == 0 or min(w.shape) < 1:  # an even kernel has no centre pixel
+                raise WeightsError(f"{source}: conv{i} has shape {w.shape}: kernels must be odd-sized "
+                                   "(1, 3, 5, ...) and every size at least 1")
             if cin is not None and w.shape[1] != cin:
                 raise WeightsError(f"{source}: conv{i} expects {w.shape[1]} inputs, previous layer gives {cin}")
             cin = w.shape[0]
         fin = 2 * cin
         for i, (w, b) in enumerate(self.fc):
-            if w.ndim != 2 or b.shape != (w.shape[0],) or w.shape[1] != fin:
+            if w.ndim != 2 or b.shape != (w.shape[0],) or w.shape[1] != fin or w.shape[0] < 1:
                 raise WeightsError(f"{source}: fc{i} has shapes {w.shape}/{b.shape}, expected (*, {fin})")
             fin = w.shape[0]
         if arch != FST and fin != FC_OUTPUTS[arch]:
@@ -243,6 +246,15 @@ class Weights:
         w = cls(conv=conv, fc=fc, meta=meta, architecture=arch).validate(path)
         if w.conv_layers() != meta["conv_layers"] or w.fc_layers() != meta.get("fc_layers", []):
             raise WeightsError(f"{path}: arrays disagree with the metadata's layer sizes")
+        for key, have in (("patch_size", w.patch_size), ("input_channels", w.input_channels)):
+            if key in meta and meta[key] != have:
+                raise WeightsError(f"{path}: metadata {key} {meta[key]} disagrees with the arrays' {have}")
+        if meta.get("bad_match_class", 0) != 0:  # the kernels read softmax()[0] as the cost
+            raise WeightsError(f"{path}: bad_match_class {meta['bad_match_class']!r}: only 0 (the paper's "
+                               "f_neg as the first output) is supported; reorder the last layer's rows")
+        if meta.get("normalisation", "per_image_mean_std") != "per_image_mean_std":
+            raise WeightsError(f"{path}: normalisation {meta['normalisation']!r}: only per_image_mean_std "
+                               "(each image's mean and std) is supported")
         from .hyperparameters import check_settings
         check_settings(w, source=path)  # the stereo settings: known names, in range
         return w

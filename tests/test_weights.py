@@ -48,3 +48,29 @@ def test_shape_mismatch_is_rejected():
     w.fc[0] = (w.fc[0][0][:, :-1].copy(), w.fc[0][1])
     with pytest.raises(WeightsError, match="fc0"):
         w.validate()
+
+
+def test_even_or_empty_kernels_and_contradicting_metadata_are_rejected(tmp_path):
+    """An even kernel has no centre pixel: the cost's volume would be one row and column smaller than
+    the matcher reads (a scrambled volume, no error); zero-size layers ended in a raw OpenCL error.
+    Metadata that contradicts the arrays, or a bad-match class the kernels do not read, is refused."""
+    import json
+    w = Weights.random(conv_layers=[[4, 3], [6, 3]], fc_layers=[5, 2], seed=2)
+    even = Weights(conv=[(np.zeros((4, 1, 2, 2), np.float32), np.zeros(4, np.float32)), w.conv[1]],
+                   fc=w.fc, meta=dict(w.meta), architecture=w.architecture)
+    with pytest.raises(WeightsError, match="odd-sized"):
+        even.validate()
+    empty = Weights(conv=[(np.zeros((0, 1, 3, 3), np.float32), np.zeros(0, np.float32))], fc=w.fc,
+                    meta=dict(w.meta), architecture=w.architecture)
+    with pytest.raises(WeightsError, match="at least 1"):
+        empty.validate()
+    path = tmp_path / "w.npz"
+    w.save(path)
+    Weights.load(path)
+    files = dict(np.load(path))
+    for change, words in (({"bad_match_class": 1}, "bad_match_class"), ({"patch_size": 7}, "patch_size"),
+                          ({"normalisation": "none"}, "normalisation")):
+        meta = {**json.loads(str(files["__meta__"])), **change}
+        np.savez(tmp_path / "bad.npz", **{**files, "__meta__": np.array(json.dumps(meta))})
+        with pytest.raises(WeightsError, match=words):
+            Weights.load(tmp_path / "bad.npz")
