@@ -685,11 +685,18 @@ def test_tsukuba_swapped_negative_range_image_rules(ctx, shared_data, directions
     assert ((x - (it["D_INT"] - 1) >= W) & (it["labels"] != 0)).sum() > 100
 
 
+def _right_edge(shared_data, w):
+    """The column where a crop w wide ends at KITTI 000000's right edge (1042 on the whole frame)."""
+    img = cv2.imread(str(shared_data / "kitti2015/training/image_2/000000_10.png"), cv2.IMREAD_GRAYSCALE)
+    return img.shape[1] - w
+
+
 @pytest.mark.filterwarnings("ignore::mccnn_cl.errors.InputWarning")  # a crop at the edge: many mismatches
 @pytest.mark.parametrize("right_reference", ["aggregated", "derived"])
 def test_kitti_crop_negative_range_image_rules(ctx, shared_data, right_reference):
-    """KITTI 000000's right edge, range -17 .. 46 (76 labels off the rule before the fix)."""
-    left, right = kitti_crop(shared_data, 150, 1042, 100, 200)
+    """KITTI 000000's right edge, range -17 .. 46 (76 labels off the rule before the fix; the
+    bundled crop, 704 columns, gives its own right edge)."""
+    left, right = kitti_crop(shared_data, 150, _right_edge(shared_data, 200), 100, 200)
     M, D = -17, 64
     m = StereoMatcher(cost="census", max_disparity=D, min_disparity=M, right_reference=right_reference,
                       interpolation="code", device=ctx)
@@ -702,7 +709,7 @@ def test_kitti_crop_negative_range_image_rules(ctx, shared_data, right_reference
 def test_nonnegative_range_image_rules(ctx, shared_data, M):
     """M >= 0 (no padding; the stages' neutral arguments): the same rules hold,
     for M = 0 the pre-change stages."""
-    left, right = kitti_crop(shared_data, 150, 1042, 60, 160)
+    left, right = kitti_crop(shared_data, 150, _right_edge(shared_data, 200), 60, 160)
     D = 40
     m = StereoMatcher(cost="census", max_disparity=D, min_disparity=M, device=ctx)
     res = m.compute(left, right, return_intermediates=True)
