@@ -374,22 +374,6 @@ def check_png_range(out, args, calib=None) -> None:
         _check_png_range(out, levels, low)
 
 
-def read_calibration(args):
-    """``--calib`` parsed (None without it).  A file without focal length and
-    baseline (Middlebury 2001-2006: width, height, ndisp) gives the range only:
-    a note, and ``args.no_depth`` set so no depth or point cloud is asked, as
-    for one pair."""
-    if not args.calib:
-        return None
-    from .depth import read_calib
-    calib = read_calib(args.calib)
-    if not calib.has_depth:
-        args.no_depth = True
-        print(f"mccnn-cl: note: {args.calib} has no focal length/baseline: it gives the disparity range "
-              f"(ndisp={calib.ndisp}); no depth or point cloud is written", file=sys.stderr)
-    return calib
-
-
 # -- one pair -----------------------------------------------------------------
 
 def batch_range(args, calib):
@@ -453,10 +437,6 @@ def done_line(job, result) -> str:
             f"{fin.mean():.1%} valid, {result.seconds:.2f} s")
 
 
-#: (calibration file, image size) pairs whose size check has run (:func:`write_pair`).
-_CALIB_SIZES_SAID: set = set()
-
-
 def write_pair(job, result, args, calib) -> None:
     """Every output of ``job``: side files first, the disparity map last (each
     atomic); on any failure or interrupt the pair's side files are removed."""
@@ -465,8 +445,9 @@ def write_pair(job, result, args, calib) -> None:
     before = job.state()
     try:
         left_img = read_image(job.left) if calib is not None else None  # point-cloud colours
-        if left_img is not None and (args.calib, left_img.shape[:2]) not in _CALIB_SIZES_SAID:
-            _CALIB_SIZES_SAID.add((args.calib, left_img.shape[:2]))  # once per image size, not per pair
+        said = vars(args).setdefault("_calib_sizes_said", set())  # once per image size and run, not per pair
+        if left_img is not None and left_img.shape[:2] not in said:
+            said.add(left_img.shape[:2])
             _check_calib_size(calib, left_img, job.left, args.calib)
         if result.confidence is not None:
             _save_confidence(job.out, result, args)
@@ -504,7 +485,8 @@ def prepare(args):
         raise InputError("in a batch, --confidence and --labels take no file name (maps go next to each output)")
     if args.resume and args.force:
         raise InputError("--resume keeps complete outputs and --force overwrites them: give one")
-    calib = read_calibration(args)
+    from .cli.common import _read_calibration
+    calib = _read_calibration(args)
     jobs = make_jobs(args, calib)
     todo, skipped = plan_outputs(jobs, args)
     return todo, skipped, calib

@@ -355,8 +355,8 @@ def _single_job(args, calib=None):
 
 def run(args, single: bool) -> int:
     """``mccnn-cl match`` with ``--workers N`` (a LocalCluster) or ``--scheduler ADDRESS``."""
-    from .batch import prepare, read_calibration
-    from .cli.common import _hyperparameters, _load_weights, _say
+    from .batch import prepare
+    from .cli.common import _hyperparameters, _load_weights, _read_calibration, _say
     if args.workers is not None and args.scheduler is not None:
         raise InputError("give --workers N (a cluster on this machine) or --scheduler ADDRESS, not both")
     if args.workers is not None and args.workers < 1:
@@ -364,7 +364,7 @@ def run(args, single: bool) -> int:
     if single:
         if getattr(args, "resume", False):
             raise InputError("--resume is for batches")
-        calib = read_calibration(args)  # Middlebury 2001-2006: the range only, no depth (a note)
+        calib = _read_calibration(args)  # Middlebury 2001-2006: the range only, no depth (a note)
         todo, skipped = [_single_job(args, calib)], []
     else:
         todo, skipped, calib = prepare(args)
@@ -386,23 +386,22 @@ def run(args, single: bool) -> int:
             with Client(cluster if cluster is not None else args.scheduler) as client:
                 _say(f"dask: {n_workers(client)} workers ({'local' if cluster else args.scheduler}), "
                      f"{len(todo)} pair(s)" + (f", {len(skipped)} complete, skipped" if skipped else ""))
+                def failed(job, exc):  # as the one-process batch: this pair fails, the batch goes on
+                    if single:
+                        raise exc
+                    reason, bad = describe_failure(exc)
+                    summary.failed.append((job.name, reason, bad))
+                    _say(f"{job.name}: failed: {reason}")
+
                 for job, outcome in match_pairs(client, todo, config, max_disp, want,
                                                  split_tiles=True if args.split_tiles else None, progress=True):
                     if isinstance(outcome, BaseException):
-                        if single:
-                            raise outcome
-                        reason, bad = describe_failure(outcome)
-                        summary.failed.append((job.name, reason, bad))
-                        _say(f"{job.name}: failed: {reason}")
+                        failed(job, outcome)
                         continue
                     try:
                         write_pair(job, outcome, args, calib)
-                    except Exception as exc:  # noqa: BLE001 - as the one-process batch: this pair fails
-                        if single:
-                            raise
-                        reason, bad = describe_failure(exc)
-                        summary.failed.append((job.name, reason, bad))
-                        _say(f"{job.name}: failed: {reason}")
+                    except Exception as exc:  # noqa: BLE001
+                        failed(job, exc)
                         continue
                     summary.done.append(job.name)
                     if args.verbose or single or outcome.auto is not None:  # an automatic range is always said

@@ -19,7 +19,6 @@ import argparse
 import json
 import math
 import os
-import sys
 import time
 
 import numpy as np
@@ -45,6 +44,7 @@ from .common import (  # noqa: F401 (re-exported: the commands' helpers)
     _check_outputs,
     _check_png_range,
     _check_calib_size,
+    _read_calibration,
     write_disparity,
     _write_depth,
     _expand,
@@ -77,14 +77,7 @@ def cmd_match(args):
     if distributed:
         from ..distributed import run as run_distributed
         return run_distributed(args, single)
-    calib = None
-    if args.calib:
-        from ..depth import read_calib
-        calib = read_calib(args.calib)
-        if not calib.has_depth:  # Middlebury 2001-2006: only width, height, ndisp
-            args.no_depth = True
-            print(f"mccnn-cl: note: {args.calib} has no focal length/baseline: it gives the disparity range "
-                  f"(ndisp={calib.ndisp}); no depth or point cloud is written", file=sys.stderr)
+    calib = _read_calibration(args)  # Middlebury 2001-2006: the range only, no depth (a note)
     if single:
         if args.left is None or args.right is None or args.output is None:
             raise InputError("match needs LEFT RIGHT and -o OUT")

@@ -23,6 +23,22 @@ def _say(*args):
     print(*args, flush=True)
 
 
+def _read_calibration(args):
+    """``--calib`` parsed (None without it).  A file without focal length and
+    baseline (Middlebury 2001-2006: width, height, ndisp) gives the range only:
+    a note, and ``args.no_depth`` set so that no depth or point cloud is asked
+    (one pair, a batch, or on Dask alike)."""
+    if not args.calib:
+        return None
+    from ..depth import read_calib
+    calib = read_calib(args.calib)
+    if not calib.has_depth:
+        args.no_depth = True
+        print(f"mccnn-cl: note: {args.calib} has no focal length/baseline: it gives the disparity range "
+              f"(ndisp={calib.ndisp}); no depth or point cloud is written", file=sys.stderr)
+    return calib
+
+
 def _check_calib_size(calib, img, image_path, calib_path) -> None:
     """Warn (stderr, one line) when a calibration file that states an image size (Middlebury /
     MiddEval3 / ETH3D ``width`` and ``height``, KITTI ``S_rect``) states another than this
