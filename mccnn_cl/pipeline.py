@@ -600,16 +600,16 @@ class StereoMatcher:
         # tile; the network runs once, before the tiles, into host memory)
         per_row = nvol * row + (self.cost.scratch_bytes(1, W) if self.cost.local else 0)
         ext = min(max_alloc // row, max(0, budget - maps) // per_row)
-        n = 1 if ext >= H else None
-        for k in range(2, H + 1) if n is None else ():  # fewest tiles: the end tiles overlap on one side only
-            c = -(-H // k)
-            if c < MIN_TILE_ROWS:
-                break
-            if min(H, c + overlap * (1 if k == 2 else 2)) <= ext:
-                n = k
+        n = 1  # the fewest tiles whose largest extent fits; the end tiles overlap on their inner side only
+        while ext < H and n is not None:
+            n += 1
+            core = -(-H // n)
+            if core < MIN_TILE_ROWS:
+                n = None
+            elif min(H, core + overlap * (1 if n == 2 else 2)) <= ext:
                 break
         if n is None:
-            need = per_row * (min(H, 2 * overlap + MIN_TILE_ROWS)) + maps
+            need = per_row * min(H, 2 * overlap + MIN_TILE_ROWS) + maps
             raise InputError(
                 f"{Wi}x{Hi} with {D} disparities does not fit: row tiles of {MIN_TILE_ROWS} rows plus "
                 f"{overlap} rows of overlap on each side need {need / 2**20:.1f} MiB of device memory "

@@ -288,6 +288,16 @@ def _patch_loss(net, left, right):
 
 # -- the loop ------------------------------------------------------------------
 
+def _atomic_json(obj, path: Path) -> None:
+    """``obj`` as indented JSON at ``path``, whole or not at all (:func:`mccnn_cl.atomic.atomic_write`)."""
+    from ..atomic import atomic_write
+
+    def write(tmp):
+        with open(tmp, "w") as f:
+            json.dump(obj, f, indent=1)
+    atomic_write(path, write)
+
+
 def _atomic_torch_save(obj, path: Path):
     tmp = path.with_name(path.name + ".tmp")
     torch.save(obj, tmp)
@@ -562,10 +572,8 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
                             "examples_seen": examples_seen, "best_err3": best, "mid": mid_state,
                             "world_size": world},
                            out_dir / "checkpoint.pt")
-        with open(out_dir / "run.json.tmp", "w") as f:
-            json.dump(progress(mid_state["epoch"] if mid_state else epoch + 1,
-                               mid_state["i"] if mid_state else 0), f, indent=1)
-        os.replace(out_dir / "run.json.tmp", out_dir / "run.json")
+        _atomic_json(progress(mid_state["epoch"] if mid_state else epoch + 1, mid_state["i"] if mid_state else 0),
+                     out_dir / "run.json")
 
     end_epoch = cfg.epochs if stop_after is None else min(cfg.epochs, start_epoch + stop_after)
     stopped = False
@@ -681,9 +689,7 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
                 _export(model, out_dir / "best.npz", snap)
             save_ck(epoch, None)
             last_ck = time.time()
-            with open(out_dir / "history.json.tmp", "w") as f:  # whole or not at all
-                json.dump(history, f, indent=1)
-            os.replace(out_dir / "history.json.tmp", out_dir / "history.json")
+            _atomic_json(history, out_dir / "history.json")
             plot_history(history, out_dir / "training.png",
                          title=f"MC-CNN-{cfg.arch} training ({cfg.sampler} sampler)",
                          loss_name={"paper": "cross-entropy", "fst": "hinge loss",
