@@ -10,6 +10,13 @@
   are first brought to [0, 1] exactly as :func:`to_gray` does, so training
   (which standardises the uint8 gray images it reads) and inference (which
   standardises the matcher's [0, 1] input) get the same values, bit for bit.
+* :func:`unit_float64`: the values :func:`standardise` and :func:`image_stats`
+  work on (integer images brought to [0, 1] as :func:`to_gray` does, other
+  types as they are), in float64.  Whatever hands an image to
+  :func:`standardise` together with ``stats`` of :func:`image_stats` must
+  give it on this scale (the network costs' input check,
+  :func:`mccnn_cl.validate.as_image`), or the statistics do not match the
+  pixels: a uint8 image taken as 0 .. 255 against a mean and std of 0 .. 1.
 """
 
 from __future__ import annotations
@@ -96,13 +103,18 @@ def standardise(img, stats=None) -> np.ndarray:
     """(I - mean(I)) / std(I), float32, stats in float64 over all pixels and
     channels; std 0 divides by 1 (module docstring).  ``stats``: the
     ``(mean, std)`` to use instead (:func:`image_stats` of another image, e.g.
-    the real image a padded one was made from)."""
-    a = _float64(img)
+    the real image a padded one was made from), on the scale of
+    :func:`unit_float64` (``img`` is brought to it here)."""
+    a = unit_float64(img)
     mean, std = image_stats(a) if stats is None else stats
     return ((a - mean) / std).astype(np.float32)
 
 
-def _float64(img) -> np.ndarray:
+def unit_float64(img) -> np.ndarray:
+    """``img`` as float64 on the scale :func:`standardise` and :func:`image_stats`
+    use: uint8 / 255 and uint16 / 65535 in float32 first (as :func:`to_gray`,
+    so an integer image and its :func:`to_gray` give the same values, bit for
+    bit), any other type's values as they are.  Idempotent on its own output."""
     a = np.asarray(img)
     if a.dtype in _UNIT_SCALE:  # as to_gray scales them
         a = _scaled(a, _UNIT_SCALE[a.dtype])
@@ -110,8 +122,9 @@ def _float64(img) -> np.ndarray:
 
 
 def image_stats(img) -> tuple:
-    """``(mean, std)`` that :func:`standardise` divides ``img`` by (std 0 -> 1)."""
-    a = _float64(img)
+    """``(mean, std)`` that :func:`standardise` divides ``img`` by (std 0 -> 1),
+    over :func:`unit_float64` of ``img``."""
+    a = unit_float64(img)
     mean = a.mean()
     std = a.std()
     if not std > 0:

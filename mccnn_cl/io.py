@@ -180,16 +180,25 @@ def read_image(path, gray: bool = False) -> np.ndarray:
     """Read an 8-bit image with cv2: (H, W) uint8 if ``gray`` else as stored (BGR or gray).
 
     16-bit images are rejected (stereo images are 8-bit here), and so is a JPEG cut short
-    (:func:`jpeg_complete`; cv2 would return it grey below the cut).
+    (:func:`jpeg_complete`; cv2 would return it grey below the cut).  The file is read once:
+    the bytes checked are the bytes decoded (``cv2.imdecode``, as ``cv2.imread`` would).
     """
     path = _check_exists(path)
-    img = cv2.imread(path, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_UNCHANGED)
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the file ({exc.strerror or exc})") from exc
+    img = None
+    if data:  # cv2.imdecode refuses an empty buffer with an assertion
+        try:
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_UNCHANGED)
+        except cv2.error:
+            img = None
     if img is None:
         raise InputError(f"{path}: unreadable image (not a format cv2 can decode)")
-    with open(path, "rb") as f:
-        head = f.read(2)
-        if head == b"\xff\xd8" and not jpeg_complete(head + f.read()):
-            raise InputError(f"{path}: the JPEG file ends before its end-of-image marker (truncated?)")
+    if data[:2] == b"\xff\xd8" and not jpeg_complete(data):
+        raise InputError(f"{path}: the JPEG file ends before its end-of-image marker (truncated?)")
     if img.dtype != np.uint8:
         raise InputError(f"{path}: expected an 8-bit image, got {img.dtype}")
     if img.ndim == 3 and img.shape[2] == 4:

@@ -492,7 +492,8 @@ class StereoMatcher:
         D_SE = rec("D_SE", self.subpixel(C, D_INT, D, H, W, p.subpixel_min_denominator, p.subpixel_clamp,
                                          right_width=Wr), crop)
         if "confidence" in rec.wanted:
-            rec("confidence", self.confidence(C, labels, D, H, W, self.cost.floor), crop)
+            rec("confidence", self.confidence(C, labels, D, H, W, self.cost.floor, right_width=Wr, first_column=lo),
+                crop)
         self._pool.give(C)  # the in-order queue runs any later user after subpixel
         return D_SE
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import InputError
+from .imageops import unit_float64
 
 #: The paper's network patch and the census window: the smallest image.
 PATCH = 9
@@ -45,7 +46,8 @@ def _same_size(left, right, names=("left", "right")) -> tuple:
 
 def as_image(img, name: str, channels: int, patch: int) -> np.ndarray:
     """One input image of a network cost, checked: numeric, H x W (or H x W x
-    ``channels``), at least ``patch`` x ``patch``, finite; returned as float64 H x W x C."""
+    ``channels``), at least ``patch`` x ``patch``, finite; returned as float64 H x W x C
+    on :func:`~mccnn_cl.imageops.unit_float64`'s scale (that of ``stats=``)."""
     try:
         a = np.asarray(img)
     except Exception as exc:  # noqa: BLE001 - anything numpy cannot take
@@ -62,7 +64,7 @@ def as_image(img, name: str, channels: int, patch: int) -> np.ndarray:
     if a.shape[0] < patch or a.shape[1] < patch:
         raise InputError(f"{name} image is {a.shape[0]}x{a.shape[1]}, smaller than the network's "
                          f"{patch}x{patch} patch")
-    a = a.astype(np.float64)
+    a = unit_float64(a)  # the scale of image_stats: uint8 / 255, uint16 / 65535 (as to_gray)
     if not np.isfinite(a).all():
         raise InputError(f"{name} image contains NaN or infinite pixels")
     return a

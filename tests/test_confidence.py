@@ -45,12 +45,13 @@ def random_volume(rng, D, H, W, levels=None, invalid=np.nan):
     return C
 
 
-def run_conf(ctx, C, labels, floor=0.0, half=False):
+def run_conf(ctx, C, labels, floor=0.0, half=False, **kw):
+    """The stage's map, written into a buffer poisoned first; ``kw``: right_width, first_column."""
     D, H, W = C.shape
     out = ctx.empty(H * W * 4, "poisoned confidence")
     ctx.fill(out, POISON, H * W * 4)
     Confidence(ctx, half=half)(ctx.to_device(np.ascontiguousarray(C)), ctx.to_device(labels.astype(np.int32)),
-                               D, H, W, floor, out=out)
+                               D, H, W, floor, out=out, **kw)
     return ctx.from_device(out, (H, W))
 
 
@@ -151,6 +152,83 @@ def test_half_storage(ctx):
     assert np.mean(np.abs(got - full) < 1e-2) > 0.99
 
 
+# -- ranges with M < 0: the working frame's padding ---------------------------
+def _image_rule_confidence(C, labels, floor=0.0):
+    """The measure in the image's frame: each pixel's curve is its finite cells (the
+    real range's cells with a real right pixel; the rest NaN, as StereoResult's C and
+    RangeFrame.valid say), 0 where the label is not CORRECT."""
+    D, H, W = C.shape
+    out = np.zeros((H, W), np.float32)
+    for y in range(H):
+        for x in range(W):
+            c = C[:, y, x]
+            if labels[y, x] == dref.CORRECT:
+                out[y, x] = ref.curve_confidence(c[np.isfinite(c)], floor)
+    return out
+
+
+@pytest.mark.parametrize("half", [False, True], ids=["float32", "float16"])
+@pytest.mark.parametrize("M,D,W", [(-6, 16, 29), (-20, 24, 37), (-3, 40, 21), (-9, 5, 19)])
+def test_negative_range_padding_is_never_read(ctx, half, M, D, W):
+    """The working frame of a range M .. M+D-1 with M < 0 (mccnn_cl/disprange.py): the
+    volume has p = -M padding columns on the left (x' < p) and cells whose right pixel is
+    the padding (x' - d' >= W, W the real width).  With right_width=W and first_column=p
+    the kernel equals the reference, the measure taken in the image's frame over the real
+    cells only, and any value in the padding's cells (NaN, huge, below every cost, the
+    floor) changes nothing, bit for bit; the padding's columns get 0.  Without them (the
+    defaults, the real pair's: the stage's only behaviour before) the padding is part of
+    the curves: the map changes with the padding's values.  D > p and D < p (M = -9, D = 5:
+    the last real columns have no level with a real right pixel, and get 0)."""
+    from mccnn_cl.disprange import RangeFrame
+
+    p, Ww, H = -M, W - M, 5
+    rng = np.random.default_rng(W * 100 + D)
+    base_vol = random_volume(rng, D, H, Ww, levels=8)
+    d = np.arange(D)[:, None]
+    x = np.arange(Ww)[None, :]
+    pad = np.broadcast_to(((x < p) | (x - d >= W)) & (x - d >= 0), (H, D, Ww)).transpose(1, 0, 2)
+    assert pad.any() and (~pad & ~np.isnan(base_vol)).any()
+    dtype = np.float16 if half else np.float32
+    huge = 6.0e4 if half else 1.0e30
+    labels = [np.zeros((H, Ww), np.int32), rng.choice(3, size=(H, Ww), p=(0.6, 0.2, 0.2)).astype(np.int32)]
+    frame = RangeFrame(M, D, (H, W), 0)
+    assert frame.masked and frame.p == p and frame.Ww == Ww and frame.W == W
+    for floor in (0.0, -1.0):
+        for lab in labels:
+            C = np.where(pad, np.float32(np.nan), base_vol).astype(dtype)
+            base = run_conf(ctx, C, lab, floor, half, right_width=W, first_column=p)
+            want = ref.confidence(C, lab, floor, right_width=W, first_column=p)
+            np.testing.assert_allclose(base, want, atol=ATOL)
+            assert np.all(np.isfinite(base)) and np.all((base >= 0) & (base <= 1))
+            assert np.all(base[:, :p] == 0) and np.all(base[lab != dref.CORRECT] == 0)
+            # the image's frame: C moved back (x = x' - p), the invalid and padding cells NaN
+            real = frame.left(C.astype(np.float32), np.nan)
+            real[~np.broadcast_to(frame.valid(), real.shape)] = np.nan
+            np.testing.assert_allclose(base[:, p:], _image_rule_confidence(real, lab[:, p:], floor), atol=ATOL)
+            if lab is labels[0]:
+                assert base[:, p:].max() > 0.1  # the all-correct run measured something
+            changed = False
+            for value in (np.nan, -huge, -1000.0, floor, 0.5, 1000.0, huge):
+                dirty = np.where(pad, np.float32(value), base_vol).astype(dtype)
+                got = run_conf(ctx, dirty, lab, floor, half, right_width=W, first_column=p)
+                np.testing.assert_array_equal(got.view(np.uint32), base.view(np.uint32),
+                                              err_msg=f"padding = {value}, floor {floor}")
+                old = run_conf(ctx, dirty, lab, floor, half)  # padding read (defaults: the real pair)
+                changed |= bool((old[:, p:] != base[:, p:]).any())
+            assert changed
+
+
+def test_confidence_arguments_checked(ctx):
+    d = ctx.to_device(np.zeros((3, 2, 5), np.float32))
+    lab = ctx.to_device(np.zeros((2, 5), np.int32))
+    with pytest.raises(InputError, match="right_width"):
+        Confidence(ctx)(d, lab, 3, 2, 5, right_width=6)
+    with pytest.raises(InputError, match="right_width"):
+        Confidence(ctx)(d, lab, 3, 2, 5, right_width=0)
+    with pytest.raises(InputError, match="first_column"):
+        Confidence(ctx)(d, lab, 3, 2, 5, first_column=5)
+
+
 @pytest.fixture(scope="module")
 def kitti_crop(shared_data):
     d = shared_data / "kitti2015" / "training"
@@ -245,6 +323,21 @@ def test_pipeline_confidence_half_and_tiled(ctx, kitti_crop):
     assert t.confidence.shape == left.shape and np.all(t.confidence[t.labels != 0] == 0)
     assert np.mean(t.labels == base.labels) > 0.99
     assert np.mean(np.abs(t.confidence - base.confidence) < 0.05) > 0.93
+
+
+def test_pipeline_negative_range_confidence(ctx, kitti_crop):
+    """A range with M < 0 (the KITTI crop swapped: disparities negative): the confidence
+    the pipeline returns is the measure in the image's frame, over each pixel's real cells
+    (StereoResult's C: the padding's cells NaN).  Measured before: 103 of 5822 correct
+    pixels differed, by up to 0.5 (their curves took the padding's aggregated costs)."""
+    left, right = kitti_crop
+    M, D = -40, 48
+    m = StereoMatcher(cost="census", max_disparity=D, min_disparity=M, device=ctx)
+    res = m.compute(right, left, return_intermediates=True, confidence=True)
+    it = res.intermediates
+    assert np.mean(it["labels"] == dref.CORRECT) > 0.5
+    np.testing.assert_allclose(it["confidence"], _image_rule_confidence(it["C"], it["labels"]), atol=ATOL)
+    assert np.all(np.isfinite(res.confidence)) and np.all((res.confidence >= 0) & (res.confidence <= 1))
 
 
 # -- CLI --------------------------------------------------------------------

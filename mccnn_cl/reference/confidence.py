@@ -55,16 +55,22 @@ def curve_confidence(c: np.ndarray, floor: float = 0.0) -> float:
     return float(min(np.float32(1.0), np.float32(c2 - c1) / den))
 
 
-def confidence(C: np.ndarray, labels: np.ndarray, floor: float = 0.0) -> np.ndarray:
+def confidence(C: np.ndarray, labels: np.ndarray, floor: float = 0.0, right_width: int | None = None,
+               first_column: int = 0) -> np.ndarray:
     """Confidence map (float32 H x W, in [0, 1]) of volume ``C`` [D][H][W]
     (float32 or float16; invalid cells d > x are skipped by index),
     left-right ``labels`` (int32 H x W; not CORRECT -> 0) and the cost's
-    lower bound ``floor``."""
+    lower bound ``floor``.  ``right_width`` (None: W) and ``first_column``
+    (0): the working frame of a range with M < 0 (mccnn_cl/disprange.py),
+    whose padding is never part of a curve: pixel x's curve is its levels
+    d = max(0, x - right_width + 1) .. min(D-1, x) (the right pixel x - d a
+    real one), and pixels x < first_column (left padding) get 0."""
     D, H, W = C.shape
+    Wr = W if right_width is None else int(right_width)
     C = C.astype(np.float32)
     out = np.zeros((H, W), np.float32)
     for y in range(H):
-        for x in range(W):
+        for x in range(int(first_column), W):
             if labels[y, x] == CORRECT:
-                out[y, x] = curve_confidence(C[:min(D - 1, x) + 1, y, x], floor)
+                out[y, x] = curve_confidence(C[max(0, x - Wr + 1):min(D - 1, x) + 1, y, x], floor)
     return out

@@ -13,6 +13,13 @@ depend on the cost's scale (census and paper/acrt costs in [0, 1], fst's
 floor of C_CNN).  Definition, plateaus and edge cases:
 :mod:`mccnn_cl.reference.confidence` (the numpy twin).  The pipeline enlarges the map to the image size as the
 disparity is (border pixels copied outwards), see ``StereoMatcher.compute``.
+
+In the working frame of a range with M < 0 (:mod:`mccnn_cl.disprange`), whose
+volume has padding columns, ``right_width`` and ``first_column`` (as
+:class:`~mccnn_cl.stages.disparity.LeftRightCheck`, ``Interpolate`` and
+``Subpixel`` take them) keep the padding out of the measure: a cell whose right
+pixel is padding (x - d >= right_width) is not part of the curve, and a pixel
+x < first_column (left padding) gets 0.
 """
 
 from __future__ import annotations
@@ -39,15 +46,26 @@ def cost_floor(kind: str) -> float:
 
 
 class Confidence:
-    """``Confidence(ctx, half)(d_cost, d_labels, D, H, W, floor=0.0, out=None)`` -> float32 H x W buffer."""
+    """``Confidence(ctx, half)(d_cost, d_labels, D, H, W, floor=0.0, out=None, right_width=None,
+    first_column=0)`` -> float32 H x W buffer.
+
+    ``right_width``: columns of the real right image (default W, the real pair);
+    ``first_column``: the first real left column (default 0); both for the
+    working frame of a range with M < 0 (module docstring), where the padding's
+    cells are then never part of a curve."""
 
     def __init__(self, ctx, half: bool = False):
         self.ctx = ctx
         self.kernel = ctx.kernel("confidence.cl", "confidence_curve", VOL_HALF=int(half))
 
-    def __call__(self, d_cost, d_labels, D, H, W, floor=0.0, out=None):
+    def __call__(self, d_cost, d_labels, D, H, W, floor=0.0, out=None, right_width=None, first_column=0):
+        from .disparity import _right_width
+
+        Wr = _right_width(W, right_width)
+        if not 0 <= int(first_column) < W:
+            raise InputError(f"first_column must be in [0, {W}), not {first_column}")
         if out is None:
             out = self.ctx.empty(H * W * _F32, "confidence")
         launch(self.ctx, "confidence", self.kernel, (-(-W // 16), H), d_cost, d_labels, out,
-               np.int32(D), np.int32(H), np.int32(W), np.float32(floor))
+               np.int32(D), np.int32(H), np.int32(W), np.float32(floor), np.int32(Wr), np.int32(first_column))
         return out
