@@ -120,3 +120,49 @@ def test_truncated_jpeg_is_refused(tmp_path, shared_data, params):
     with pytest.raises(InputError, match="truncated"):
         read_image(tmp_path / "cut.jpg")
     assert not any(jpeg_complete(data[:k]) for k in range(2, len(data), 61))
+
+
+def test_read_image_reads_the_file_once(tmp_path, shared_data, monkeypatch):
+    """read_image opens its file once, for every kind of image (a JPEG too, whose end it
+    checks): the bytes checked for truncation are the bytes decoded.  (Before, cv2.imread
+    opened the file and then read_image opened it again for the check.)  The images are
+    those cv2.imread gives, in both modes."""
+    import builtins
+    import os
+
+    src = read_image(shared_data / "middlebury/Tsukuba/im0.png")
+    files = []
+    for ext, params in ((".png", []), (".jpg", []), (".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]), (".bmp", [])):
+        ok, buf = cv2.imencode(ext, src, params)
+        assert ok
+        files.append(tmp_path / f"im{len(files)}{ext}")
+        files[-1].write_bytes(buf.tobytes())
+    files.append(tmp_path / "bgra.png")
+    cv2.imwrite(str(files[-1]), np.dstack([src, np.full(src.shape[:2], 9, np.uint8)]))
+    expected = {(f, g): cv2.imread(str(f), cv2.IMREAD_GRAYSCALE if g else cv2.IMREAD_UNCHANGED)
+                for f in files for g in (False, True)}
+
+    opened = []
+    real_open, real_imread = builtins.open, cv2.imread
+
+    def counting_open(file, *a, **k):
+        opened.append(os.fspath(file) if isinstance(file, (str, bytes, os.PathLike)) else file)
+        return real_open(file, *a, **k)
+
+    def counting_imread(file, *a, **k):  # cv2 opens the file itself
+        opened.append(os.fspath(file))
+        return real_imread(file, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", counting_open)
+    monkeypatch.setattr(cv2, "imread", counting_imread)
+    for (f, g), want in expected.items():
+        opened.clear()
+        got = read_image(f, gray=g)
+        assert opened.count(str(f)) == 1, (f.name, g, opened)
+        if want.ndim == 3 and want.shape[2] == 4:
+            want = cv2.cvtColor(want, cv2.COLOR_BGRA2BGR)
+        np.testing.assert_array_equal(got, want)
+    monkeypatch.undo()
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(InputError, match="unreadable"):
+        read_image(tmp_path / "empty.png")

@@ -334,3 +334,44 @@ def test_hopeless_candidates_are_timed_once(ctx):
     assert len(ticks) == 4 * 3
     assert not tune._hopeless([[1.0], [1.9]], 1) and tune._hopeless([[1.0], [2.1]], 1)
     assert not tune._hopeless([[1.0], []], 1) and not tune._hopeless([[9.0], [1.0]], 0)
+
+
+def test_rules_choice_failing_skips_only_its_option(ctx, caplog):
+    """The rules' own choice of one option raises (its reference run): that option is
+    skipped with one warning naming it and the error, its rules' choice stands (no
+    candidate is chosen: nothing to check them against, although the other candidate runs
+    and is faster), its candidates are listed as failed with the error, the option after it
+    is tuned as usual, the progress count still reaches rounds x candidates and the profile
+    is left as it was.  (Before, the exception ended the whole tuning.)"""
+    import logging
+
+    before = dict(ctx.profile.tuned)
+    rules = tune._rules_value(ctx.profile, "sgm_cols")
+    other = 64 if rules != 64 else 48
+    chunks = 7 if tune._rules_value(ctx.profile, "wta_chunks") != 7 else 5
+    calls = []
+
+    def broken(c):
+        cols = c.profile.rule("sgm_cols")
+        calls.append(cols)
+        if cols == rules:
+            raise RuntimeError("rules' kernel does not build")
+        return 0.1, np.zeros(3)
+
+    def fine(c):
+        return (0.5 if c.profile.rule("wta_chunks") == chunks else 1.0), np.zeros(3)
+
+    opts = [tune.Option("sgm_cols", [{"sgm_cols": other}], broken),
+            tune.Option("wta_chunks", [{"wta_chunks": chunks}], fine)]
+    ticks = []
+    with caplog.at_level(logging.WARNING, logger=tune.log.name):
+        choices, measured = tune.choose(ctx, opts, progress=lambda: ticks.append(1), rounds=2)
+    assert choices == {"wta_chunks": chunks}  # the second option still tuned; nothing for the first
+    assert measured["sgm_cols"]["candidates"] == [[{}, None], [{"sgm_cols": other}, None]]
+    assert "does not build" in measured["sgm_cols"]["error"]
+    assert calls == [rules]  # no candidate of the skipped option ran
+    warned = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and "sgm_cols" in warned[0].getMessage() \
+        and "rules' own choice failed" in warned[0].getMessage() and "does not build" in warned[0].getMessage()
+    assert len(ticks) == 2 * 2 + 2 * 2
+    assert ctx.profile.tuned == before

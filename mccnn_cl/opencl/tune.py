@@ -353,7 +353,18 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
     not ``exact``) in any round, or that fails, is never chosen.  Returns
     ``(choices, measured)``: the RULES rows set by the chosen candidates
     (none for an option whose rules' choice stands), and per option each
-    candidate's best seconds (None: wrong or failed) and the noise."""
+    candidate's best seconds (None: wrong or failed) and the noise.
+
+    The rules' choice's first run gives the reference output every candidate
+    is checked against.  When that run fails (raises), the option cannot be
+    checked: it is skipped, with one warning naming the option and the error,
+    its rules' choice stands (no candidate is chosen, since none could be
+    shown to compute the same result), its ``measured`` entry lists every
+    candidate as None and holds the error under ``"error"``, and the other
+    options are tuned as usual (the progress callback still counts the
+    skipped option's runs).  A failure of the rules' choice in a later, timed
+    round, after the reference was taken, leaves the fastest candidate that
+    matched the reference."""
     profile = ctx.profile
     choices, measured = {}, {}
     for opt in opts:
@@ -364,7 +375,17 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
         try:
             profile.tuned.clear()
             profile.tuned.update(choices)
-            _, reference = opt.run(ctx)
+            try:
+                _, reference = opt.run(ctx)
+            except Exception as exc:  # noqa: BLE001 - nothing to check the candidates against: skip the option
+                log.warning("tuning %s: the rules' own choice failed (%s: %s); option skipped, its rules' "
+                            "choice kept", opt.name, type(exc).__name__, exc)
+                measured[opt.name] = {"candidates": [[c, None] for c in cands], "noise": MARGIN,
+                                      "error": f"{type(exc).__name__}: {exc}"}
+                if progress is not None:
+                    for _ in range(max(1, int(rounds)) * len(cands)):
+                        progress()
+                continue
             for r in range(max(1, int(rounds))):
                 order = range(len(cands)) if r % 2 == 0 else reversed(range(len(cands)))
                 for j in order:
