@@ -168,7 +168,7 @@ def test_wta_and_lr_real(ctx, cones):
     np.testing.assert_array_equal(dint, ref.interpolate(DL, labels))
     dint_code = run_interp(ctx, DL, labels, "code")
     np.testing.assert_array_equal(dint_code, ref.interpolate(DL, labels, "code", stop_at_any=True))
-    for kw in ({}, {"min_denominator": 1e-5, "clamp_step": True}):
+    for kw in ({"clamp_step": False}, {"clamp_step": True}, {"min_denominator": 1e-5, "clamp_step": True}):
         dse = run_subpixel(ctx, C, dint, **kw)
         np.testing.assert_allclose(dse, ref.subpixel(C, dint, **kw), rtol=0, atol=1e-6)
         assert np.abs(dse - dint).max() > 0.1  # the correction does act
@@ -240,13 +240,15 @@ def test_subpixel_random(ctx, D, H, W):
     rng = np.random.default_rng(D + H)
     C = random_volume(rng, D, H, W)
     DINT = rng.integers(0, D, (H, W), dtype=np.int32)  # includes ends and invalid d > x
-    for kw in ({}, {"min_denominator": 1e-5, "clamp_step": True}):
+    for kw in ({"clamp_step": False}, {"min_denominator": 1e-5, "clamp_step": True}):
         out = run_subpixel(ctx, C, DINT, **kw)
         expect = ref.subpixel(C, DINT, **kw)
         np.testing.assert_allclose(out, expect, rtol=0, atol=1e-6)
         assert np.isfinite(out).all()
-        if kw:
+        if kw["clamp_step"]:
             assert np.abs(out - DINT).max() <= 1.0 + 1e-6
+    # the stage's default clamps (test_subpixel_clamps_by_default)
+    np.testing.assert_array_equal(run_subpixel(ctx, C, DINT), run_subpixel(ctx, C, DINT, clamp_step=True))
 
 
 def test_subpixel_guards(ctx):
@@ -261,6 +263,28 @@ def test_subpixel_guards(ctx):
     # x=3: d=2 -> C-=0.2, C=0.4, C+=0.4: denom -0.2 < 0 -> kept
     # x=5: d = D-1 -> kept; x=6: d=3 -> denom 0.1-0.8+0.4 < 0 -> kept
     np.testing.assert_allclose(out, [[0, 1, 1.1, 2, 1.1, 4, 3, 1.1]], atol=1e-6)
+
+
+def test_subpixel_clamps_by_default(ctx):
+    """Subpixel's default is the matcher's (Hyperparameters.subpixel_clamp, True, the released
+    code's): a step over one level (a D_INT that is no cost minimum, as interpolation gives)
+    is clamped to [-1, 1] unless clamp_step=False asks for the paper's unbounded formula.
+    (Before, the stage's default was False: 20.5 here instead of 2.)"""
+    from mccnn_cl.hyperparameters import Hyperparameters
+
+    assert Hyperparameters().subpixel_clamp is True
+    D, H, W = 5, 2, 8
+    C = np.zeros((D, H, W), np.float32)
+    C[:, :, :] = np.array([0.5, 0.3, 0.11, 0.9, 0.9], np.float32)[:, None, None]  # at d = 1: step -19.5
+    for d in range(D):
+        C[d, :, :d] = np.nan
+    DINT = np.ones((H, W), np.int32)  # x = 0, 1: d + 1 > x, kept
+    unclamped = run_subpixel(ctx, C, DINT, clamp_step=False)
+    np.testing.assert_allclose(unclamped[:, 2:], 20.5, rtol=1e-5)  # the fit is far off: 1 + 19.5
+    default = run_subpixel(ctx, C, DINT)
+    np.testing.assert_array_equal(default, run_subpixel(ctx, C, DINT, clamp_step=True))
+    np.testing.assert_array_equal(default, [[1, 1] + [2] * (W - 2)] * H)
+    np.testing.assert_allclose(default, ref.subpixel(C, DINT, clamp_step=True), rtol=0, atol=1e-6)
 
 
 def test_census_volume_with_stages(ctx, cones):

@@ -132,11 +132,12 @@ def interpolate(DL: np.ndarray, labels: np.ndarray, directions="paper",
 
 # -- subpixel enhancement --------------------------------------------------
 def subpixel(C: np.ndarray, DINT: np.ndarray, min_denominator: float = 0.0,
-             clamp_step: bool = False, right_width: int | None = None) -> np.ndarray:
+             clamp_step: bool = True, right_width: int | None = None) -> np.ndarray:
     """D_SE = d - (C+ - C-) / (2 (C+ - 2C + C-)) where 1 <= d <= D-2, d+1 <= x,
     x - (d-1) < right_width (the three cells' right pixels inside the real right
     image; None: W, the real pair, where it always holds) and the denominator >
-    min_denominator; otherwise d.  float32 arithmetic."""
+    min_denominator; otherwise d.  ``clamp_step`` (the default, as the stage's and
+    the matcher's): the step clamped to [-1, 1].  float32 arithmetic."""
     D, H, W = C.shape
     Wr = W if right_width is None else int(right_width)
     out = DINT.astype(np.float32)

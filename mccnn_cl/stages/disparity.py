@@ -159,10 +159,11 @@ class Interpolate:
 class Subpixel:
     """D_SE = d - (C+ - C-) / (2 (C+ - 2C + C-)) at d = D_INT(p).
 
-    ``min_denominator=0`` (the paper's: zero or negative curvature keeps d),
-    ``clamp_step=False`` here (the paper gives no bound; the matcher's
-    default, ``Hyperparameters.subpixel_clamp``, is True, as in the released
-    code: the step clamped to [-1, 1]); released code: ``1e-5``.  d is kept at the range ends, where d+1 > x and where
+    ``min_denominator=0`` (the paper's: zero or negative curvature keeps d;
+    released code: ``1e-5``).  ``clamp_step=True`` (the released code's
+    behaviour and the matcher's default, ``Hyperparameters.subpixel_clamp``):
+    the step is clamped to [-1, 1]; ``clamp_step=False`` gives the paper's
+    formula unbounded.  d is kept at the range ends, where d+1 > x and where
     x - (d-1) >= ``right_width`` (a cell of the fit compares with a right
     pixel past the real right image: the working frame's padding of a range
     with M < 0; default W, the real pair, where that never holds).
@@ -172,7 +173,7 @@ class Subpixel:
         self.ctx = ctx
         self.kernel = ctx.kernel("subpixel.cl", "subpixel_refine", VOL_HALF=int(half))
 
-    def __call__(self, d_cost, d_disp, D, H, W, min_denominator=0.0, clamp_step=False, out=None,
+    def __call__(self, d_cost, d_disp, D, H, W, min_denominator=0.0, clamp_step=True, out=None,
                  right_width=None):
         Wr = _right_width(W, right_width)
         if out is None:
