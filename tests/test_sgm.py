@@ -443,3 +443,28 @@ def test_chain_arms_cbca_sgm_cbca_on_real_images(ctx, shared_data):
     np.testing.assert_array_equal(np.isnan(got), invalid_mask(D, H, W))
     np.testing.assert_allclose(got, want, rtol=0, atol=2e-5 * (1.0 + 32.0))
     assert np.nanstd(got) > 0.1
+
+
+def test_release_buffers_frees_the_path_state(ctx):
+    """SGM.release_buffers drops the path-state scratch it keeps between calls
+    (the matcher's release_buffers calls it); the next call makes it again and
+    gives the same bits."""
+    rng = np.random.default_rng(11)
+    D, H, W = 12, 9, 40
+    cost = random_volume(rng, D, H, W, scale=3.0)
+    img_l, img_r = blocky_image(rng, H, W, 3, 0.08), blocky_image(rng, H, W, 3, 0.08)
+    for paired in (True, False):
+        stage = SGM(ctx, paired=paired)
+        d_cost, d_l, d_r = ctx.to_device(cost), ctx.to_device(img_l), ctx.to_device(img_r)
+        outs = []
+        for _ in range(2):
+            d_out = ctx.empty(cost.nbytes)
+            ctx.fill(d_out, POISON, cost.nbytes)
+            stage(d_cost, d_l, d_r, D, H, W, out=d_out)
+            outs.append(ctx.from_device(d_out, cost.shape))
+            assert stage._state is not None
+            held = ctx.memory.live
+            stage.release_buffers()
+            assert stage._state is None and stage._rstate is None
+            assert ctx.memory.live < held
+        np.testing.assert_array_equal(outs[0], outs[1])

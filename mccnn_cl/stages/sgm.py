@@ -175,6 +175,11 @@ class SGM:
             self._kernels[(max_disp, names)] = k
         return k
 
+    def release_buffers(self):
+        """Free the path-state scratch kept between calls (the next call makes it again)."""
+        self._state = None
+        self._rstate = None
+
     def _scratch(self, attr, nbytes, what):
         """The device buffer kept in ``self.<attr>``, replaced by a larger one
         when it holds fewer than ``nbytes`` bytes."""

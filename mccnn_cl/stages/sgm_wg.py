@@ -73,6 +73,9 @@ class SGMWorkGroup:
         self._kernel = None
         self._cols_kernel = None
 
+    def release_buffers(self):
+        """Nothing to free: the work-group stage keeps no scratch between calls."""
+
     @staticmethod
     def scratch_bytes(D, W, *args, **kwargs) -> int:
         """Device memory besides the cost and output volumes: none (whatever
