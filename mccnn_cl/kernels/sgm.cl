@@ -706,173 +706,6 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
 #define SGM_PAIR_CW 16
 #endif
 #define PCW SGM_PAIR_CW
-
-
-/* The vertical path at one row y of a chunk of n columns at x0 (sgm_paired,
- * sgm_banded): per 16-column group, the group's D x 16 costs are loaded as
- * 16 x 16 tiles and, with vert, the vertical recurrence runs on the tiles'
- * rows (floatV lanes over x, levels in sequence, as in col_row): C_r(p - r, .)
- * is read from the group's state in src, C_r(p, .) written to the group's
- * state in dst (per group one contiguous [D + 2][16] block at
- * (xg / 16) (D + 2) 16, the minimum per column as level D + 1; src may be dst:
- * level d + 1 is read before level d is written), levels beyond the group's
- * valid range set to +INFINITY in dst.  vfirst: y is the path's first row
- * (C_r = C; src not read), else py is its previous row.  With to_blk the tiles
- * are then transposed into the private block blk ([k][d], MAX_DISP floats per
- * pixel) for the horizontal recurrence.  pf, when not 0: the next chunk's cell
- * (0, y', x'), whose lines (pf_n cells) of levels 0 .. dmaxn are prefetched
- * into L2, the tiles' levels at each tile. */
-static inline __attribute__((always_inline)) void vert_chunk(
-    __global const vol_t *cost, __global const float *img_l, __global const float *img_r, const int y,
-    const int py, const int vfirst, const int x0, const int n, const int D, const int H, const int W,
-    const float tau_so, const float pv1_small, const float pv1_one, const float pv1_both, const float pv2_small,
-    const float pv2_one, const float pv2_both, __global const float *src, __global float *dst, const int vert,
-    float *blk, const int to_blk, int *bigv, __global const vol_t *pf, const int dmaxn, const int pf_n)
-{
-    const intV lane = LANESV;
-    const size_t plane = (size_t)H * (size_t)W;
-    const int dmaxc = min(D - 1, x0 + n - 1);
-    const int ntiles = dmaxc / VW + 1;
-    floatV r[VW];
-    if (vert && !vfirst) /* vertical D2 at right pixels x0 - MAX_DISP + t, t >= MAX_DISP - dmaxc */
-        vertical_gradients(img_r, W, y, py, x0, (MAX_DISP - dmaxc) / VW * VW, MAX_DISP + PCW, tau_so, bigv);
-    for (int gx = 0; gx * VW < n; ++gx) { /* 16-column groups */
-        const int xg = x0 + gx * VW, ng = min(VW, n - gx * VW);
-        const size_t go = (size_t)(xg / VW) * (size_t)(D + 2) * VW; /* the group's state, [D + 2][16] */
-        __global const float *sgs = src + go;
-        __global float *sgd = dst + go;
-        const intV xs = (intV)(xg) + lane;
-        const intV valid_x = lane < (intV)(ng);
-        const int dmaxg = min(D - 1, xg + ng - 1);
-        floatV p1a = (floatV)(0.0f), p1b = p1a, p2a = p1a, p2b = p1a, mv = (floatV)(INFINITY), pd = mv, pm1 = mv;
-        if (vert) {
-            if (!vfirst) {
-                vertical_penalties(img_l, W, y, py, xg, ng, tau_so, pv1_small, pv1_one, pv1_both, pv2_small,
-                                   pv2_one, pv2_both, &p1a, &p1b, &p2a, &p2b);
-                mv = vloadV(0, sgs + (D + 1) * VW);
-                pd = vloadV(0, sgs);
-            }
-            /* levels beyond the group's valid range read as +INFINITY at level d + 1 */
-            for (int d = dmaxg + 1; d <= D; ++d)
-                vstoreV((floatV)(INFINITY), 0, sgd + d * VW);
-        }
-        floatV newmv = (floatV)(INFINITY);
-        for (int g = 0; g < ntiles; ++g) {
-            const int d0 = g * VW;
-            load_tile(r, cost, y, xg, d0, ng, dmaxg, H, W);
-            if (pf && gx == 0)
-                for (int i = 0; i < VW && d0 + i <= dmaxn; ++i) {
-                    SGM_PREFETCH_L2(pf + (size_t)(d0 + i) * plane);
-                    SGM_PREFETCH_L2(pf + (size_t)(d0 + i) * plane + pf_n - 1);
-                }
-            if (vert) {
-                const int iend = min(VW, dmaxg + 1 - d0);
-                __attribute__((opencl_unroll_hint))
-                for (int i = 0; i < VW; ++i) { /* a constant trip count keeps r[] in registers */
-                    const int d = d0 + i;
-                    if (i < iend) {
-                        floatV val;
-                        if (vfirst) {
-                            val = r[i];
-                        } else {
-                            const intV big_r = vloadV(0, bigv + MAX_DISP + gx * VW - d);
-                            const floatV pn = vloadV(0, sgs + (d + 1) * VW); /* C_r(p - r, d + 1) */
-                            val = sgm_stepV(r[i], mv, pm1, pd, pn, SGM_BY_D2_V(p1a, p1b, big_r),
-                                             SGM_BY_D2_V(p2a, p2b, big_r));
-                            pm1 = pd;
-                            pd = pn;
-                        }
-                        val = select((floatV)(INFINITY), val, (xs >= (intV)(d)) & valid_x);
-                        vstoreV(val, 0, sgd + d * VW);
-                        newmv = fmin_aV(newmv, val);
-                    }
-                }
-            }
-            if (to_blk) {
-                transposeV(r);
-                for (int k = 0; k < VW; ++k)
-                    vstoreV(r[k], 0, blk + (gx * VW + k) * MAX_DISP + d0);
-            }
-        }
-        if (vert)
-            vstoreV(newmv, 0, sgd + (D + 1) * VW);
-    }
-}
-
-/* Writes a chunk's block back (sgm_paired, sgm_banded): horizontal C_r in
- * blk plus the vertical C_r in the groups' states at add (src/dst layout of
- * vert_chunk), written (mode 0, NaN at the levels beyond each group's range)
- * or combined (mode 2) into the output row y. */
-static inline __attribute__((always_inline)) void write_chunk(
-    float *blk, __global const float *add, __global vol_t *out, const int y, const int x0, const int n,
-    const int D, const int H, const int W, const int mode)
-{
-    const size_t plane = (size_t)H * (size_t)W;
-    floatV r[VW];
-    for (int gx = 0; gx * VW < n; ++gx) { /* rows d of 16 x */
-        const int xg = x0 + gx * VW, ng = min(VW, n - gx * VW);
-        __global const float *sg = add + (size_t)(xg / VW) * (size_t)(D + 2) * VW;
-        const int dmaxg = min(D - 1, xg + ng - 1);
-        for (int g = 0; g <= dmaxg / VW; ++g) {
-            const int d0 = g * VW;
-            for (int k = 0; k < VW; ++k)
-                r[k] = vloadV(0, blk + (gx * VW + k) * MAX_DISP + d0);
-            transposeV(r);
-            write_tile(r, sg, out + VIDX(d0, y, xg, H, W), plane, xg, d0, ng, dmaxg, mode);
-        }
-        if (mode == 0)
-            for (int d = dmaxg + 1; d < D; ++d)
-                vol_storeV_partial((floatV)(NAN), out + VIDX(d, y, xg, H, W), ng);
-    }
-}
-
-/* One row y of a horizontal path in the order dir, chunk by chunk, written
- * (mode 0) or combined (mode 2) into the output with a vertical path's C_r
- * (sgm_paired, sgm_banded): with vert, the vertical recurrence at row y runs
- * first on each chunk's tiles (vert_chunk, state src -> dst; previous row py,
- * vfirst), and the sum added is the vertical C_r in add (the state dst, or
- * another row's state in the same layout). */
-static inline __attribute__((always_inline)) void hor_row(
-    __global const vol_t *cost, __global const float *img_l, __global const float *img_r, __global vol_t *out,
-    const int y, const int py, const int vfirst, const int dir, const int D, const int H, const int W,
-    const float ph1_small, const float ph1_one, const float ph1_both, const float ph2_small, const float ph2_one,
-    const float ph2_both, const float pv1_small, const float pv1_one, const float pv1_both, const float pv2_small,
-    const float pv2_one, const float pv2_both, const float tau_so, const int outside_large,
-    __global const float *src, __global float *dst, const int vert, __global const float *add, const int mode,
-    float *blk, float *buf_a, float *buf_b, int *big_r_rev, int *bigv)
-{
-    const size_t plane = (size_t)H * (size_t)W;
-    const int nchunks = (W + PCW - 1) / PCW;
-    __global const float *il = img_l + y * W;
-    __global const float *ir = img_r + y * W;
-    float *prev = buf_a; /* horizontal C_r(p - r, d) at prev[d + 1] */
-    float *cur = buf_b;
-    for (int i = 0; i < MAX_DISP + 2 + VW; ++i) {
-        buf_a[i] = INFINITY;
-        buf_b[i] = INFINITY;
-    }
-    float m = INFINITY; /* horizontal min_k C_r(p - r, k) */
-    for (int ci = 0; ci < nchunks; ++ci) {
-        const int x0 = (dir > 0 ? ci : nchunks - 1 - ci) * PCW;
-        const int n = min(PCW, W - x0);
-        const int dmaxc = min(D - 1, x0 + n - 1);
-        const int ntiles = dmaxc / VW + 1;
-        vert_chunk(cost, img_l, img_r, y, py, vfirst, x0, n, D, H, W, tau_so, pv1_small, pv1_one, pv1_both,
-                   pv2_small, pv2_one, pv2_both, src, dst, vert, blk, 1, bigv, (__global const vol_t *)0, 0, 0);
-        /* horizontal D2 and recurrence, as in sgm_rows */
-        const int base = x0 - ntiles * VW, rt = ntiles * VW + PCW - 1;
-        row_gradients(ir, W, base, ntiles, PCW, dir, tau_so, outside_large, big_r_rev);
-        const int cin = ci + 1 < nchunks ? ci + 1 : ci;
-        const int x0n = (dir > 0 ? cin : nchunks - 1 - cin) * PCW;
-        const int nn = min(PCW, W - x0n);
-        const int dmaxn = min(D - 1, x0n + nn - 1);
-        row_chunk(blk, &prev, &cur, &m, x0, n, dir, D, W, il, tau_so, ph1_small, ph1_one, ph1_both, ph2_small,
-                  ph2_one, ph2_both, big_r_rev, base, rt, cost + VIDX(0, y, x0n, H, W), out + VIDX(0, y, x0n, H, W),
-                  plane, dmaxn, nn, 1);
-        write_chunk(blk, add, out, y, x0, n, D, H, W, mode);
-    }
-}
-
 __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (NaN invalid) */
                          __global const float *img_l, /* H x W left image, gray in [0, 1] */
                          __global const float *img_r, /* H x W right image, gray in [0, 1] */
@@ -911,133 +744,107 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
     float buf_a[MAX_DISP + 2 + VW], buf_b[MAX_DISP + 2 + VW];
     int big_r_rev[MAX_DISP + PCW]; /* horizontal D2 large, reversed (as in sgm_rows) */
     int bigv[MAX_DISP + PCW];      /* vertical D2 large at right pixel x0 - MAX_DISP + t */
+    const intV lane = LANESV;
+    const size_t plane = (size_t)H * (size_t)W;
+    const int nchunks = (W + PCW - 1) / PCW;
     for (int j = j0; j < j1; ++j) {
         const int y = dir > 0 ? j : H - 1 - j;
         const int vfirst = j == 0;
         const int py = vfirst ? y : y - dir; /* previous row of the vertical path */
-        hor_row(cost, img_l, img_r, out, y, py, vfirst, dir, D, H, W, ph1_small, ph1_one, ph1_both, ph2_small,
-                ph2_one, ph2_both, pv1_small, pv1_one, pv1_both, pv2_small, pv2_one, pv2_both, tau_so,
-                outside_large, st, st, 1, st, mode, blk, buf_a, buf_b, big_r_rev, bigv);
-    }
-}
-
-/* Banded sweeps (``sgm_banded``, two work-items, two launches): the sums of
- * sgm_paired, ((C_lr + C_tb) + (C_rl + C_bt)) / 4 bit for bit, with the output
- * written once.  Work-item A owns rows 0 .. h - 1, B rows h .. H - 1; a
- * work-item's "own" vertical path runs from its image edge towards the split
- * (A: top to bottom, B: bottom to top), the "other" one the other way.  Path
- * rows j (y = j for A, H - 1 - j for B) are in bands of SGM_BAND rows.
- *  - Launch 0: each work-item walks its own path over its rows, writing
- *    nothing to the output: the state after the row before each band is kept
- *    (a checkpoint), the state at its last row handed to the other work-item.
- *  - Launch 1: band by band from the split towards the image edge, the own
- *    path is walked again over the band from its checkpoint, each row's state
- *    kept; then the band's rows are walked towards the edge: the other path
- *    (starting from the other work-item's hand-off), C_lr written with C_tb
- *    added, then C_rl combined with C_bt (the row still in the cache).
- * The cost volume is read twice from memory (and a band's rows a third time,
- * from the cache) and the output written once, against sgm_paired's two
- * writes and one read of the output; the own path is computed twice.
- * State per work-item, S = (D + 2) x ws floats each (layout of vert_chunk):
- * [0] scratch, [1] hand-off, [2] other path, [3 .. 3 + SGM_BAND) the band's
- * rows, then one checkpoint per band (band_states). */
-#ifndef SGM_BAND
-#define SGM_BAND 8
-#endif
-__kernel void sgm_banded(__global const vol_t *cost,  /* D x H x W cost volume (NaN invalid) */
-                         __global const float *img_l, /* H x W left image, gray in [0, 1] */
-                         __global const float *img_r, /* H x W right image, gray in [0, 1] */
-                         __global vol_t *out,         /* D x H x W C_SGM */
-                         __global float *state,       /* 2 x (3 + SGM_BAND + nbands) x (D + 2) x ws */
-                         const int ws,                /* W rounded up to a multiple of SGM_PAIR_CW */
-                         const int D,                 /* disparity levels, <= MAX_DISP */
-                         const int H,                 /* height */
-                         const int W,                 /* width */
-                         const int h,                 /* rows 0 .. h - 1 are A's */
-                         const int nbands,            /* checkpoints per work-item: bands of the larger share */
-                         const int launch_no,         /* 0: own paths, checkpoints; 1: bands, output */
-                         const float ph1_small,       /* horizontal P1 when 0, 1, 2 gradients are large */
-                         const float ph1_one,
-                         const float ph1_both,
-                         const float ph2_small,       /* horizontal P2 likewise */
-                         const float ph2_one,
-                         const float ph2_both,
-                         const float pv1_small,       /* vertical P1 */
-                         const float pv1_one,
-                         const float pv1_both,
-                         const float pv2_small,       /* vertical P2 */
-                         const float pv2_one,
-                         const float pv2_both,
-                         const float tau_so,          /* gradient threshold (paper 0.0625) */
-                         const int outside_large)     /* 1: pd - r outside the right image = large D2 */
-{
-    const int role = get_global_id(0);
-    if (role > 1)
-        return;
-    const int dir = role == 0 ? 1 : -1; /* the own vertical path's step in y */
-    const int nown = role == 0 ? h : H - h, nother = H - nown;
-    const size_t S = (size_t)(D + 2) * (size_t)ws, per_role = (size_t)(3 + SGM_BAND + nbands) * S;
-    __global float *base = state + (size_t)role * per_role;
-    __global float *scratch = base, *hand = base + S, *other = base + 2 * S, *band = base + 3 * S;
-    __global float *ck = base + (size_t)(3 + SGM_BAND) * S; /* checkpoint c: the state before band c */
-    __global const float *hand_other = state + (size_t)(1 - role) * per_role + S;
-    float blk[PCW * MAX_DISP]; /* one chunk, [k][d] */
-    float buf_a[MAX_DISP + 2 + VW], buf_b[MAX_DISP + 2 + VW];
-    int big_r_rev[MAX_DISP + PCW];
-    int bigv[MAX_DISP + PCW];
-    const int nchunks = (W + PCW - 1) / PCW;
-    if (launch_no == 0) {
-        __global const float *src = scratch;
-        for (int j = 0; j < nown; ++j) {
-            const int y = dir > 0 ? j : H - 1 - j;
-            const int vfirst = j == 0, py = vfirst ? y : y - dir;
-            __global float *dst = j == nown - 1 ? hand
-                                  : (j + 1) % SGM_BAND == 0 ? ck + (size_t)((j + 1) / SGM_BAND) * S : scratch;
-            for (int ci = 0; ci < nchunks; ++ci) {
-                const int x0 = ci * PCW, cin = ci + 1 < nchunks ? ci + 1 : ci, x0n = cin * PCW;
-                const int nn = min(PCW, W - x0n);
-                vert_chunk(cost, img_l, img_r, y, py, vfirst, x0, min(PCW, W - x0), D, H, W, tau_so, pv1_small,
-                           pv1_one, pv1_both, pv2_small, pv2_one, pv2_both, src, dst, 1, blk, 0, bigv,
-                           cost + VIDX(0, y, x0n, H, W), min(D - 1, x0n + nn - 1), nn);
-            }
-            src = dst;
+        __global const float *il = img_l + y * W;
+        __global const float *ir = img_r + y * W;
+        float *prev = buf_a; /* horizontal C_r(p - r, d) at prev[d + 1] */
+        float *cur = buf_b;
+        for (int i = 0; i < MAX_DISP + 2 + VW; ++i) {
+            buf_a[i] = INFINITY;
+            buf_b[i] = INFINITY;
         }
-        return;
-    }
-    for (int c = (nown + SGM_BAND - 1) / SGM_BAND - 1; c >= 0; --c) {
-        const int a = c * SGM_BAND, b = min(a + SGM_BAND, nown);
-        /* the own path over rows a .. b - 1 again, from the checkpoint; row j's state in band[j - a] */
-        __global const float *src = ck + (size_t)c * S;
-        for (int j = a; j < b; ++j) {
-            const int y = dir > 0 ? j : H - 1 - j;
-            const int vfirst = j == 0, py = vfirst ? y : y - dir;
-            __global float *dst = band + (size_t)(j - a) * S;
-            for (int ci = 0; ci < nchunks; ++ci) {
-                const int x0 = ci * PCW, cin = ci + 1 < nchunks ? ci + 1 : ci, x0n = cin * PCW;
-                const int nn = min(PCW, W - x0n);
-                vert_chunk(cost, img_l, img_r, y, py, vfirst, x0, min(PCW, W - x0), D, H, W, tau_so, pv1_small,
-                           pv1_one, pv1_both, pv2_small, pv2_one, pv2_both, src, dst, 1, blk, 0, bigv,
-                           cost + VIDX(0, y, x0n, H, W), min(D - 1, x0n + nn - 1), nn);
+        float m = INFINITY; /* horizontal min_k C_r(p - r, k) */
+        floatV r[VW];
+        for (int ci = 0; ci < nchunks; ++ci) {
+            const int x0 = (dir > 0 ? ci : nchunks - 1 - ci) * PCW;
+            const int n = min(PCW, W - x0);
+            const int dmaxc = min(D - 1, x0 + n - 1);
+            const int ntiles = dmaxc / VW + 1;
+            if (!vfirst) /* vertical D2 at right pixels x0 - MAX_DISP + t, t >= MAX_DISP - dmaxc */
+                vertical_gradients(img_r, W, y, py, x0, (MAX_DISP - dmaxc) / VW * VW, MAX_DISP + PCW, tau_so, bigv);
+            for (int gx = 0; gx * VW < n; ++gx) { /* 16-column groups: vertical path, transpose into blk */
+                const int xg = x0 + gx * VW, ng = min(VW, n - gx * VW);
+                __global float *sg = st + (size_t)(xg / VW) * (D + 2) * VW; /* the group's state, [D + 2][16] */
+                const intV xs = (intV)(xg) + lane;
+                const intV valid_x = lane < (intV)(ng);
+                const int dmaxg = min(D - 1, xg + ng - 1);
+                floatV p1a = (floatV)(0.0f), p1b = p1a, p2a = p1a, p2b = p1a, mv, pd, pm1;
+                if (vfirst) {
+                    /* levels beyond the group's valid range read as +INFINITY at level d + 1 */
+                    for (int d = dmaxg + 1; d <= D; ++d)
+                        vstoreV((floatV)(INFINITY), 0, sg + d * VW);
+                    mv = (floatV)(INFINITY);
+                    pd = mv;
+                    pm1 = mv;
+                } else {
+                    vertical_penalties(img_l, W, y, py, xg, ng, tau_so, pv1_small, pv1_one, pv1_both, pv2_small,
+                                       pv2_one, pv2_both, &p1a, &p1b, &p2a, &p2b);
+                    mv = vloadV(0, sg + (D + 1) * VW);
+                    pd = vloadV(0, sg);
+                    pm1 = (floatV)(INFINITY);
+                }
+                floatV newmv = (floatV)(INFINITY);
+                for (int g = 0; g < ntiles; ++g) {
+                    const int d0 = g * VW;
+                    load_tile(r, cost, y, xg, d0, ng, dmaxg, H, W);
+                    const int iend = min(VW, dmaxg + 1 - d0);
+                    __attribute__((opencl_unroll_hint))
+                    for (int i = 0; i < VW; ++i) { /* a constant trip count keeps r[] in registers */
+                        const int d = d0 + i;
+                        if (i < iend) {
+                            floatV val;
+                            if (vfirst) {
+                                val = r[i];
+                            } else {
+                                const intV big_r = vloadV(0, bigv + MAX_DISP + gx * VW - d);
+                                const floatV pn = vloadV(0, sg + (d + 1) * VW); /* C_r(p - r, d + 1) */
+                                val = sgm_stepV(r[i], mv, pm1, pd, pn, SGM_BY_D2_V(p1a, p1b, big_r),
+                                                 SGM_BY_D2_V(p2a, p2b, big_r));
+                                pm1 = pd;
+                                pd = pn;
+                            }
+                            val = select((floatV)(INFINITY), val, (xs >= (intV)(d)) & valid_x);
+                            vstoreV(val, 0, sg + d * VW);
+                            newmv = fmin_aV(newmv, val);
+                        }
+                    }
+                    transposeV(r);
+                    for (int k = 0; k < VW; ++k)
+                        vstoreV(r[k], 0, blk + (gx * VW + k) * MAX_DISP + d0);
+                }
+                vstoreV(newmv, 0, sg + (D + 1) * VW);
             }
-            src = dst;
-        }
-        /* rows b - 1 .. a: the other path, then both horizontal paths */
-        for (int j = b - 1; j >= a; --j) {
-            const int y = dir > 0 ? j : H - 1 - j;
-            /* the other path's previous row is y + dir; it starts here when the other work-item has no rows */
-            const int ofirst = j == nown - 1 && nother == 0, opy = ofirst ? y : y + dir;
-            __global const float *osrc = j == nown - 1 ? hand_other : other;
-            __global const float *own_row = band + (size_t)(j - a) * S;
-            /* left to right: C_lr + C_tb written (C_tb: the own path's row for A, the other path for B) */
-            hor_row(cost, img_l, img_r, out, y, opy, ofirst, 1, D, H, W, ph1_small, ph1_one, ph1_both, ph2_small,
-                    ph2_one, ph2_both, pv1_small, pv1_one, pv1_both, pv2_small, pv2_one, pv2_both, tau_so,
-                    outside_large, osrc, other, 1, role == 0 ? own_row : other, 0, blk, buf_a, buf_b, big_r_rev,
-                    bigv);
-            /* right to left: + (C_rl + C_bt), divided by 4 */
-            hor_row(cost, img_l, img_r, out, y, opy, ofirst, -1, D, H, W, ph1_small, ph1_one, ph1_both, ph2_small,
-                    ph2_one, ph2_both, pv1_small, pv1_one, pv1_both, pv2_small, pv2_one, pv2_both, tau_so,
-                    outside_large, other, other, 0, role == 0 ? other : own_row, 2, blk, buf_a, buf_b, big_r_rev,
-                    bigv);
+            /* horizontal D2 and recurrence, as in sgm_rows */
+            const int base = x0 - ntiles * VW, rt = ntiles * VW + PCW - 1;
+            row_gradients(ir, W, base, ntiles, PCW, dir, tau_so, outside_large, big_r_rev);
+            const int cin = ci + 1 < nchunks ? ci + 1 : ci;
+            const int x0n = (dir > 0 ? cin : nchunks - 1 - cin) * PCW;
+            const int nn = min(PCW, W - x0n);
+            const int dmaxn = min(D - 1, x0n + nn - 1);
+            row_chunk(blk, &prev, &cur, &m, x0, n, dir, D, W, il, tau_so, ph1_small, ph1_one, ph1_both, ph2_small,
+                      ph2_one, ph2_both, big_r_rev, base, rt, cost + VIDX(0, y, x0n, H, W), out + VIDX(0, y, x0n, H, W),
+                      plane, dmaxn, nn, 1);
+            for (int gx = 0; gx * VW < n; ++gx) { /* write back: horizontal + vertical C_r, rows d of 16 x */
+                const int xg = x0 + gx * VW, ng = min(VW, n - gx * VW);
+                __global float *sg = st + (size_t)(xg / VW) * (D + 2) * VW; /* the group's state, [D + 2][16] */
+                const int dmaxg = min(D - 1, xg + ng - 1);
+                for (int g = 0; g <= dmaxg / VW; ++g) {
+                    const int d0 = g * VW;
+                    for (int k = 0; k < VW; ++k)
+                        r[k] = vloadV(0, blk + (gx * VW + k) * MAX_DISP + d0);
+                    transposeV(r);
+                    write_tile(r, sg, out + VIDX(d0, y, xg, H, W), plane, xg, d0, ng, dmaxg, mode);
+                }
+                if (mode == 0)
+                    for (int d = dmaxg + 1; d < D; ++d)
+                        vol_storeV_partial((floatV)(NAN), out + VIDX(d, y, xg, H, W), ng);
+            }
         }
     }
 }

@@ -90,7 +90,6 @@ RULES = {
     "sgm_whole_tiles":         {CPU: True,  LLVMPIPE: False, GPU: True},
     "sgm_group_of_one":        {CPU: True,  LLVMPIPE: True,  GPU: False},
     "sgm_paired_max_units":    {CPU: 2,     LLVMPIPE: 0,     GPU: 0},
-    "sgm_banded":              {CPU: False, LLVMPIPE: False, GPU: False},
     "sgm_wg_cols":             {CPU: 0,     LLVMPIPE: 0,     GPU: 0},
     "sgm_width":               {CPU: 8,     LLVMPIPE: 16,    GPU: 16},
     "cbca_workgroup":          {CPU: False, LLVMPIPE: False, GPU: True},
@@ -207,8 +206,7 @@ class DeviceProfile:
                     fused_rows=self.rule("sgm_fused_rows") and limit is None,
                     specialize=self.rule("sgm_specialize"), whole_tiles=self.rule("sgm_whole_tiles"),
                     paired=self.compute_units <= self.rule("sgm_paired_max_units"),
-                    group_of_one=self.rule("sgm_group_of_one"), width=self.sgm_width(),
-                    banded=bool(self.rule("sgm_banded")))
+                    group_of_one=self.rule("sgm_group_of_one"), width=self.sgm_width())
 
     def sgm_width(self) -> int:
         """Lanes of sgm.cl's vectors (rule ``sgm_width``, 16 or 8)."""

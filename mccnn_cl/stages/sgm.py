@@ -97,16 +97,6 @@ def _max_disp(D) -> int:
 
 #: Columns per chunk of the paired sweeps (SGM_PAIR_CW in sgm.cl).
 PAIR_CW = 16
-#: Rows per band of the banded sweeps (SGM_BAND in sgm.cl).
-BAND_ROWS = 8
-
-
-def band_states(H, band_rows=BAND_ROWS) -> int:
-    """Path states per work-item of the banded sweeps: scratch, hand-off,
-    the other path, a band's rows and a checkpoint per band of the larger
-    share of the rows (sgm.cl, sgm_banded)."""
-    H = int(H)
-    return 3 + int(band_rows) + -(-max(H // 2, H - H // 2) // int(band_rows))
 
 
 class SGM:
@@ -123,10 +113,7 @@ class SGM:
     per (first row, output mode, strip inside the image).  ``whole_tiles``:
     whole 16 x 16 tiles of ``sgm_rows`` moved by plain vector loads and stores.
     ``paired``: the paired sweeps (``band``, ``cols``, ``fused_rows`` and
-    ``specialize`` configure the one-direction kernels only).  ``banded``
-    (with ``paired``): the banded form of the paired sweeps, the same bits with
-    the output written once (``sgm_banded``; ~(3 + H / 16) path states of
-    (D + 2) x W floats per work-item).
+    ``specialize`` configure the one-direction kernels only).
     ``width``: the kernels' vectors, 16 or 8 floats (``SGM_VW``; the same bits).
     ``loop_limit``: the most loop iterations a work-item may take in all (0:
     none); under a limit the one-direction kernels walk their paths in several
@@ -135,7 +122,7 @@ class SGM:
     recurrences run in float, the partial sums in the output are rounded to half."""
 
     def __init__(self, ctx, prefetch=None, half: bool = False, band=None, cols=None, fused_rows=None,
-                 specialize=None, whole_tiles=None, paired=None, loop_limit=None, width=None, banded=None):
+                 specialize=None, whole_tiles=None, paired=None, loop_limit=None, width=None):
         self.ctx = ctx
         if loop_limit is not None and int(loop_limit) < 0:
             raise InputError(f"SGM loop_limit must be >= 0 (0: none), got {loop_limit}")
@@ -150,7 +137,6 @@ class SGM:
         self.whole_tiles = bool(pick(whole_tiles, "whole_tiles"))
         self.fused_rows = bool(pick(fused_rows, "fused_rows"))
         self.paired = bool(pick(paired, "paired"))
-        self.banded = self.paired and bool(pick(banded, "banded"))
         width = pick(width, "width")
         if int(width) not in (8, 16):
             raise InputError(f"SGM width must be 8 or 16 floats, got {width}")
@@ -172,15 +158,7 @@ class SGM:
     def scratch_bytes(self, D, W, params=None) -> int:
         """Device scratch a call keeps besides the cost and output volumes (for
         the memory planner; ``params``, the Hyperparameters, change nothing
-        here): :func:`state_bytes` of this configuration (the banded sweeps'
-        grow with H: ``D``, ``W`` and ``H`` through ``params`` are not enough,
-        so they are counted in full at the call, see :meth:`call_scratch_bytes`)."""
-        return state_bytes(D, W, self.cols, self.paired)
-
-    def call_scratch_bytes(self, D, H, W) -> int:
-        """Device scratch of a call on a D x H x W volume."""
-        if self.banded:
-            return 4 * 2 * band_states(H) * (int(D) + 2) * round_up(int(W), PAIR_CW)
+        here): :func:`state_bytes` of this configuration."""
         return state_bytes(D, W, self.cols, self.paired)
 
     def _kernel(self, D, names):
@@ -191,7 +169,7 @@ class SGM:
             k = [self.ctx.kernel("sgm.cl", name, MAX_DISP=max_disp, SGM_CPU_PREFETCH=int(self.prefetch),
                                  VOL_HALF=int(self.half), SGM_COLS=self.cols, SGM_SPECIALIZE=int(self.specialize),
                                  SGM_WHOLE_TILES=int(self.whole_tiles), SGM_PAIR_CW=PAIR_CW,
-                                 SGM_VW=self.width, SGM_BAND=BAND_ROWS)
+                                 SGM_VW=self.width)
                  for name in names]
             k = [(kern, self.ctx.profile.line_group(self.ctx, kern, self._group_of_one)) for kern in k]
             self._kernels[(max_disp, names)] = k
@@ -231,18 +209,8 @@ class SGM:
                 raise InputError(f"SGM paired sweeps over {D} x {H} x {W} exceed the loop limit of "
                                  f"{self._loop_limit} iterations per work-item (loop_limit; llvmpipe's on "
                                  f"Rusticl): use paired=False there")
-            ws = round_up(W, PAIR_CW)
-            if self.banded:
-                ((k_band, _),) = self._kernel(D, ("sgm_banded",))
-                nst = band_states(H)
-                state = self._scratch("_state", self.call_scratch_bytes(D, H, W), "SGM path states")
-                for launch_no in (0, 1):
-                    launch(self.ctx, "SGM (banded sweeps)", k_band, (2,), *bufs, state,
-                           np.int32(ws), *dims, np.int32(H // 2), np.int32(nst - 3 - BAND_ROWS),
-                           np.int32(launch_no), *pen_h[0], *pen_h[1], *pen_v[0], *pen_v[1], np.float32(tau_so),
-                           np.int32(bool(outside_large)), local_size=(1,))
-                return out
             ((k_pair, _),) = self._kernel(D, ("sgm_paired",))
+            ws = round_up(W, PAIR_CW)
             state = self._scratch("_state", state_bytes(D, W, paired=True), "SGM path state")
             for launch_no in (0, 1):
                 launch(self.ctx, "SGM (paired sweeps)", k_pair, (2,), *bufs, state,
