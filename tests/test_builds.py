@@ -156,3 +156,57 @@ def test_stored_binaries(ctx, monkeypatch, tmp_path, caplog):
     assert (older.builds, older.binary_loads) == (1, 0) and not caplog.text and not os.path.exists(files[0])
     monkeypatch.setenv("MCCNN_BINARY_CACHE", "off")
     assert not binaries.enabled()
+
+
+def test_saved_programs_are_recorded(ctx, monkeypatch, tmp_path):
+    """A context that saves binaries tells binaries.recording what it stored (what
+    `mccnn-cl tune` counts and reports)."""
+    from mccnn_cl.opencl import binaries
+    from mccnn_cl.opencl.context import ClContext
+
+    monkeypatch.setenv("MCCNN_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("MCCNN_BINARY_CACHE", raising=False)
+    saver = ClContext(ctx.device)
+    saver.save_binaries = True
+    with binaries.recording() as rec:
+        saver.program("cross.cl")
+    assert (rec.stored, rec.failed) == (1, [])
+    assert (ClContext(ctx.device).program("cross.cl") is not None)
+
+
+def test_stale_temporary_binaries_are_deleted(monkeypatch, tmp_path):
+    """A process killed (kill -9) inside binaries.store, after its temporary file and
+    before the rename, leaves that file under a unique name (so they pile up, a
+    program binary each); a later store deletes those older than STALE_SECONDS, in
+    its own folder and (once per process) in every folder of the cache, and keeps a
+    younger one (another process's write in progress)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from mccnn_cl.opencl import binaries
+
+    monkeypatch.setenv("MCCNN_CACHE_DIR", str(tmp_path))
+    killed = ("import os, signal, sys; from mccnn_cl.opencl import binaries; "
+              "os.fsync = lambda fd: os.kill(os.getpid(), signal.SIGKILL); binaries.store(sys.argv[1], b'x' * 4096)")
+    for k in ("ab" + "0" * 62, "ab" + "1" * 62, "cd" + "0" * 62):
+        p = subprocess.run([sys.executable, "-c", killed, k], env=dict(os.environ, MCCNN_CACHE_DIR=str(tmp_path)))
+        assert p.returncode == -signal.SIGKILL
+    root = tmp_path / "binaries"
+
+    def temps(sub):
+        return sorted(f for f in os.listdir(root / sub) if f.startswith(".tmp"))
+
+    assert len(temps("ab")) == 2 and len(temps("cd")) == 1  # one more per kill
+    old = time.time() - 3600  # an hour: over STALE_SECONDS (checked below)
+    for sub in ("ab", "cd"):
+        for f in temps(sub):
+            os.utime(root / sub / f, (old, old))
+    (root / "ab" / ".tmp-in-progress").write_bytes(b"x")
+    monkeypatch.setattr(binaries, "_SWEPT", set(), raising=False)  # as in a new process
+    binaries.store("ab" + "2" * 62, b"payload")
+    assert temps("ab") == [".tmp-in-progress"] and temps("cd") == []
+    assert binaries.load("ab" + "2" * 62) == b"payload"
+    assert 60 <= binaries.STALE_SECONDS < 3600

@@ -375,3 +375,290 @@ def test_rules_choice_failing_skips_only_its_option(ctx, caplog):
         and "rules' own choice failed" in warned[0].getMessage() and "does not build" in warned[0].getMessage()
     assert len(ticks) == 2 * 2 + 2 * 2
     assert ctx.profile.tuned == before
+
+
+# -- the `mccnn-cl tune` command: cache folders, the tuning lock, the binaries' phase ----------
+
+def _fake_tune(calls):
+    def fake(ctx, progress=False, size=tune.SIZE, rounds=5):
+        calls.append(size)
+        return {}, {}, tune.store(ctx.device, {}, {}, size)
+    return fake
+
+
+def test_tune_refuses_an_unwritable_cache_before_measuring(cache, monkeypatch, capsys):
+    """A cache folder that cannot be written stops `mccnn-cl tune` before it measures
+    (before: minutes of measuring, then a PermissionError), with one line naming the
+    folder and how to choose another, status 2.  (A regular file where the folder
+    should be: unwritable for root too, unlike a chmod.)"""
+    from mccnn_cl.cli import main
+
+    calls = []
+    monkeypatch.setattr(tune, "tune", _fake_tune(calls))
+    monkeypatch.delenv("MCCNN_BINARY_CACHE", raising=False)
+    blocked = cache / "not_a_folder"
+    blocked.write_text("x")
+    monkeypatch.setenv("MCCNN_CACHE_DIR", str(blocked))
+    assert main(["tune", "--no-binaries"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot write the tuning cache folder" in err
+    assert os.path.join(str(blocked), "tune") in err and "MCCNN_CACHE_DIR" in err
+    monkeypatch.delenv("MCCNN_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(blocked))
+    assert main(["tune", "--no-binaries"]) == 2
+    err = capsys.readouterr().err
+    assert os.path.join(str(blocked), "mccnn_cl", "tune") in err and "XDG_CACHE_HOME" in err
+    # the tuning folder writable, the binaries' not: named, with --no-binaries as the way round
+    monkeypatch.delenv("XDG_CACHE_HOME")  # (PoCL keeps its own cache there)
+    monkeypatch.setenv("MCCNN_CACHE_DIR", str(cache))
+    (cache / "binaries").write_text("x")
+    assert main(["tune"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot write the kernel binary cache folder" in err and str(cache / "binaries") in err
+    assert "--no-binaries" in err
+    assert calls == []  # nothing measured
+    assert main(["tune", "--no-binaries", "--size", "8x64x16"]) == 0 and calls == [(8, 64, 16)]
+    assert [f for f in os.listdir(cache / "tune") if f.startswith(".tmp")] == []  # the probe file deleted
+
+
+def test_tune_reports_binaries_stored_and_not(cache, monkeypatch, capsys):
+    """The binaries' phase says what it does as it goes (a line per step and per binary)
+    and how many binaries it stored; when one could not be stored (a disk full here),
+    a warning with the count and the error instead of the success line, status 1
+    (before: a log warning per binary, then 'kernel binaries ... stored', status 0)."""
+    import errno
+
+    from mccnn_cl.cli import main
+    from mccnn_cl.cli import tune as cli_tune
+    from mccnn_cl.opencl import binaries
+
+    monkeypatch.setattr(tune, "tune", _fake_tune([]))
+    monkeypatch.delenv("MCCNN_BINARY_CACHE", raising=False)
+
+    def two_binaries(ctx):
+        assert ctx.save_binaries
+        binaries.store("ab" + "0" * 62, b"first")
+        binaries.store("cd" + "0" * 62, b"second")
+
+    monkeypatch.setattr(cli_tune, "BINARY_RUNS", [("two binaries", two_binaries)])
+    assert main(["tune", "--size", "8x64x16"]) == 0
+    out = capsys.readouterr().out
+    assert "storing kernel binaries 1/1: building the programs of two binaries" in out
+    assert "kernel binary 1 stored" in out and "kernel binary 2 stored" in out
+    assert f"stored under {cache / 'binaries'}: 2 of 2 stored, 0 already there" in out
+
+    real_write, writes = binaries._write, []
+
+    def disk_full_on_second(fd, data):
+        writes.append(1)
+        if len(writes) == 2:
+            os.close(fd)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_write(fd, data)
+
+    monkeypatch.setattr(binaries, "_write", disk_full_on_second)
+    assert main(["tune", "--size", "8x64x16"]) == 1
+    cap = capsys.readouterr()
+    assert "kernel binary 1 stored" in cap.out and "kernel binary 2 NOT stored" in cap.out
+    assert "stored under" not in cap.out
+    assert "warning: only 1 of 2 kernel binaries" in cap.err and "No space left on device" in cap.err
+    left = [f for _, _, fs in os.walk(cache / "binaries") for f in fs if f.startswith(".tmp")]
+    assert left == []
+
+
+def test_store_reports_success(cache, caplog):
+    """binaries.store says whether it wrote the file, and tells a recording."""
+    from mccnn_cl.opencl import binaries
+
+    seen = []
+    with binaries.recording(lambda rec, p, err: seen.append((p, err))) as rec:
+        assert binaries.store("ab" + "1" * 62, b"payload") is True
+        (cache / "binaries" / "cd").write_text("a file where a folder should be")
+        with caplog.at_level("WARNING", logger=binaries.log.name):
+            assert binaries.store("cd" + "1" * 62, b"payload") is False
+    assert "could not store a kernel binary" in caplog.text
+    assert (rec.stored, rec.attempted) == (1, 2) and rec.failed[0][0] == binaries.path("cd" + "1" * 62)
+    assert [e is None for _, e in seen] == [True, False]
+    assert binaries.store("ab" + "2" * 62, b"payload") is True and rec.attempted == 2  # closed: not counted
+    assert binaries.load("ab" + "1" * 62) == b"payload"
+
+
+def _reader(stream):
+    """Lines of a pipe, through a queue (read with a timeout)."""
+    import queue
+    import threading
+
+    q = queue.Queue()
+
+    def pump():
+        for line in stream:
+            q.put(line)
+        q.put(None)
+
+    threading.Thread(target=pump, daemon=True).start()
+    return q
+
+
+def _wait_for(q, text, timeout=120):
+    """The lines read until one holding ``text`` (AssertionError at the end of the stream or the timeout)."""
+    import queue
+    import time as _time
+
+    seen, end = [], _time.monotonic() + timeout
+    while True:
+        try:
+            line = q.get(timeout=max(0.1, end - _time.monotonic()))
+        except queue.Empty:
+            raise AssertionError(f"no line with {text!r} within {timeout} s; read: {seen}") from None
+        if line is None:
+            raise AssertionError(f"the stream ended without a line with {text!r}; read: {seen}")
+        seen.append(line)
+        if text in line:
+            return seen
+
+
+#: `mccnn-cl tune` in a new process with its measuring replaced by a record of when it ran
+#: (FAKE_SECONDS long) and its binaries' phase by two stores with a wait between them
+#: (for a line on stdin): what is tested is the command's lock and its output.
+_CLI_WITH_FAKES = r'''
+import os, sys, time
+from mccnn_cl.cli import main
+from mccnn_cl.cli import tune as cli_tune
+from mccnn_cl.opencl import binaries, tune
+
+def fake_tune(ctx, progress=False, size=tune.SIZE, rounds=5):
+    with open(os.environ["FAKE_LOG"], "a") as f:
+        f.write(f"start {os.getpid()} {time.time()!r}\n")
+    time.sleep(float(os.environ.get("FAKE_SECONDS", "0")))
+    path = tune.store(ctx.device, {}, {}, size)
+    with open(os.environ["FAKE_LOG"], "a") as f:
+        f.write(f"end {os.getpid()} {time.time()!r}\n")
+    return {}, {}, path
+
+def blocking_run(ctx):
+    binaries.store("ab" + "0" * 62, b"first")
+    sys.stdin.readline()
+    binaries.store("cd" + "0" * 62, b"second")
+
+tune.tune = fake_tune
+cli_tune.BINARY_RUNS = [("a run that waits", blocking_run)]
+sys.exit(main(sys.argv[1:]))
+'''
+
+
+def _cli_env(cache, **extra):
+    env = dict(os.environ, MCCNN_CACHE_DIR=str(cache), MCCNN_TUNE="on", FAKE_LOG=str(cache / "fake.log"), **extra)
+    env.pop("MCCNN_BINARY_CACHE", None)
+    return env
+
+
+def _fake_log(cache):
+    if not (cache / "fake.log").exists():
+        return []
+    return [(w, int(p), float(t)) for w, p, t in (ln.split() for ln in open(cache / "fake.log"))]
+
+
+def test_tune_waits_for_the_tuning_lock(cache):
+    """A `mccnn-cl tune` started while another holds the tuning lock (a process holding
+    flock on <cache>/tune/tune.lock) says so and measures only after that one has
+    finished; two started together measure one after the other (before: both at once,
+    each under the other's load, and the last to write won)."""
+    import fcntl
+    import subprocess
+    import sys
+    import time as _time
+
+    (cache / "tune").mkdir()
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import fcntl, os, sys; fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT); "
+         "fcntl.flock(fd, fcntl.LOCK_EX); os.pwrite(fd, b'pid 4242, since then', 0); print('held', flush=True); "
+         "sys.stdin.readline()", str(cache / "tune" / "tune.lock")],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        p = subprocess.Popen([sys.executable, "-c", _CLI_WITH_FAKES, "tune", "--no-binaries", "--size", "8x64x16"],
+                             env=_cli_env(cache), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        lines = _wait_for(_reader(p.stdout), "waiting for it to finish")
+        assert "pid 4242" in lines[-1] and str(cache / "tune" / "tune.lock") in lines[-1]
+        _time.sleep(0.5)
+        assert _fake_log(cache) == [] and p.poll() is None  # it waits, measuring nothing
+        released = _time.time()
+    finally:
+        holder.stdin.close()
+        holder.wait(timeout=30)
+    assert p.wait(timeout=120) == 0, p.stderr.read()
+    log = _fake_log(cache)
+    assert [w for w, _, _ in log] == ["start", "end"] and log[0][2] >= released
+    # the lock is free again (released at exit)
+    fd = os.open(cache / "tune" / "tune.lock", os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    finally:
+        os.close(fd)
+
+    # two runs started together: one measures, then the other
+    (cache / "fake.log").unlink()
+    runs = [subprocess.Popen([sys.executable, "-c", _CLI_WITH_FAKES, "tune", "--no-binaries", "--size", "8x64x16"],
+                             env=_cli_env(cache, FAKE_SECONDS="2"), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True) for _ in range(2)]
+    outs = [r.communicate(timeout=180) for r in runs]
+    assert [r.returncode for r in runs] == [0, 0], outs
+    log = _fake_log(cache)
+    assert [w for w, _, _ in log] == ["start", "end", "start", "end"], log
+    assert log[0][1] == log[1][1] and log[2][1] == log[3][1] != log[0][1]
+    assert sum("waiting for it to finish" in o for o, _ in outs) <= 1
+
+
+def test_tune_binaries_progress_reaches_a_pipe(cache):
+    """The binaries' phase prints each step and each binary as it happens, flushed, also
+    to a pipe (before: nothing for ~34 s, then one line): its first lines are read while
+    the process still waits inside the phase."""
+    import subprocess
+    import sys
+
+    p = subprocess.Popen([sys.executable, "-c", _CLI_WITH_FAKES, "tune", "--size", "8x64x16"], env=_cli_env(cache),
+                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        q = _reader(p.stdout)
+        _wait_for(q, "storing kernel binaries 1/1: building the programs of a run that waits")
+        _wait_for(q, "kernel binary 1 stored")
+        assert p.poll() is None  # still in the phase: the lines were not held in a buffer until exit
+        p.stdin.write("\n")
+        p.stdin.flush()
+        _wait_for(q, "2 of 2 stored")
+    finally:
+        if p.poll() is None:
+            p.stdin.close()
+        p.wait(timeout=120)
+    assert p.returncode == 0, p.stderr.read()
+
+
+def test_stale_temporary_tuning_files_are_deleted(cache):
+    """A writer killed (kill -9) between its temporary file and the rename leaves the
+    file (a unique name: they would pile up); the next store deletes those older than
+    binaries.STALE_SECONDS and keeps a younger one (another writer's, in progress)."""
+    import signal
+    import subprocess
+    import sys
+    import time as _time
+
+    from mccnn_cl.opencl import binaries
+
+    killed = ("import os, signal, types; from mccnn_cl.opencl import tune_cache; "
+              "os.replace = lambda *a: os.kill(os.getpid(), signal.SIGKILL); "
+              "dev = types.SimpleNamespace(platform=types.SimpleNamespace(name='Plat', version='OpenCL 3.0 Plat 9'), "
+              "name='Dev', driver_version='1.0'); tune_cache.store(dev, {'sgm_cols': 64}, {})")
+    for _ in range(2):
+        p = subprocess.run([sys.executable, "-c", killed], env=dict(os.environ, MCCNN_CACHE_DIR=str(cache)))
+        assert p.returncode == -signal.SIGKILL
+    folder = cache / "tune"
+    dead = sorted(f for f in os.listdir(folder) if f.startswith(".tmp"))
+    assert len(dead) == 2  # unique names: each kill leaves one more
+    old = _time.time() - 3600  # an hour: over STALE_SECONDS (checked below)
+    for f in dead:
+        os.utime(folder / f, (old, old))
+    (folder / ".tmp-in-progress.json").write_text("{")
+    path = tune.store(fake_device(), {"sgm_cols": 32}, {})
+    assert sorted(f for f in os.listdir(folder) if f.startswith(".tmp")) == [".tmp-in-progress.json"]
+    assert tune.load(fake_device()) == {"sgm_cols": 32} and os.path.dirname(path) == str(folder)
+    assert 60 <= binaries.STALE_SECONDS < 3600

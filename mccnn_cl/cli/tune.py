@@ -1,8 +1,17 @@
 """``mccnn-cl tune``: kernel choices by measurement (:mod:`mccnn_cl.opencl.tune`), then
-the kernel binaries of the default method stored (:mod:`mccnn_cl.opencl.binaries`)."""
+the kernel binaries of the default method stored (:mod:`mccnn_cl.opencl.binaries`).
+
+Before measuring it checks that the cache folders can be written (a read-only
+cache would otherwise fail after minutes of measuring) and takes the tuning
+lock (:func:`mccnn_cl.opencl.tune_cache.tuning_lock`: a second run waits for the
+first instead of measuring under its load); the lock is held until the binaries
+are stored.  The binaries' phase prints a line per step and per binary, and
+reports how many were stored; when some could not be, a warning and status 1."""
 
 from __future__ import annotations
 
+import os
+import sys
 import time
 
 
@@ -42,8 +51,92 @@ def describe_choices(device) -> list:
     return lines
 
 
+def _say(text: str) -> None:
+    print(text, flush=True)  # flushed: progress reaches a pipe or a log file as it happens
+
+
+def _cache_hint() -> str:
+    if os.environ.get("MCCNN_CACHE_DIR"):
+        return "set MCCNN_CACHE_DIR (now " + repr(os.environ["MCCNN_CACHE_DIR"]) + ") to a writable folder"
+    return "set MCCNN_CACHE_DIR (or XDG_CACHE_HOME) to choose a writable cache folder"
+
+
+def check_cache_writable(binaries_too: bool) -> None:
+    """InputError naming the folder when the tuning cache (or, ``binaries_too``, the
+    binary cache) cannot be written: found before minutes of measuring, not after."""
+    from ..errors import InputError
+    from ..opencl import binaries, tune_cache
+
+    folders = [("tuning cache", tune_cache.folder(), "")]
+    if binaries_too:
+        folders.append(("kernel binary cache", os.path.join(binaries.cache_root(), "binaries"),
+                        ", or pass --no-binaries"))
+    for what, folder, alt in folders:
+        try:
+            binaries.check_writable(folder)
+        except OSError as exc:
+            why = exc.strerror or str(exc)
+            raise InputError(f"cannot write the {what} folder {folder} ({why}); {_cache_hint()}{alt}") from exc
+
+
+def _sample_pair():
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    left = rng.random((40, 320), dtype=np.float32)
+    return left, np.roll(left, -3, axis=1)
+
+
+def _default_method(cost):
+    def run(ctx):
+        from ..pipeline import StereoMatcher
+
+        StereoMatcher(cost=cost, device=ctx).compute(*_sample_pair())
+    return run
+
+
+#: What the binaries' phase runs, (label, function of a context): a small pair of
+#: each cost of the default method, so that the kernels built lazily are stored too.
+BINARY_RUNS = [("the fst network's method (cost cnn)", _default_method("cnn")),
+               ("the census method", _default_method("census"))]
+
+
+def store_binaries(device) -> int:
+    """Run :data:`BINARY_RUNS` on a new context that saves the programs it builds;
+    print each step and each binary stored; 0 when every one was stored, else 1."""
+    from ..opencl import binaries
+    from ..opencl.context import ClContext
+
+    t1 = time.perf_counter()
+    root = os.path.join(binaries.cache_root(), "binaries")
+    # a new context: the tuning's context already holds the programs it measured,
+    # which would be reused unsaved (and it chose its tiles before the choices existed)
+    bctx = ClContext(device)
+    bctx.save_binaries = True
+
+    def noted(rec, path, error):
+        state = "stored" if error is None else f"NOT stored ({error})"
+        _say(f"  kernel binary {rec.attempted} {state} ({time.perf_counter() - t1:.0f} s)")
+
+    with binaries.recording(noted) as rec:
+        for i, (label, fn) in enumerate(BINARY_RUNS, 1):
+            _say(f"storing kernel binaries {i}/{len(BINARY_RUNS)}: building the programs of {label}")
+            fn(bctx)
+    there = bctx.binary_loads
+    took = f"({time.perf_counter() - t1:.0f} s)"
+    if not rec.failed:
+        _say(f"kernel binaries of the default method stored under {root}: {rec.stored} of {rec.attempted} "
+             f"stored, {there} already there {took}")
+        return 0
+    path, error = rec.failed[0]
+    print(f"mccnn-cl: warning: only {rec.stored} of {rec.attempted} kernel binaries of the default method "
+          f"stored under {root} ({type(error).__name__}: {error}); the programs without one are built from "
+          f"source in later processes (the tuned choices were written) {took}", file=sys.stderr, flush=True)
+    return 1
+
+
 def run(args) -> int:
-    from ..opencl import tune
+    from ..opencl import tune, tune_cache
     from ..opencl.context import ClContext
 
     from ..errors import InputError
@@ -57,35 +150,28 @@ def run(args) -> int:
     rounds = getattr(args, "rounds", 5)
     if rounds < 1:
         raise InputError(f"--rounds must be >= 1, got {rounds}")
-    ctx = ClContext(args.device)
-    print(f"tuning {ctx.describe()} at {'x'.join(map(str, size))} (rows x columns x levels), {rounds} rounds")
-    t0 = time.perf_counter()
-    choices, measured, path = tune.tune(ctx, progress=True, size=size, rounds=rounds)
-    for name, res in measured.items():
-        parts = []
-        for cand, sec in res["candidates"]:
-            label = " ".join(f"{k}={v}" for k, v in cand.items()) or "rules"
-            parts.append(f"{label}: " + ("wrong/failed" if sec is None else f"{sec * 1e3:.1f} ms"))
-        print(f"  {name} (noise {res['noise']:.0%}): " + "; ".join(parts))
-    print(f"choices {choices or 'none (the rules table stands)'}\nwritten to {path} ({time.perf_counter() - t0:.0f} s)")
-    if not args.no_binaries:
-        from ..opencl import binaries
+    from ..opencl import binaries
 
-        if binaries.enabled():
-            t1 = time.perf_counter()
-            # a new context: the tuning's context already holds the programs it measured,
-            # which would be reused unsaved (and it chose its tiles before the choices existed)
-            bctx = ClContext(args.device)
-            bctx.save_binaries = True
-            from ..pipeline import StereoMatcher
+    with_binaries = not args.no_binaries and binaries.enabled()
+    check_cache_writable(with_binaries)
 
-            import numpy as np
+    def waiting(holder):
+        _say(f"another `mccnn-cl tune` holds {tune_cache.lock_path()} ({holder or 'holder unknown'}): waiting "
+             "for it to finish, so that the two do not measure under each other's load (Ctrl-C to stop)")
 
-            rng = np.random.default_rng(0)
-            left = rng.random((40, 320), dtype=np.float32)
-            right = np.roll(left, -3, axis=1)
-            for cost in ("cnn", "census"):  # a small pair: the kernels built lazily too
-                StereoMatcher(cost=cost, device=bctx).compute(left, right)
-            print(f"kernel binaries of the default method stored under {binaries.cache_root()} "
-                  f"({time.perf_counter() - t1:.0f} s)")
+    with tune_cache.tuning_lock(waiting):
+        ctx = ClContext(args.device)
+        _say(f"tuning {ctx.describe()} at {'x'.join(map(str, size))} (rows x columns x levels), {rounds} rounds")
+        t0 = time.perf_counter()
+        choices, measured, path = tune.tune(ctx, progress=True, size=size, rounds=rounds)
+        for name, res in measured.items():
+            parts = []
+            for cand, sec in res["candidates"]:
+                label = " ".join(f"{k}={v}" for k, v in cand.items()) or "rules"
+                parts.append(f"{label}: " + ("wrong/failed" if sec is None else f"{sec * 1e3:.1f} ms"))
+            print(f"  {name} (noise {res['noise']:.0%}): " + "; ".join(parts))
+        _say(f"choices {choices or 'none (the rules table stands)'}\nwritten to {path} "
+             f"({time.perf_counter() - t0:.0f} s)")
+        if with_binaries:
+            return store_binaries(args.device)
     return 0

@@ -20,14 +20,23 @@ program built from source, never handed to the runtime (PoCL crashed the
 process on a truncated binary, and again in every later run).  A binary the
 runtime refuses is deleted too.
 ``MCCNN_BINARY_CACHE=off`` disables the cache; ``MCCNN_CACHE_DIR`` moves it.
+
+:func:`store` returns whether the file was written, and tells every
+:func:`recording` in progress (``mccnn-cl tune`` counts and reports the
+binaries stored with it).  A writer killed between its temporary file and the
+rename (``kill -9``, a power loss) leaves that file behind under a unique name;
+:func:`store` deletes such files older than :data:`STALE_SECONDS` (its own
+folder on every call, every folder of the cache once per process).
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
 import tempfile
+import time
 
 log = logging.getLogger(__name__)
 
@@ -117,23 +126,133 @@ def load(k: str):
     return payload
 
 
-def store(k: str, binary: bytes) -> None:
-    """Write atomically (temporary file, then rename); errors are logged, never raised."""
-    p = path(k)
+#: Prefix of the temporary files the caches write before renaming them.
+TMP_PREFIX = ".tmp-"
+#: A temporary file unchanged for this long is a dead writer's (a store takes seconds).
+STALE_SECONDS = 600.0
+
+
+def clean_stale(folder: str, max_age: float = STALE_SECONDS) -> int:
+    """Delete the temporary files (:data:`TMP_PREFIX`) in ``folder`` that were last
+    modified over ``max_age`` seconds ago: left by a writer killed before its rename.
+    A younger one may be another process's write in progress and is kept.  Returns
+    how many were deleted; errors are ignored (another process may delete them too)."""
+    now, gone = time.time(), 0
     try:
-        os.makedirs(os.path.dirname(p), exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(p), prefix=".tmp-")
+        entries = list(os.scandir(folder))
+    except OSError:
+        return 0
+    for e in entries:
+        if not e.name.startswith(TMP_PREFIX):
+            continue
         try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(_pack(bytes(binary)))
-                f.flush()
-                os.fsync(f.fileno())
+            if e.is_file(follow_symlinks=False) and now - e.stat(follow_symlinks=False).st_mtime > max_age:
+                os.unlink(e.path)
+                gone += 1
+        except OSError:
+            pass
+    if gone:
+        log.info("deleted %d stale temporary file(s) in %s (writers killed before their rename)", gone, folder)
+    return gone
+
+
+_SWEPT: set = set()
+
+
+def _sweep_once(root: str) -> None:
+    """:func:`clean_stale` on every folder of the binary cache ``root``, once per process."""
+    if root in _SWEPT:
+        return
+    _SWEPT.add(root)
+    try:
+        subs = [e.path for e in os.scandir(root) if e.is_dir(follow_symlinks=False)]
+    except OSError:
+        return
+    for sub in subs:
+        clean_stale(sub)
+
+
+def check_writable(folder: str) -> None:
+    """Create ``folder`` if needed and write (then delete) a temporary file in it:
+    raises OSError when that fails (``os.access`` says yes to root on a read-only
+    mount or a folder made immutable)."""
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=TMP_PREFIX + "probe-")
+    try:
+        os.write(fd, b"x")
+    finally:
+        os.close(fd)
+        os.unlink(tmp)
+
+
+class Recording:
+    """What :func:`store` did while a :func:`recording` was open: ``stored`` (files
+    written), ``failed`` (``(path, error)`` pairs)."""
+
+    def __init__(self, on_store=None):
+        self.stored = 0
+        self.failed: list = []
+        self.on_store = on_store
+
+    @property
+    def attempted(self) -> int:
+        return self.stored + len(self.failed)
+
+    def _note(self, p: str, error) -> None:
+        if error is None:
+            self.stored += 1
+        else:
+            self.failed.append((p, error))
+        if self.on_store is not None:
+            self.on_store(self, p, error)
+
+
+_RECORDINGS: list = []
+
+
+@contextlib.contextmanager
+def recording(on_store=None):
+    """Count the :func:`store` calls of this process while open; ``on_store(rec, path,
+    error)`` is called after each (``error`` None when the file was written)."""
+    rec = Recording(on_store)
+    _RECORDINGS.append(rec)
+    try:
+        yield rec
+    finally:
+        _RECORDINGS.remove(rec)
+
+
+def _write(fd: int, data: bytes) -> None:
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def store(k: str, binary: bytes) -> bool:
+    """Write atomically (temporary file, then rename); True when written.  Errors are
+    logged (a warning), never raised; stale temporary files are deleted first."""
+    p = path(k)
+    error = None
+    try:
+        folder = os.path.dirname(p)
+        os.makedirs(folder, exist_ok=True)
+        _sweep_once(os.path.dirname(folder))
+        clean_stale(folder)
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=TMP_PREFIX)
+        try:
+            _write(fd, _pack(bytes(binary)))
             os.replace(tmp, p)
         except BaseException:
-            os.unlink(tmp)
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
             raise
     except OSError as exc:
+        error = exc
         log.warning("could not store a kernel binary in %s: %s", p, exc)
+    for rec in list(_RECORDINGS):
+        rec._note(p, error)
+    return error is None
 
 
 def discard(k: str) -> None:

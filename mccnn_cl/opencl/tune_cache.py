@@ -1,10 +1,13 @@
 """The tuner's per-device cache (``<cache>/tune/<hash>.json``): where it lies,
 reading it (a corrupt or foreign file is ignored with one warning) and writing
-it atomically.  :class:`~mccnn_cl.opencl.context.ClContext` reads a device's
-choices from here; :mod:`mccnn_cl.opencl.tune` measures and stores them."""
+it atomically (stale temporary files of killed writers deleted), and the lock
+``mccnn-cl tune`` holds while it measures (:func:`tuning_lock`).
+:class:`~mccnn_cl.opencl.context.ClContext` reads a device's choices from here;
+:mod:`mccnn_cl.opencl.tune` measures and stores them."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -13,7 +16,7 @@ import tempfile
 import time
 import warnings
 
-from .binaries import cache_root, device_identity
+from .binaries import TMP_PREFIX, cache_root, clean_stale, device_identity
 
 log = logging.getLogger(__name__)
 
@@ -40,10 +43,55 @@ def identity(device) -> dict:
             "package_version": __version__, "format": FORMAT}
 
 
+def folder() -> str:
+    """The folder of the tuning files (``<cache>/tune``)."""
+    return os.path.join(cache_root(), "tune")
+
+
 def cache_path(device) -> str:
     ident = identity(device)
     digest = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:24]
-    return os.path.join(cache_root(), "tune", digest + ".json")
+    return os.path.join(folder(), digest + ".json")
+
+
+#: The lock file ``mccnn-cl tune`` holds (``flock``) while it measures and stores.
+LOCK_NAME = "tune.lock"
+
+
+def lock_path() -> str:
+    return os.path.join(folder(), LOCK_NAME)
+
+
+@contextlib.contextmanager
+def tuning_lock(on_wait=None):
+    """Hold an exclusive ``flock`` on :func:`lock_path` (one per cache folder) while
+    open, so that two tuning runs never measure under each other's load nor
+    overwrite each other's results.  When another process holds it, calls
+    ``on_wait(holder)`` (``holder``: the line that process wrote into the file,
+    its pid and start time, or "") and waits for it.  The kernel releases the lock
+    when its holder exits, killed or not; the file itself stays (deleting it would
+    let a third process lock a new file while the second holds the old one)."""
+    import fcntl
+
+    os.makedirs(folder(), exist_ok=True)
+    fd = os.open(lock_path(), os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if on_wait is not None:
+                try:
+                    holder = os.pread(fd, 200, 0).decode("utf-8", "replace").strip()
+                except OSError:
+                    holder = ""
+                on_wait(holder)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        with contextlib.suppress(OSError):
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"pid {os.getpid()}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode(), 0)
+        yield lock_path()
+    finally:
+        os.close(fd)  # releases the lock
 
 
 _WARNED: set = set()
@@ -91,12 +139,13 @@ def load(device) -> dict:
 
 def store(device, choices: dict, measured: dict, size=SIZE) -> str:
     """Write the choices (measured at ``size``) atomically (temporary file in
-    the same folder, then rename)."""
+    the same folder, then rename); stale temporary files are deleted first."""
     path = cache_path(device)
     os.makedirs(os.path.dirname(path), exist_ok=True)
+    clean_stale(os.path.dirname(path))
     data = {"identity": identity(device), "choices": choices, "measured": measured,
             "size": list(size), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
-    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), prefix=".tmp-", suffix=".json")
+    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), prefix=TMP_PREFIX, suffix=".json")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             json.dump(data, f, indent=1, sort_keys=True)
