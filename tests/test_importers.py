@@ -1,4 +1,7 @@
-"""Importers of published networks, on the real files of the shared models folder.
+"""Importers of published networks, on the real files of the shared models folder
+(skipped with a reason without them) and on small synthetic .t7/.pt files written
+here (run everywhere): dataset identification from a .t7's name and stored options,
+licence and authorship by sha256, multi-channel networks refused.
 
 The authors' Torch7 MC-CNN-fst (KITTI 2012) and CNES's PyTorch fast and
 accurate Middlebury nets convert to Weights whose arrays are checked against
@@ -14,6 +17,7 @@ import pickle
 import re
 import subprocess
 import sys
+import warnings
 from collections import OrderedDict
 from pathlib import Path
 
@@ -21,7 +25,7 @@ import numpy as np
 import pytest
 
 from mccnn_cl.cli import main
-from mccnn_cl.errors import WeightsError
+from mccnn_cl.errors import InputWarning, WeightsError
 from mccnn_cl.cli import convert as commands
 from mccnn_cl.importers import convert, pytorch, torch7
 from mccnn_cl.settings import authors_settings
@@ -46,10 +50,11 @@ def models_folder() -> Path:
 
 MODELS = models_folder()
 #: the published networks are not in the repository: a clone without ../shared
-#: (and MCCNN_MODELS unset) skips these tests with this reason (-rs lists it),
-#: as conftest skips the full_data tests without MCCNN_DATA
-pytestmark = pytest.mark.skipif(not MODELS.is_dir(), reason=f"needs the published networks: set MCCNN_MODELS "
-                                 f"to their folder (CI: ../shared/models); {MODELS} not found")
+#: (and MCCNN_MODELS unset) skips the tests that read them with this reason (-rs
+#: lists it), as conftest skips the full_data tests without MCCNN_DATA; the
+#: tests on small synthetic .t7/.pt files run everywhere
+needs_models = pytest.mark.skipif(not MODELS.is_dir(), reason=f"needs the published networks: set MCCNN_MODELS "
+                                  f"to their folder (CI: ../shared/models); {MODELS} not found")
 T7 = MODELS / "net_kitti_fast_-a_train_all.t7"
 FAST_PT = MODELS / "cnes_mccnn_1.4.1" / "mc_cnn_fast_mb_weights.pt"
 ACRT_PT = MODELS / "cnes_mccnn_1.4.1" / "mc_cnn_accurate_mb_weights.pt"
@@ -129,6 +134,7 @@ def head(weights, fl, fr):
 
 # -- Torch7 .t7 --------------------------------------------------------------------
 
+@needs_models
 def test_t7_converts_to_fst(t7_weights):
     w = t7_weights
     assert w.architecture == FST and w.fc == [] and not w.relu_after_last_conv
@@ -151,10 +157,12 @@ def test_t7_converts_to_fst(t7_weights):
     from mccnn_cl.evaluation.scoring import training_status
 
     assert opts["a"] == "train_all" and len(w.meta["training"]["trained_on"]) == 194
+    assert isinstance(w.meta["training"]["trained_on"], dict)  # the project's form: pair key -> description
     assert training_status(w.meta, "kitti2012/000193", "000193") == "trained"
     assert training_status(w.meta, "kitti2015/000000", "000000") == "held out"
 
 
+@needs_models
 def test_t7_arrays_equal_the_storages_in_the_text(t7_bytes, t7_weights):
     """Every CudaStorage, parsed from the text with a regex, is one converted array, in order."""
     found = []
@@ -169,6 +177,7 @@ def test_t7_arrays_equal_the_storages_in_the_text(t7_bytes, t7_weights):
     assert t7_weights.conv[0][0].std() > 0.1  # not zeros: the first layer's filters are large
 
 
+@needs_models
 def test_t7_tree(t7_bytes):
     root = torch7.read_t7(T7)
     assert isinstance(root, torch7.T7Table) and set(root) == {1.0, 2.0}
@@ -181,6 +190,7 @@ def test_t7_tree(t7_bytes):
     assert isinstance(fn, torch7.T7Function) and fn.bytecode.startswith(b"\x1bLJ")  # LuaJIT, kept as bytes
 
 
+@needs_models
 def test_t7_reader_needs_no_torch(tmp_path):
     code = ("import sys; sys.modules['torch'] = None\n"
             "from mccnn_cl.importers import convert\n"
@@ -189,6 +199,7 @@ def test_t7_reader_needs_no_torch(tmp_path):
     assert out.returncode == 0 and "ok" in out.stdout, out.stderr
 
 
+@needs_models
 def test_t7_dataset_override_and_round_trip(t7_bytes, t7_weights, tmp_path):
     w = convert(T7, dataset="kitti2015")
     assert w.meta["dataset"] == "kitti2015" and w.stereo == authors_settings(FST, "kitti2015")
@@ -207,11 +218,13 @@ def _damage(tmp_path, data, name="bad.t7"):
     return p
 
 
+@needs_models
 @pytest.mark.parametrize("frac", [0.0005, 0.003, 0.2, 0.5, 0.9, 0.9999])
 def test_t7_truncated(t7_bytes, tmp_path, frac):
     one_error(_damage(tmp_path, t7_bytes[:int(len(t7_bytes) * frac)]), "expected")
 
 
+@needs_models
 def test_t7_damaged_header_and_numbers(t7_bytes, tmp_path):
     one_error(_damage(tmp_path, b"9" + t7_bytes[1:]), "type tag", "out of range")
     one_error(_damage(tmp_path, t7_bytes.replace(b"nn.Sequential", b"nn.Sequentia!", 1)), "class name")
@@ -226,6 +239,7 @@ def test_t7_damaged_header_and_numbers(t7_bytes, tmp_path):
               "weight", "storage of 576")
 
 
+@needs_models
 def test_t7_other_modules(t7_bytes, tmp_path):
     # same-length substitutions keep the file parseable; the network check names what it found
     msg = one_error(_damage(tmp_path, t7_bytes.replace(b"cudnn.ReLU", b"nn.Sigmoid", 1)), "expected an nn.Sequential")
@@ -236,6 +250,7 @@ def test_t7_other_modules(t7_bytes, tmp_path):
     assert "found SpatialConvolution, ReLU" in msg and msg.endswith("SpatialConvolution, ReLU, StereoJoin")
 
 
+@needs_models
 def test_t7_not_a_network(tmp_path, t7_bytes):
     one_error(_damage(tmp_path, b""), "empty file")
     rng = np.random.default_rng(1)
@@ -249,6 +264,7 @@ def test_t7_not_a_network(tmp_path, t7_bytes):
     one_error(_damage(tmp_path, b"3\n1\n1\n1\n1\n4\n7\n"), "refers to no object")
 
 
+@needs_models
 def test_t7_random_damage_only_weights_errors(t7_bytes, tmp_path):
     """Random cuts, deletions and byte changes: a WeightsError or (in float digits) a valid network."""
     rng = np.random.default_rng(7)
@@ -262,7 +278,9 @@ def test_t7_random_damage_only_weights_errors(t7_bytes, tmp_path):
         else:
             del b[i:i + int(rng.integers(1, 40))]
         try:
-            convert(_damage(tmp_path, b))
+            with warnings.catch_warnings():  # one that still converts is not the published file
+                warnings.simplefilter("ignore", InputWarning)
+                convert(_damage(tmp_path, b))
         except WeightsError as exc:
             assert "\n" not in str(exc)
 
@@ -293,6 +311,7 @@ def cnes_modules(torch, sd):
     return conv.double(), (fc.double() if fc is not None else None)
 
 
+@needs_models
 def test_fast_pt(fast_weights, state_dicts, torch):
     w = fast_weights
     assert w.architecture == FST and w.conv_layers() == [[64, 3]] * 5 and w.fc == []
@@ -309,6 +328,7 @@ def test_fast_pt(fast_weights, state_dicts, torch):
     np.testing.assert_allclose(ours, ref, atol=1e-6)
 
 
+@needs_models
 def test_accurate_pt(acrt_weights, state_dicts, torch):
     w = acrt_weights
     assert w.architecture == ACRT and w.relu_after_last_conv
@@ -330,6 +350,7 @@ def test_accurate_pt(acrt_weights, state_dicts, torch):
     assert abs(head(w, ours_l[:, 0, 0], ours_r[:, 0, 0])[0] - head(w, ours_r[:, 0, 0], ours_l[:, 0, 0])[0]) > 1e-4
 
 
+@needs_models
 def test_pt_round_trip(acrt_weights, tmp_path):
     acrt_weights.save(tmp_path / "acrt.npz")
     back = Weights.load(tmp_path / "acrt.npz")
@@ -340,6 +361,7 @@ def test_pt_round_trip(acrt_weights, tmp_path):
     assert back.meta["source"]["sha256"] == acrt_weights.meta["source"]["sha256"]
 
 
+@needs_models
 def test_restricted_unpickler_reads_the_real_files(torch, state_dicts):
     for p in (FAST_PT, ACRT_PT):
         ck = torch.load(p, map_location="cpu", weights_only=False, pickle_module=pytorch.restricted)
@@ -347,13 +369,14 @@ def test_restricted_unpickler_reads_the_real_files(torch, state_dicts):
         assert all(torch.equal(ck["model"][k], v) for k, v in state_dicts[p].items())
 
 
+@needs_models
 def test_pt_fallback_for_numpy_scalars(torch, state_dicts, tmp_path):
     """torch's weights_only refuses numpy scalars; the allow-list reads them."""
     p = tmp_path / "np.pt"
     torch.save({"model": state_dicts[FAST_PT], "epoch": np.int64(3)}, p)
     with pytest.raises(pickle.UnpicklingError):
         torch.load(p, map_location="cpu", weights_only=True)
-    w = convert(p)
+    w = quiet_convert(p, dataset="mb")  # not the published file: its dataset is the user's to say
     assert w.architecture == FST and w.meta["training"]["epoch"] == 3
 
 
@@ -364,6 +387,7 @@ class Payload:
         return (os.getcwd, ())
 
 
+@needs_models
 def test_pt_foreign_global_refused_by_name(torch, state_dicts, tmp_path):
     p = tmp_path / "evil.pt"
     torch.save({"model": state_dicts[FAST_PT], "extra": Payload()}, p)
@@ -373,6 +397,7 @@ def test_pt_foreign_global_refused_by_name(torch, state_dicts, tmp_path):
     one_error(p2, "Payload", "not allowed")
 
 
+@needs_models
 def test_pt_other_networks(torch, state_dicts, tmp_path):
     nn = torch.nn
 
@@ -402,6 +427,7 @@ def test_pt_other_networks(torch, state_dicts, tmp_path):
     one_error(save({"model": sd}), "non-finite")
 
 
+@needs_models
 @pytest.mark.parametrize("cut", [0, 10, 700, 100000, -50])
 def test_pt_truncated(torch, tmp_path, cut):
     data = FAST_PT.read_bytes()
@@ -409,6 +435,7 @@ def test_pt_truncated(torch, tmp_path, cut):
     one_error(p, "empty file" if cut == 0 else "expected a CNES mc-cnn checkpoint")
 
 
+@needs_models
 def test_pt_damaged_and_random(torch, tmp_path):
     data = bytearray(FAST_PT.read_bytes())
     data[0] ^= 0xFF  # the pickle's first opcode
@@ -418,11 +445,13 @@ def test_pt_damaged_and_random(torch, tmp_path):
               "not a readable PyTorch checkpoint")
 
 
+@needs_models
 def test_pt_without_torch(monkeypatch):
     monkeypatch.setitem(sys.modules, "torch", None)
     one_error(FAST_PT, "needs PyTorch")
 
 
+@needs_models
 def test_other_extensions(tmp_path):
     one_error(_damage(tmp_path, b"x", "net.caffemodel"), "expected a Torch7 .t7 or a PyTorch .pt")
     one_error(tmp_path / "missing.t7", "not found")
@@ -430,6 +459,7 @@ def test_other_extensions(tmp_path):
 
 # -- resolve and the command line ---------------------------------------------------
 
+@needs_models
 def test_resolve_converts_published_files(t7_bytes):
     w = resolve(str(T7))
     assert w.architecture == FST and w.meta["dataset"] == "kitti"
@@ -437,6 +467,7 @@ def test_resolve_converts_published_files(t7_bytes):
     assert resolve(name).meta.get("format") == "mccnn_cl.weights"
 
 
+@needs_models
 def test_cli_convert_weights(tmp_path, capsys, t7_bytes):
     out = tmp_path / "kitti_fst.npz"
     assert main(["convert-weights", str(T7), "-o", str(out)]) == 0
@@ -457,6 +488,7 @@ def test_cli_convert_weights(tmp_path, capsys, t7_bytes):
     assert not (tmp_path / "y.npz").exists()
 
 
+@needs_models
 def test_cli_models(capsys):
     assert main(["models"]) == 0
     text = capsys.readouterr().out
@@ -468,6 +500,7 @@ def test_cli_models(capsys):
     assert "no description" not in text
 
 
+@needs_models
 def test_cli_weights_option_resolves(t7_bytes, tmp_path):
     """--weights takes a .t7, a shipped model's name, or fails in one line for an unknown name."""
     from mccnn_cl.cli import build_parser
@@ -484,6 +517,265 @@ def test_cli_weights_option_resolves(t7_bytes, tmp_path):
         _load_weights(args)
 
 
+@needs_models
 def test_describe_lines(acrt_weights):
     text = "\n".join(commands.describe(acrt_weights))
     assert "5 x 112 maps 3x3 (ReLU after each)" in text and "[384, 384, 384, 1]" in text and "11x11" in text
+
+
+# -- small synthetic networks (no published file needed) --------------------------------
+#
+# A Torch7 ASCII writer for the tests: the format as the module docstring of
+# mccnn_cl/importers/torch7.py describes it (type tag, object index, "V 1" and
+# class name for torch objects, tensors' sizes / strides / 1-based offset, then
+# their storage).  The authors' settings columns are written literally from the
+# shared models README, not taken from the package.
+
+#: main.lua's stored options of the authors' fst networks (README table), per dataset
+FST_OPTIONS = {
+    "kitti": dict(pi1=4.0, pi2=55.72, sgm_q1=3.0, sgm_q2=2.5, alpha1=1.5, tau_so=0.02, blur_sigma=7.74, blur_t=5.0),
+    "kitti2015": dict(pi1=2.3, pi2=18.38, sgm_q1=3.0, sgm_q2=2.0, alpha1=1.25, tau_so=0.08, blur_sigma=4.64,
+                      blur_t=5.0),
+    "mb": dict(pi1=2.3, pi2=24.3, sgm_q1=4.0, sgm_q2=2.0, alpha1=1.5, tau_so=0.08, blur_sigma=6.0, blur_t=2.0),
+}
+
+
+class Mod:
+    """A torch object to write: class name and fields."""
+
+    def __init__(self, cls, **fields):
+        self.cls, self.fields = cls, fields
+
+
+def t7_text(obj) -> bytes:
+    out, count = [], [0]
+
+    def index():
+        count[0] += 1
+        return b"%d\n" % count[0]
+
+    def string(b):
+        out.append(b"%d\n" % len(b) + b + b"\n")
+
+    def write(v):
+        if v is None:
+            out.append(b"0\n")
+        elif isinstance(v, bool):
+            out.append(b"5\n%d\n" % int(v))
+        elif isinstance(v, (int, float)):
+            out.append(b"1\n" + repr(float(v)).encode() + b"\n")
+        elif isinstance(v, str):
+            out.append(b"2\n")
+            string(v.encode())
+        elif isinstance(v, dict):
+            out.append(b"3\n" + index() + b"%d\n" % len(v))
+            for k, x in v.items():
+                write(k)
+                write(x)
+        elif isinstance(v, np.ndarray):
+            a = np.ascontiguousarray(v, np.float32)
+            out.append(b"4\n" + index())
+            string(b"V 1")
+            string(b"torch.FloatTensor")
+            out.append(b"%d\n%s\n%s\n1\n" % (a.ndim, " ".join(map(str, a.shape)).encode(),
+                                             " ".join(str(st // 4) for st in a.strides).encode()))
+            out.append(b"4\n" + index())
+            string(b"V 1")
+            string(b"torch.FloatStorage")
+            out.append(b"%d\n%s\n" % (a.size, " ".join(repr(float(x)) for x in a.ravel()).encode()))
+        elif isinstance(v, Mod):
+            out.append(b"4\n" + index())
+            string(b"V 1")
+            string(v.cls.encode())
+            write(v.fields)
+        else:
+            raise TypeError(v)
+
+    write(obj)
+    return b"".join(out)
+
+
+def fst_t7(path, options, maps=(8, 8), channels=1, seed=0):
+    """A main.lua-style file {net, opt} of a small MC-CNN-fst: 3x3 convs of ``maps``, ReLU between."""
+    rng = np.random.default_rng(seed)
+    mods, cin = [], channels
+    for i, m in enumerate(maps):
+        mods.append(Mod("cudnn.SpatialConvolution", weight=rng.normal(size=(m, cin, 3, 3)),
+                        bias=rng.normal(size=m), nInputPlane=cin, nOutputPlane=m, kW=3, kH=3, dW=1, dH=1,
+                        padW=1, padH=1))
+        if i < len(maps) - 1:
+            mods.append(Mod("cudnn.ReLU"))
+        cin = m
+    mods += [Mod("nn.Normalize2"), Mod("nn.StereoJoin1")]
+    net = Mod("nn.Sequential", modules={float(i + 1): m for i, m in enumerate(mods)})
+    path = Path(path)
+    path.write_bytes(t7_text({1.0: net, 2.0: dict(options)}))
+    return path
+
+
+def cnes_pt(torch, path, channels=1, maps=(8, 8), seed=0):
+    """A checkpoint in CNES's FastMcCnn layout (conv_blocks.0/2/..., ReLU at the odd indices)."""
+    g = torch.Generator().manual_seed(seed)
+    sd, cin = OrderedDict(), channels
+    for i, m in enumerate(maps):
+        sd[f"conv_blocks.{2 * i}.weight"] = torch.randn(m, cin, 3, 3, generator=g)
+        sd[f"conv_blocks.{2 * i}.bias"] = torch.randn(m, generator=g)
+        cin = m
+    torch.save({"model": sd, "epoch": 7}, path)
+    return Path(path)
+
+
+def quiet_convert(path, **kw):
+    """convert() of a file that is not one of the published networks: it warns so (checked here)."""
+    with pytest.warns(InputWarning, match="not one of the published networks"):
+        return convert(path, **kw)
+
+
+def test_synthetic_t7_reads_back(tmp_path):
+    """The writer above makes files the reader reads as written (the tests below rely on it)."""
+    p = fst_t7(tmp_path / "net_kitti_fast_-a_train_all.t7", dict(FST_OPTIONS["kitti"], a="train_all"))
+    w = quiet_convert(p)
+    rng = np.random.default_rng(0)
+    W0 = rng.normal(size=(8, 1, 3, 3))
+    np.testing.assert_array_equal(w.conv[0][0], W0.astype(np.float32))
+    assert w.conv_layers() == [[8, 3], [8, 3]] and w.meta["training"]["options"]["pi2"] == 55.72
+
+
+def test_t7_dataset_from_its_stored_options(tmp_path):
+    """A .t7 whose name is not main.lua's gets the dataset its stored options identify (kitti2015
+    here, the old importer said kitti for every such name), with that dataset's training pairs."""
+    from mccnn_cl.evaluation.scoring import training_status
+
+    for ds, pairs in (("kitti2015", ("kitti2015", 200)), ("mb", None), ("kitti", ("kitti2012", 194))):
+        p = fst_t7(tmp_path / f"mynet_{ds}.t7", dict(FST_OPTIONS[ds], a="train_all", L1=0.0, cbca_i1=0.0))
+        w = quiet_convert(p)
+        assert w.meta["dataset"] == ds and w.stereo == authors_settings(FST, ds), ds
+        assert f"authors' {ds} column" in w.meta["dataset_source"]
+        t = w.meta["training"]
+        if pairs is None:  # Middlebury: no fixed list of pairs to name
+            assert "trained_on" not in t and t["data"].startswith("Middlebury")
+        else:
+            kind, n = pairs
+            assert isinstance(t["trained_on"], dict) and len(t["trained_on"]) == n
+            assert training_status(w.meta, f"{kind}/000001", "000001") == "trained"
+    # the name alone (main.lua's) identifies it too, when the options are none of the columns
+    p = fst_t7(tmp_path / "net_kitti2015_fast_-a_train_all.t7", dict(FST_OPTIONS["kitti2015"], pi2=30.0))
+    w = quiet_convert(p)
+    assert w.meta["dataset"] == "kitti2015" and "file name" in w.meta["dataset_source"]
+
+
+def test_t7_name_and_options_must_agree(tmp_path):
+    p = fst_t7(tmp_path / "net_mb_fast_-a_train_all.t7", dict(FST_OPTIONS["kitti"], a="train_all"))
+    msg = one_error(p, "file name says dataset mb", "kitti column")
+    assert "pi1 = 4, pi2 = 55.72" in msg
+    # same options under a name that agrees: converted
+    q = fst_t7(tmp_path / "net_kitti_fast_-a_train_all.t7", dict(FST_OPTIONS["kitti"], a="train_all"))
+    assert quiet_convert(q).meta["dataset"] == "kitti"
+
+
+def test_t7_that_identifies_no_dataset_needs_one(tmp_path, capsys):
+    """No main.lua name, options of no column: an error asking for --dataset (not kitti by default);
+    given, it sets the settings but lists no training pairs (the file does not say them)."""
+    opts = dict(FST_OPTIONS["kitti"], pi1=3.0, pi2=30.0, a="train_all")
+    p = fst_t7(tmp_path / "mynet.t7", opts)
+    one_error(p, "not known", "none of the authors' columns", "--dataset kitti|kitti2015|mb")
+    w = quiet_convert(p, dataset="kitti")
+    assert w.meta["dataset"] == "kitti" and w.stereo == authors_settings(FST, "kitti")
+    assert "given by the user" in w.meta["dataset_source"]
+    assert "trained_on" not in w.meta["training"] and w.meta["training"]["data"].startswith("unknown")
+    fst_t7(tmp_path / "bare.t7", {})  # no options at all
+    one_error(tmp_path / "bare.t7", "no pi1 and pi2", "--dataset")
+    # the command line: one error line without --dataset, converted with it
+    out = tmp_path / "mine.npz"
+    assert main(["convert-weights", str(p), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--dataset" in err[0] and not out.exists(), err
+    assert main(["convert-weights", str(p), "-o", str(out), "--dataset", "kitti2015"]) == 0
+    text = capsys.readouterr()
+    assert "dataset kitti2015" in text.out and "given by the user" in text.out
+    assert Weights.load(out).stereo == authors_settings(FST, "kitti2015")
+
+
+def test_unknown_files_have_unknown_licence_and_author(tmp_path, capsys):
+    """Licence and authorship come from the sha256 of the published files, not from the extension:
+    any other .t7 / .pt is 'unknown', and the console says so."""
+    from mccnn_cl.importers import UNKNOWN_LICENCE
+
+    p = fst_t7(tmp_path / "net_kitti_fast_-a_train_all.t7", dict(FST_OPTIONS["kitti"], a="train_all"))
+    w = quiet_convert(p)
+    assert w.meta["licence"] == UNKNOWN_LICENCE and "state the licence" in w.meta["licence"]
+    assert w.meta["training"]["by"].startswith("unknown") and "Zbontar" not in str(w.meta["training"])
+    assert w.meta["source"]["published"] is None and "Zbontar" not in w.meta["source"]["what"]
+    assert main(["convert-weights", str(p), "-o", str(tmp_path / "o.npz")]) == 0
+    text = capsys.readouterr()
+    assert "licence:      unknown" in text.out and "BSD" not in text.out
+    assert "warning:" in text.err and "state the licence of your network yourself" in text.err
+
+
+def test_unknown_pt_has_unknown_licence(tmp_path, torch):
+    p = cnes_pt(torch, tmp_path / "mine.pt")
+    one_error(p, "not known", "--dataset")  # a checkpoint says nothing of its dataset
+    w = quiet_convert(p, dataset="mb")
+    from mccnn_cl.importers import UNKNOWN_LICENCE
+
+    assert w.meta["licence"] == UNKNOWN_LICENCE and "Apache" not in w.meta["licence"]
+    assert w.meta["training"]["by"].startswith("unknown") and "CNES" not in w.meta["training"]["by"]
+    assert w.meta["training"]["epoch"] == 7 and w.stereo == authors_settings(FST, "mb")
+
+
+def test_multichannel_networks_are_refused(tmp_path, torch):
+    """A first layer of 3 input channels (CNES's DataFusion variants, colour .t7) is not the gray
+    network mccnn_cl runs: one error naming the channel count."""
+    msg = one_error(cnes_pt(torch, tmp_path / "fusion3.pt", channels=3), "3 input channels", "1 gray channel",
+                    dataset="mb")
+    assert "conv_blocks.0.weight" in msg
+    one_error(fst_t7(tmp_path / "net_kitti_fast_-a_train_all.t7", FST_OPTIONS["kitti"], channels=3),
+              "3 input channels")
+    # one channel converts
+    assert quiet_convert(cnes_pt(torch, tmp_path / "gray.pt"), dataset="mb").input_channels == 1
+
+
+def test_folders_are_named_as_folders(tmp_path, capsys):
+    (tmp_path / "x.t7").mkdir()
+    msg = one_error(tmp_path / "x.t7", "is a folder")
+    assert "not found" not in msg
+    # convert-weights -o a folder: refused before converting, --force or not
+    (tmp_path / "out.npz").mkdir()
+    p = fst_t7(tmp_path / "net_kitti_fast_-a_train_all.t7", FST_OPTIONS["kitti"])
+    assert main(["convert-weights", str(p), "-o", str(tmp_path / "out.npz"), "--force"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is a folder" in err[0], err
+
+
+@needs_models
+def test_published_files_are_recognised_by_sha256(t7_bytes, tmp_path):
+    """The published .t7 under another name is still the authors' (kitti, BSD-2-Clause, its 194
+    pairs); the same file with one weight's digit changed is not: unknown licence and author."""
+    from mccnn_cl.importers import BSD2, UNKNOWN_LICENCE
+
+    renamed = _damage(tmp_path, t7_bytes, "mynet.t7")
+    w = convert(renamed)
+    assert w.meta["licence"] == BSD2 and "Zbontar" in w.meta["training"]["by"]
+    assert w.meta["source"]["published"] == T7.name and len(w.meta["training"]["trained_on"]) == 194
+    i = t7_bytes.index(b"torch.CudaStorage\n576\n") + len(b"torch.CudaStorage\n576\n")
+    j = next(k for k in range(i, i + 40) if t7_bytes[k:k + 1].isdigit() and t7_bytes[k + 1:k + 2].isdigit())
+    changed = bytearray(t7_bytes)
+    changed[j + 1] = ord("7") if changed[j + 1] != ord("7") else ord("3")
+    w2 = quiet_convert(_damage(tmp_path, changed, "net_kitti_fast_-a_train_all.t7"))
+    assert w2.meta["licence"] == UNKNOWN_LICENCE and w2.meta["training"]["by"].startswith("unknown")
+    assert w2.meta["dataset"] == "kitti"  # the name and the options still say kitti
+
+
+@needs_models
+def test_published_copies_with_other_options(t7_bytes, tmp_path):
+    """The authors' .t7 with its stored options changed to the kitti2015 column (a name main.lua did
+    not write): kitti2015, not the old importer's kitti; saved as net_mb_...: an error."""
+    src = t7_bytes
+    for k, v in {b"pi1": b"2.3", b"pi2": b"18.38", b"sgm_q2": b"2", b"alpha1": b"1.25", b"tau_so": b"0.08",
+                 b"blur_sigma": b"4.64"}.items():
+        pat = re.compile(b"\n2\n%d\n%s\n1\n([^\n]+)\n" % (len(k), k))
+        assert len(pat.findall(src)) == 1, k
+        src = pat.sub(lambda m: b"\n2\n%d\n%s\n1\n%s\n" % (len(k), k, v), src)
+    w = quiet_convert(_damage(tmp_path, src, "kitti2015_fast.t7"))
+    assert w.meta["dataset"] == "kitti2015" and w.stereo == authors_settings(FST, "kitti2015")
+    one_error(_damage(tmp_path, t7_bytes, "net_mb_fast_-a_train_all.t7"), "file name says dataset mb")

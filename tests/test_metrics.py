@@ -175,3 +175,12 @@ def test_training_status_from_metadata():
     assert training_status(meta, "middlebury/Aloe", "Aloe") == "held out"
     assert training_status({"training": {"note": "random"}}, "middlebury/Cones", "Cones") == "unknown"
     assert training_status({}, "middlebury/Cones", "Cones") == "unknown"
+    # a converted network's trained_on: {key: {"by": .., "how": ..}}, or a description string per key
+    for value in ({"by": "the authors", "how": "main.lua -a train_all"}, "the authors' training"):
+        meta = {"training": {"trained_on": {"kitti2012/000000": value, "kitti2012/000001": value}}}
+        assert training_status(meta, "kitti2012/000000", "000000") == "trained"
+        assert training_status(meta, "kitti2015/000000", "000000") == "held out"
+    # the by-kind form stays as it was: {"kitti2015": ["000001"]}
+    meta = {"training": {"trained_on": {"kitti2015": ["000001"], "middlebury": "Tsukuba"}}}
+    assert training_status(meta, "kitti2015/000001", "000001") == "trained"
+    assert training_status(meta, "middlebury/Tsukuba", "Tsukuba") == "trained"

@@ -197,3 +197,85 @@ def test_self_train_control_and_mixing(ctx, fst, art, tmp_path, shared_data):
     assert rec["thinned_to"] < 1 and abs(rec["pseudo_pixels"] - labeled_px) < 0.15 * labeled_px
     with pytest.raises(selftrain.InputError, match="share"):
         selftrain.self_train(fst, [small], cfg, 1, 1, 0.1, labeled=[ts], share=1.0, out_dir=tmp_path / "c")
+
+
+# -- provenance of a self-trained network (no OpenCL: labeled pairs only, the A/B's control path) ------
+
+def _converted_start(trained_on):
+    """A small fst network with the metadata a converted published network carries (an older
+    converter wrote ``trained_on`` as a list of keys)."""
+    from mccnn_cl.importers import APACHE2
+
+    w = Weights.random(conv_layers=[[8, 3], [8, 3]], architecture="mccnn-fst", seed=3)
+    w.meta.update(licence=APACHE2, source={"file": "mc_cnn_fast_mb_weights.pt", "sha256": "0" * 64},
+                  training={"by": "CNES (PyPI mccnn)", "data": "Middlebury", "trained_on": trained_on})
+    return w
+
+
+@pytest.fixture(scope="module")
+def tsukuba(shared_data):
+    from mccnn_cl.evaluation.datasets import load_middlebury
+    return load_middlebury(shared_data / "middlebury/Tsukuba")
+
+
+def test_self_train_from_a_converted_start_keeps_its_weights_and_lineage(tsukuba, tmp_path):
+    """A start whose trained_on is a list (converted files of older versions) or a dict (the
+    importer's form now): the run ends with weights and its provenance counts the start's pairs
+    (the list raised ValueError after all training)."""
+    from mccnn_cl.evaluation.scoring import training_status
+
+    for form in (["kitti2012/000000", "kitti2012/000001"],
+                 {"kitti2012/000000": {"by": "J. Z."}, "kitti2012/000001": {"by": "J. Z."}}):
+        start = _converted_start(form)
+        cfg = selftrain.default_config(start, crops_per_step=1)
+        w, prov = selftrain.self_train(start, [], cfg, 1, 1, 0.5, labeled=[tsukuba], out_dir=tmp_path / "r",
+                                       log=lambda *a: None)
+        assert set(prov["trained_on"]) == {"kitti2012/000000", "kitti2012/000001", "middlebury/Tsukuba"}
+        assert training_status(w.meta, "kitti2012/000001", "000001") == "trained"
+        assert w.conv_layers() == start.conv_layers() and w.meta["training"] is prov
+        json.dumps(prov)
+
+
+def test_self_train_records_the_schedule_that_ran_and_the_start(tsukuba, tmp_path):
+    """config is what each round ran (1 epoch x steps, constant lr, seed + round), not the default
+    recipe's 16 x 500; source_training keeps who trained the start on what, its licence and file."""
+    from mccnn_cl.importers import APACHE2
+
+    start = _converted_start({"middlebury/Venus": 5})
+    cfg = selftrain.default_config(start, crops_per_step=1, seed=4)
+    assert cfg.epochs != 1 and cfg.steps_per_epoch != 2  # the recipe's schedule is not the one run
+    _, prov = selftrain.self_train(start, [], cfg, 2, 2, 0.5, labeled=[tsukuba], out_dir=tmp_path / "r",
+                                   source_name="cnes.npz", log=lambda *a: None)
+    c, st = prov["config"], prov["source_training"]
+    assert (c["epochs"], c["steps_per_epoch"], c["lr_steps"]) == (1, 2, [])
+    assert st.get("by") == "CNES (PyPI mccnn)" and st.get("data") == "Middlebury" and st["weights"] == "cnes.npz"
+    assert c["seeds"] == [4, 5] and c["seed"] == 4
+    assert prov["total_steps"] == 4 and "2 round(s)" in prov["schedule"] and len(prov["per_round"]) == 2
+    assert st["licence"] == APACHE2 and st["source"]["file"] == "mc_cnn_fast_mb_weights.pt"
+
+
+def test_self_train_keeps_the_weights_when_the_provenance_fails(tsukuba, tmp_path, monkeypatch):
+    def broken(*a, **k):
+        raise KeyError("something in the start's metadata")
+
+    monkeypatch.setattr(selftrain, "provenance", broken)
+    start = _converted_start({})
+    said = []
+    w, prov = selftrain.self_train(start, [], selftrain.default_config(start, crops_per_step=1), 1, 1, 0.5,
+                                   labeled=[tsukuba], out_dir=tmp_path / "r", log=said.append)
+    assert "KeyError" in prov["provenance_error"] and prov["source_training"]["licence"] == start.meta["licence"]
+    from mccnn_cl.train.ship import licence_for
+    assert licence_for({"training": prov}).endswith(start.meta["licence"])  # the start's licence is not lost
+    assert any("warning" in s and "provenance" in s for s in said)
+    w.save(tmp_path / "kept.npz")
+    assert Weights.load(tmp_path / "kept.npz").meta["training"]["rounds"] == 1
+
+
+def test_adapt_refuses_an_output_folder_before_any_work(tmp_path, capsys):
+    """-o NAME.npz that is a folder: one error line before reading images or training, --force or not
+    (it failed only when writing, after all training)."""
+    (tmp_path / "out.npz").mkdir()
+    rc = cli.main(["adapt", str(tmp_path / "none_L*.png"), str(tmp_path / "none_R*.png"), "--weights",
+                   "kitti-fst", "-o", str(tmp_path / "out.npz"), "--force", "--ndisp", "32"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "is a folder" in err[0], err

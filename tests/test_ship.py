@@ -105,3 +105,102 @@ def test_ship_set_changes_single_settings_and_says_so(tmp_path, capsys):
                           "--settings", "mccnn-fst/mb", "--description", "d"] + bad) == 2
         assert says in capsys.readouterr().err
     assert not (tmp_path / "t.npz").exists()
+
+
+# -- starts that are converted networks: their pairs, licence and source -----------------------------
+
+def _start(licence, trained_on=None, tmp_path=None):
+    """A small fst network with a converted file's metadata (``trained_on`` a list: older converters)."""
+    w = Weights.random(conv_layers=[[8, 3], [8, 3]], architecture="mccnn-fst", seed=1)
+    w.meta.update(licence=licence, source={"file": "mc_cnn_fast_mb_weights.pt", "sha256": "0" * 64},
+                  training={"by": "CNES (PyPI mccnn)", "data": "Middlebury"})
+    if trained_on is not None:
+        w.meta["training"]["trained_on"] = trained_on
+    if tmp_path is not None:
+        w.save(tmp_path / "start.npz")
+    return w
+
+
+def test_record_init_takes_listed_pairs_and_keeps_licence_and_source():
+    from mccnn_cl.importers import APACHE2
+    from mccnn_cl.train.train import record_init
+
+    start = _start(APACHE2, ["kitti2012/000000", "kitti2012/000001"])
+    prov = record_init({"trained_on": {"middlebury/Venus": 10}}, start, "cnes.npz")
+    assert set(prov["trained_on"]) == {"kitti2012/000000", "kitti2012/000001", "middlebury/Venus"}
+    assert prov["trained_on_this_run"] == {"middlebury/Venus": 10}
+    assert prov["init"]["licence"] == APACHE2 and prov["init"]["source"]["file"] == "mc_cnn_fast_mb_weights.pt"
+    assert prov["init"]["by"] == "CNES (PyPI mccnn)"
+    line = ship.licence_for({"training": prov})
+    assert line.startswith("BSD-3-Clause (mccnn_cl); trained on KITTI (CC BY-NC-SA 3.0) and Middlebury")
+    assert line.endswith(f"fine-tuned from mc_cnn_fast_mb_weights.pt, under its licence: {APACHE2}")
+
+
+def test_shipping_a_network_fine_tuned_from_cnes_keeps_apache(tmp_path):
+    """ship --init a converted CNES file: the shipped licence names CNES's Apache-2.0 (it was dropped)."""
+    from mccnn_cl.importers import APACHE2
+
+    _start(APACHE2, tmp_path=tmp_path)
+    run = Weights.random(conv_layers=[[8, 3], [8, 3]], architecture="mccnn-fst", seed=2)
+    run.meta["training"] = {"trained_on": {"middlebury/Venus": 10}}
+    run.save(tmp_path / "run.npz")
+    w = ship.ship(tmp_path / "run.npz", tmp_path / "s.npz", "s", "paper", "d", init=tmp_path / "start.npz")
+    assert APACHE2 in w.meta["licence"] and "Middlebury" in w.meta["licence"]
+    assert Weights.load(tmp_path / "s.npz").meta["training"]["init"]["licence"] == APACHE2
+    # an adapted network (selftrain's provenance) carries its start's licence the same way
+    from mccnn_cl.train import selftrain
+
+    prov = selftrain.provenance(Weights.load(tmp_path / "start.npz"), "start.npz", [], [],
+                                selftrain.default_config(run), 1, 1, 0.5, None, "network", [], {"cam_0": 900}, 1.0)
+    line = ship.licence_for({"training": prov})
+    assert "the user's own images" in line and line.endswith(f"under its licence: {APACHE2}")
+    # and a network fine-tuned from that adapted one still does
+    adapted = Weights.load(tmp_path / "start.npz")
+    adapted.meta["training"] = prov
+    adapted.save(tmp_path / "adapted.npz")
+    w2 = ship.ship(tmp_path / "run.npz", tmp_path / "s2.npz", "s2", "paper", "d", init=tmp_path / "adapted.npz")
+    assert w2.meta["licence"].count(APACHE2) == 1
+
+
+def test_a_start_of_unknown_licence_needs_one_given(tmp_path):
+    from mccnn_cl.importers import UNKNOWN_LICENCE
+
+    _start(UNKNOWN_LICENCE, tmp_path=tmp_path)
+    run = Weights.random(conv_layers=[[8, 3], [8, 3]], architecture="mccnn-fst", seed=2)
+    run.meta["training"] = {"trained_on": {"middlebury/Venus": 10}}
+    run.save(tmp_path / "run.npz")
+    with pytest.raises(InputError, match="unknown.*give --licence"):
+        ship.ship(tmp_path / "run.npz", tmp_path / "s.npz", "s", "paper", "d", init=tmp_path / "start.npz")
+    w = ship.ship(tmp_path / "run.npz", tmp_path / "s.npz", "s", "paper", "d", init=tmp_path / "start.npz",
+                  licence="MIT (mine)")
+    assert w.meta["licence"] == "MIT (mine)"
+
+
+def test_train_init_from_a_converted_start_writes_the_weights(shared_data, tmp_path, monkeypatch, capsys):
+    """train --init a converted network whose trained_on is a list: the run exports its weights with
+    the lineage (it raised ValueError in record_init after all training); and if recording the
+    lineage fails anyway, the weights are still written, with the error in their provenance."""
+    import json
+
+    from mccnn_cl.importers import APACHE2
+    from mccnn_cl.train import train as tr
+
+    _start(APACHE2, ["kitti2012/000000"], tmp_path=tmp_path)
+    args = ["--data", str(shared_data / "middlebury"), "--include", "middlebury/Tsukuba", "--arch", "fst",
+            "--conv", json.dumps([[8, 3], [8, 3]]), "--fc", "[]", "--sampler", "crop", "--crops-per-step", "1",
+            "--epochs", "1", "--steps-per-epoch", "1", "--val-pixels", "0", "--val-examples", "0", "--threads",
+            "1", "--no-progress", "--init", str(tmp_path / "start.npz")]
+    assert tr.main(args + ["--out", str(tmp_path / "a")]) == 0
+    t = Weights.load(tmp_path / "a" / "weights.npz").meta["training"]
+    assert set(t["trained_on"]) == {"kitti2012/000000", "middlebury/Tsukuba"}
+    assert t["init"]["licence"] == APACHE2 and APACHE2 in ship.licence_for({"training": t})
+
+    def broken(*a, **k):
+        raise ValueError("dictionary update sequence element #0 has length 16; 2 is required")
+
+    monkeypatch.setattr(tr, "record_init", broken)
+    capsys.readouterr()
+    assert tr.main(args + ["--out", str(tmp_path / "b")]) == 0
+    t = Weights.load(tmp_path / "b" / "weights.npz").meta["training"]
+    assert "ValueError" in t["init"]["provenance_error"] and t["init"]["licence"] == APACHE2
+    assert "warning" in capsys.readouterr().err

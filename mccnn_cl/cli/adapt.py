@@ -56,6 +56,8 @@ def run(args):
     folder = os.path.dirname(os.path.abspath(out))
     if not os.path.isdir(folder):
         raise InputError(f"output folder does not exist: {folder}")
+    if os.path.isdir(out):
+        raise InputError(f"-o {out} is a folder; name the .npz file to write")
     if os.path.exists(out) and not args.force:
         raise InputError(f"{out} exists; pass --force to overwrite it")
     if str(args.weights).lower() == "census":
@@ -68,7 +70,7 @@ def run(args):
                          "(pip install 'mccnn_cl[train]')") from None
     weights = resolve(args.weights)
     lefts, rights, read_image, check_pair = _inputs(args)
-    from ..train.selftrain import UnlabeledPair, default_config, self_train
+    from ..train.selftrain import UnlabeledPair, default_config, json_safe, self_train
 
     patch = weights.patch_size
     pairs, shapes = [], set()
@@ -98,7 +100,7 @@ def run(args):
                               source_name=str(args.weights), log=lambda *a: print(*a, flush=True))
     prov["pairs"] = [[lp, rp] for lp, rp in zip(lefts, rights)]
     prov["options"] = {k: getattr(args, k) for k in ("ndisp", "rounds", "steps", "min_confidence", "lr", "seed")}
-    w2.meta["training"] = prov
+    w2.meta["training"] = json_safe(prov)
     w2.save(out)
     print(f"wrote {out} ({time.time() - t0:.0f} s); use it with: mccnn-cl match L R -o D --weights {out} "
           f"--max-disp {args.ndisp}", flush=True)

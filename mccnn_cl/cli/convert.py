@@ -20,8 +20,9 @@ def add_parsers(sub, parents) -> None:
     c.add_argument("input", metavar="IN", help="network file (.t7 or .pt/.pth)")
     c.add_argument("-o", "--output", metavar="OUT.npz", required=True, help="weights file to write")
     c.add_argument("--dataset", choices=DATASETS, default=None,
-                   help="whose stereo settings the file carries (default: the dataset the network was "
-                        "trained on: kitti for the authors' KITTI .t7, mb for CNES's Middlebury nets)")
+                   help="whose stereo settings the file carries (default: the dataset the file identifies: "
+                        "a published network's, or a .t7's main.lua name net_<dataset>_... and its stored "
+                        "options; required for a file that identifies none)")
     c.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
     c.set_defaults(func=cmd_convert_weights)
 
@@ -51,6 +52,8 @@ def cmd_convert_weights(args):
     out = args.output
     if not out.lower().endswith(".npz"):
         raise InputError(f"-o {out}: the output must be a .npz file")
+    if os.path.isdir(out):
+        raise InputError(f"-o {out} is a folder; name the .npz file to write")
     if os.path.exists(out) and not args.force:
         raise InputError(f"{out} exists (use --force to overwrite)")
     weights = convert(args.input, dataset=args.dataset)
@@ -61,6 +64,8 @@ def cmd_convert_weights(args):
     stereo = weights.stereo
     keys = ", ".join(f"{k}={stereo[k]:g}" for k in KEY_SETTINGS if k in stereo)
     print(f"settings:     dataset {meta['dataset']} (the authors' released code): {keys}, ...")
+    print(f"dataset from: {meta['dataset_source']}")
+    print(f"trained by:   {meta['training']['by']}")
     print(f"licence:      {meta['licence']}")
     weights.save(out)
     print(f"wrote:        {out}")

@@ -46,8 +46,11 @@ _HELD_KEYS = ("held_out", "heldout", "validation_pairs", "val_pairs", "test_pair
 def _names(value):
     if value is None:
         return None
-    if isinstance(value, dict) and not all(isinstance(v, (list, tuple, str)) for v in value.values()):
-        return {str(k) for k in value}  # train.py: {"kitti2015/000001": examples, ...}
+    if isinstance(value, dict) and (all("/" in str(k) for k in value)
+                                    or not all(isinstance(v, (list, tuple, str)) for v in value.values())):
+        # train.py: {"kitti2015/000001": examples, ...}; converted networks: {"kitti2012/000000": {...}}
+        # or, in older files, a description string per pair key
+        return {str(k) for k in value}
     if isinstance(value, dict):  # {"kitti2015": ["000001"], "middlebury": [...]}
         out = set()
         for kind, names in value.items():

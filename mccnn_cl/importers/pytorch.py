@@ -146,6 +146,11 @@ def network(sd, name):
         blocks[m.group(1)].setdefault(int(m.group(2)), {})[m.group(3)] = (
             value.detach().to("cpu", torch.float32).numpy().copy())
     conv = _layers(blocks["conv_blocks"], "conv_blocks", 4, name)
+    if conv[0][0].shape[1] != 1:
+        raise WeightsError(f"{name}: conv_blocks.0.weight has shape {tuple(conv[0][0].shape)}: the network takes "
+                           f"{conv[0][0].shape[1]} input channels; mccnn_cl runs networks of 1 gray channel "
+                           "(CNES's FastMcCnn / AccMcCnn), not multi-channel ones such as CNES's DataFusion "
+                           "variants")
     fc = _layers(blocks["fl_blocks"], "fl_blocks", 2, name, optional=True)
     for i, (w, _) in enumerate(conv):
         if w.shape[2] != w.shape[3] or (i and w.shape[1] != conv[i - 1][0].shape[0]):

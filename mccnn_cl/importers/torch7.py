@@ -336,6 +336,9 @@ def network(root, name):
           and (len(tail) == 1 or tail[1] in JOIN_TYPES))
     if not ok:
         raise WeightsError(f"{name}: expected {EXPECTED}; found {found}")
+    if conv[0][0].shape[1] != 1:
+        raise WeightsError(f"{name}: the first convolution takes {conv[0][0].shape[1]} input channels; mccnn_cl "
+                           f"runs networks of 1 gray channel (main.lua -color gray), not colour ones")
     for j in range(1, len(conv)):
         if conv[j][0].shape[1] != conv[j - 1][0].shape[0]:
             raise WeightsError(f"{name}: conv layer {j + 1} takes {conv[j][0].shape[1]} maps, "

@@ -54,7 +54,8 @@ from mccnn_cl.models import resolve
 from mccnn_cl.weights import ARCHITECTURES, Weights
 
 __all__ = ["DEFAULT_MIN_CONFIDENCE", "UnlabeledPair", "pseudo_labels", "pseudo_pair", "label_pairs",
-           "thin", "default_config", "self_train", "load_unlabeled", "threshold_table", "choose_threshold", "main"]
+           "thin", "default_config", "self_train", "provenance", "round_config", "json_safe", "load_unlabeled",
+           "threshold_table", "choose_threshold", "main"]
 
 #: The confidence threshold chosen on labeled training pairs with kitti-fst
 #: (``threshold`` sub-command; docs/training.md, "Self-training and adapt").
@@ -214,6 +215,7 @@ def self_train(source: Weights, unlabeled, cfg, rounds: int, steps: int, min_con
     out_dir.mkdir(parents=True, exist_ok=True)
     labeled_px = sum(int(p.valid_all.sum()) for p in labeled)
     current, rounds_log, t_start = source, [], time.time()
+    pseudo_px = {}  # pseudo pair -> pixels it was trained on in the last round that kept any of it
     for r in range(rounds):
         rec = {"round": r + 1}
         train_pairs = list(labeled)
@@ -230,12 +232,13 @@ def self_train(source: Weights, unlabeled, cfg, rounds: int, steps: int, min_con
                 pseudo, f = thin(pseudo, target, np.random.default_rng([cfg.seed, r, 7]))
                 rec["thinned_to"] = round(f, 4)
             rec["pseudo_pixels"] = int(sum(int(p.valid_all.sum()) for p in pseudo))
+            pseudo_px.update({p.name: int(p.valid_all.sum()) for p in pseudo})
             train_pairs += pseudo
         rec["labeled_pixels"] = labeled_px
         log(f"round {r + 1}/{rounds}: training {steps} steps on {len(train_pairs)} pair(s)")
         t0 = time.time()
-        rc = replace(cfg, epochs=1, steps_per_epoch=int(steps), lr_steps=(), seed=cfg.seed + r)
-        res = train(rc, train_pairs, [], device, out_dir / f"round{r + 1}", init=current, log=lambda *_: None)
+        res = train(round_config(cfg, steps, r), train_pairs, [], device, out_dir / f"round{r + 1}", init=current,
+                    log=lambda *_: None)
         h = res["history"][-1]
         rec.update(train_loss=round(h["train_loss"], 5), examples=int(h["examples"]),
                    train_seconds=round(time.time() - t0, 1))
@@ -243,15 +246,57 @@ def self_train(source: Weights, unlabeled, cfg, rounds: int, steps: int, min_con
             f"{rec['train_seconds']:.0f} s")
         rounds_log.append(rec)
         current = _weights_of(res["model"], source, {})
+    # the training is done: nothing below may lose it
+    try:
+        prov = provenance(source, source_name, unlabeled, labeled, cfg, rounds, steps, min_confidence, share,
+                          labeler, rounds_log, pseudo_px, time.time() - t_start)
+    except Exception as exc:  # noqa: BLE001 - a provenance problem must not lose the trained weights
+        log(f"warning: the provenance could not be recorded ({type(exc).__name__}: {exc}); "
+            "the weights are kept with a short one")
+        prov = {"method": "self-training (train/selftrain.py)", "source_weights": source_name,
+                "source_training": {"weights": source_name, "licence": source.meta.get("licence")},
+                "rounds": int(rounds), "steps_per_round": int(steps),
+                "per_round": rounds_log, "provenance_error": f"{type(exc).__name__}: {exc}",
+                "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    prov = json_safe(prov)
+    return _weights_of(res["model"], source, prov), prov
+
+
+def round_config(cfg, steps: int, r: int):
+    """The TrainConfig that round ``r`` (0-based) runs: one epoch of ``steps`` steps at the constant
+    learning rate ``cfg.lr``, seed ``cfg.seed + r``."""
+    return replace(cfg, epochs=1, steps_per_epoch=int(steps), lr_steps=(), seed=cfg.seed + r)
+
+
+def json_safe(obj):
+    """``obj`` as JSON holds it (anything else as its text), so that writing the weights never fails on it."""
+    return json.loads(json.dumps(obj, default=str))
+
+
+def provenance(source: Weights, source_name, unlabeled, labeled, cfg, rounds: int, steps: int,
+               min_confidence: float, share, labeler: str, rounds_log, pseudo_px: dict, wall_s: float) -> dict:
+    """``meta["training"]`` of a self-trained network (:func:`self_train`).
+
+    ``trained_on``: the start's pairs (a dict, or a list of keys as older converted
+    files hold), each pseudo-labeled pair with the pixels it was trained on in
+    the last round that kept any, each labeled pair with its GT pixels.
+    ``config`` is the schedule that ran (:func:`round_config`: every round one
+    epoch of ``steps`` steps; ``seeds`` per round); ``source_training`` keeps
+    who trained the start on what, its licence and source file."""
+    from .train import pairs_of
     src_training = source.meta.get("training") if isinstance(source.meta.get("training"), dict) else {}
-    trained_on = dict(src_training.get("trained_on") or {})
-    trained_on.update({f"{PSEUDO_KIND}/{p.name}": "pseudo-labels" for p in unlabeled})
+    trained_on = pairs_of(src_training.get("trained_on"))
+    trained_on.update({f"{PSEUDO_KIND}/{name}": n for name, n in pseudo_px.items()})
     trained_on.update({p.key: int(p.valid_all.sum()) for p in labeled})
-    prov = {
+    ran = round_config(cfg, steps, 0)
+    start = {k: v for k, v in src_training.items() if k in
+             ("command", "by", "data", "trained_on", "held_out", "examples", "wall_time_s", "git_commit", "init",
+              "source_training")}
+    start.update({k: source.meta[k] for k in ("licence", "source") if source.meta.get(k) is not None})
+    return {
         "method": "self-training (train/selftrain.py)",
         "source_weights": source_name,
-        "source_training": {k: v for k, v in src_training.items() if k in
-                            ("command", "trained_on", "held_out", "examples", "wall_time_s", "git_commit")},
+        "source_training": dict(start, weights=source_name, name=source.meta.get("name")),
         "trained_on": trained_on,
         "held_out": list(src_training.get("held_out") or []),
         "unlabeled_pairs": [p.name for p in unlabeled],
@@ -261,13 +306,16 @@ def self_train(source: Weights, unlabeled, cfg, rounds: int, steps: int, min_con
         "pseudo_label_rule": "left-right correct & peak-ratio confidence >= min_confidence & inside the margin",
         "rounds": int(rounds),
         "steps_per_round": int(steps),
+        "total_steps": int(rounds) * int(steps),
         "share": share,
         "per_round": rounds_log,
-        "wall_time_s": round(time.time() - t_start, 1),
-        "config": {k: v for k, v in asdict(cfg).items() if k not in ("progress",)},
+        "wall_time_s": round(float(wall_s), 1),
+        "schedule": (f"{int(rounds)} round(s), each one train() call of 1 epoch x {int(steps)} steps at the constant "
+                     f"learning rate {cfg.lr:g}, seed {cfg.seed} + round"),
+        "config": dict({k: v for k, v in asdict(ran).items() if k not in ("progress",)},
+                       seeds=[cfg.seed + r for r in range(int(rounds))]),
         "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
-    return _weights_of(res["model"], source, prov), prov
 
 
 # -- choosing the threshold on labeled training pairs -------------------------

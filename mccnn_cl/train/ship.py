@@ -34,20 +34,68 @@ DATA_LICENCES = (("kitti", "KITTI (CC BY-NC-SA 3.0)"),
                  ("eth3d", "ETH3D (CC BY-NC-SA 4.0)"))
 
 
+#: how this project's own licence lines begin (:func:`licence_for`)
+OWN = "BSD-3-Clause (mccnn_cl)"
+
+
+def start_licences(training) -> list:
+    """``[(licence, what)]`` of the weights a run started from, along its lineage: ``init``
+    (:func:`.train.record_init`) and ``source_training`` (:mod:`.selftrain`), each with the
+    start's own; this project's own lines are left out (their pairs are in ``trained_on``)."""
+    out, seen = [], set()
+
+    def walk(t, depth=0):
+        if not isinstance(t, dict) or depth > 50:
+            return
+        for key in ("init", "source_training"):
+            sub = t.get(key)
+            if not isinstance(sub, dict):
+                continue
+            lic = sub.get("licence")
+            if isinstance(lic, str) and lic and not lic.startswith(OWN) and lic not in seen:
+                seen.add(lic)
+                src = sub.get("source") if isinstance(sub.get("source"), dict) else {}
+                what = src.get("file") or sub.get("weights") or sub.get("name") or "the starting weights"
+                out.append((lic, str(what)))
+            walk(sub, depth + 1)
+
+    walk(training)
+    return out
+
+
 def licence_for(meta: dict) -> str:
     """The licence line of weights trained on the pairs ``meta["training"]`` lists (the run's and,
-    for a fine-tuned run, its start's): the code's licence and each dataset's."""
+    for a fine-tuned run, its start's): the code's licence and each dataset's, then the licence of
+    any weights it started from that are not this project's (a converted network's: CNES's
+    Apache-2.0, the authors' BSD-2-Clause).  A start of unknown licence (a converted file that is
+    not one of the published networks) is an error: give the licence yourself."""
     from mccnn_cl.evaluation.datasets import dataset_of
     from mccnn_cl.evaluation.scoring import training_pairs
 
+    from .selftrain import PSEUDO_KIND
+
+    training = meta.get("training") if isinstance(meta.get("training"), dict) else {}
     trained, _ = training_pairs(meta)
-    if not trained:
+    starts = start_licences(training)
+    if not trained and not starts:
         raise InputError("the weights list no training pairs (meta['training']['trained_on']): "
                          "give --licence")
-    found = {dataset_of(k) for k in trained}
+    unknown = [what for lic, what in starts if lic.lower().startswith("unknown")]
+    if unknown:
+        raise InputError(f"the licence of the weights this network started from ({', '.join(unknown)}) is unknown "
+                         "(not one of the published networks): give --licence")
+    own = {k for k in trained or () if str(k).split("/")[0] == PSEUDO_KIND}
+    found = {dataset_of(k) for k in (trained or ()) if k not in own}
     names = [text for ds, text in DATA_LICENCES if ds in found]
-    body = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
-    return f"BSD-3-Clause (mccnn_cl); trained on {body} images"
+    if own:
+        names.append("the user's own images (pseudo-labels, mccnn-cl adapt)")
+    line = OWN
+    if names:
+        body = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+        line += f"; trained on {body} images" if not own else f"; trained on {body}"
+    for lic, what in starts:
+        line += f"; fine-tuned from {what}, under its licence: {lic}"
+    return line
 
 
 def settings_table(spec: str) -> tuple[dict, str]:

@@ -723,21 +723,40 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
     return {"model": model, "history": history, "provenance": prov}
 
 
+def pairs_of(value) -> dict:
+    """A provenance's ``trained_on`` as this project's form, a dict pair key -> description
+    (train.py: examples; the importers: who trained on it): a dict as it is, a list of keys (what
+    converters of older versions wrote) with None for the description, nothing as {}."""
+    if value is None:
+        return {}
+    if isinstance(value, dict):
+        return {str(k): v for k, v in value.items()}
+    if isinstance(value, str):
+        return {value: None}
+    if isinstance(value, (list, tuple, set)):
+        return {str(k): None for k in value}
+    raise TypeError(f"trained_on is a {type(value).__name__}, expected a dict of pair keys or a list of them")
+
+
 def record_init(prov: dict, init, spec: str) -> dict:
     """Add a fine-tuning run's lineage to its provenance ``prov`` (in place; returned).
 
     ``prov["init"]`` names the starting weights ``init`` (``spec`` as given)
-    with a summary of their own training, and ``prov["trained_on"]`` becomes
-    every pair the weights have learnt from (the start's pairs, then this
-    run's), so that ``mccnn-cl evaluate`` never calls a pair the start was
-    trained on "held out"; this run's own pairs stay in ``trained_on_this_run``.
+    with a summary of their own training, their licence and source (a
+    converted network's file and sha256: :func:`mccnn_cl.train.ship.licence_for`
+    carries that licence on), and ``prov["trained_on"]`` becomes every pair the
+    weights have learnt from (the start's pairs, then this run's), so that
+    ``mccnn-cl evaluate`` never calls a pair the start was trained on "held
+    out"; this run's own pairs stay in ``trained_on_this_run``.  The start's
+    ``trained_on`` may be a dict or a list of keys (older converted files).
     """
     it = init.meta.get("training") if isinstance(init.meta.get("training"), dict) else {}
     prov["init"] = {"weights": str(spec), "name": init.meta.get("name"),
                     **{k: it[k] for k in ("command", "trained_on", "held_out", "examples", "wall_time_s",
-                                          "git_commit", "init") if k in it}}
-    own = dict(prov.get("trained_on") or {})
-    merged = dict(it.get("trained_on") or {})
+                                          "git_commit", "init", "by", "data", "source_training") if k in it},
+                    **{k: init.meta[k] for k in ("licence", "source") if init.meta.get(k) is not None}}
+    own = pairs_of(prov.get("trained_on"))
+    merged = pairs_of(it.get("trained_on"))
     merged.update(own)
     prov["trained_on_this_run"] = own
     prov["trained_on"] = merged
@@ -941,10 +960,17 @@ def _main(args, argv, device, t0=None) -> int:
             shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
         prov["git_commit"] = commit
         if init is not None:
-            record_init(prov, init, args.init)
+            try:
+                record_init(prov, init, args.init)
+            except Exception as exc:  # noqa: BLE001 - a provenance problem must not lose the trained weights
+                prov["init"] = {"weights": str(args.init), "licence": init.meta.get("licence"),
+                                "provenance_error": f"{type(exc).__name__}: {exc}"}
+                print(f"warning: the lineage of --init {args.init} could not be recorded ({type(exc).__name__}: "
+                      f"{exc}); the weights are written without it", file=sys.stderr)
         if fit is not None:
             prov["fit_minutes"] = fit
         prov["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        prov = json.loads(json.dumps(prov, default=str))  # anything JSON cannot hold, as text: never a lost export
         export = args.export or str(Path(args.out) / "weights.npz")
         result["model"].cpu().to_weights({"training": prov}).save(export)
         print(f"exported {export}")
