@@ -30,7 +30,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["Calibration", "read_calib", "disparity_to_depth", "point_cloud", "write_ply", "read_ply",
-           "atomic_write"]
+           "atomic_write", "colours_uint8"]
 
 
 @dataclass
@@ -147,11 +147,37 @@ def disparity_to_depth(disp, calib: Calibration) -> np.ndarray:
     return z.astype(np.float32)
 
 
+def colours_uint8(c, what: str = "colour image") -> np.ndarray:
+    """Colour values as uint8, scaled as :func:`mccnn_cl.imageops.to_gray` reads
+    the same types (the full range of each type is 0 .. 255): uint8 as they
+    are, uint16 (either byte order) / 257 rounded (65535 -> 255, as 65535 and
+    255 both mean 1.0 there), float in [0, 1] x 255 rounded (clipped to
+    0 .. 255; NaN or infinity is an InputError).  Any other type is an
+    :class:`~mccnn_cl.errors.InputError` (a plain cast would wrap uint16 and
+    truncate [0, 1] floats to 0: a black cloud)."""
+    a = np.asarray(c)
+    if not a.dtype.isnative:
+        a = a.astype(a.dtype.newbyteorder("="))
+    if a.dtype == np.uint8:
+        return a
+    if a.dtype == np.uint16:
+        return ((a.astype(np.uint32) * 2 + 257) // 514).astype(np.uint8)  # round(a / 257), exact integers
+    if a.dtype.kind == "f":
+        v = a.astype(np.float64)
+        if not np.isfinite(v).all():
+            raise InputError(f"{what}: float colours must be finite (NaN or infinity found)")
+        return np.clip(np.round(v * 255.0), 0, 255).astype(np.uint8)
+    raise InputError(f"{what}: dtype {a.dtype} not supported for colours (uint8, uint16, or float in [0, 1]); "
+                     "convert it first, e.g. .astype(np.uint8) for values already in 0..255")
+
+
 def point_cloud(disp, calib: Calibration, color=None, max_depth=None):
     """Points (N, 3) float32 and colours (N, 3) uint8 RGB of every pixel with a valid depth.
 
-    ``color`` is the left image (BGR or gray, as cv2 reads it); without it the
-    points are white.  ``max_depth`` drops points farther than that (unit of B).
+    ``color`` is the left image (BGR, BGRA or gray, as cv2 reads it: uint8,
+    uint16 or float in [0, 1], brought to uint8 by :func:`colours_uint8`);
+    without it the points are white.  ``max_depth`` drops points farther than
+    that (unit of B).
     """
     z = disparity_to_depth(disp, calib).astype(np.float64)
     h, w = z.shape
@@ -169,20 +195,27 @@ def point_cloud(disp, calib: Calibration, color=None, max_depth=None):
         c = np.asarray(color)
         if c.shape[:2] != (h, w):
             raise InputError(f"colour image {c.shape[:2]} does not match the disparity map {(h, w)}")
+        if c.ndim == 3 and c.shape[2] == 1:
+            c = c[:, :, 0]
+        if not (c.ndim == 2 or (c.ndim == 3 and c.shape[2] in (3, 4))):
+            raise InputError(f"colour image: expected H x W (gray) or H x W x 3/4 (BGR/BGRA), got shape {c.shape}")
+        picked = colours_uint8(c[ok], "colour image")
         if c.ndim == 2:
-            rgb = np.repeat(c[ok][:, None], 3, 1).astype(np.uint8)
+            rgb = np.repeat(picked[:, None], 3, 1)
         else:
-            rgb = c[ok][:, 2::-1].astype(np.uint8)  # BGR -> RGB
+            rgb = np.ascontiguousarray(picked[:, 2::-1])  # BGR -> RGB
     return pts, rgb
 
 
 def write_ply(path, points, colors=None, binary=True) -> None:
-    """Write a point cloud as PLY (binary little-endian or ASCII), atomically."""
+    """Write a point cloud as PLY (binary little-endian or ASCII), atomically.
+    ``colors``: (N, 3) RGB, uint8, uint16 or float in [0, 1] (:func:`colours_uint8`);
+    None: white."""
     pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     n = len(pts)
     if colors is None:
         colors = np.full((n, 3), 255, np.uint8)
-    cols = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
+    cols = colours_uint8(colors, "write_ply colours").reshape(-1, 3)
     if len(cols) != n:
         raise InputError(f"write_ply: {n} points but {len(cols)} colours")
     fmt = "binary_little_endian" if binary else "ascii"

@@ -3,7 +3,8 @@
 * :func:`luminance`: a gray or colour (BGR/BGRA, as cv2 reads) image to H x W
   gray in the input's own type (cv2's 0.299 R + 0.587 G + 0.114 B).
 * :func:`to_gray`: the stereo method's input, gray float32 in [0, 1]
-  (uint8 / 255, uint16 / 65535, float as is: finite and in [0, 1]).
+  (uint8 / 255, uint16 / 65535, float as is: finite and in [0, 1]; either
+  byte order).
 * :func:`standardise`: the per-image standardisation the networks see,
   (I - mean(I)) / std(I) with mean and std over the whole image in float64
   and the result in float32; a constant image gives zeros.  Integer images
@@ -21,18 +22,42 @@
 
 from __future__ import annotations
 
+import os
+import sys
+
 import cv2
 import numpy as np
 
 from .errors import InputError
+
+_PACKAGE = os.path.dirname(os.path.abspath(__file__)) + os.sep
+
+
+def user_stacklevel() -> int:
+    """The ``stacklevel`` for :func:`warnings.warn`, called from the function
+    that warns, that names the first caller outside this package: the user's
+    line, whether it called :func:`to_gray` itself or went through
+    ``StereoMatcher.compute`` and the helpers in between."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(_PACKAGE):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+def native(a: np.ndarray) -> np.ndarray:
+    """``a`` in the machine's byte order (a big-endian ``'>u2'`` image as uint16;
+    cv2 and the dtype checks take native types only)."""
+    if not a.dtype.isnative:
+        return a.astype(a.dtype.newbyteorder("="))
+    return a
 
 #: Divisor bringing each integer dtype to [0, 1].
 _UNIT_SCALE = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}
 
 
 def luminance(img, name: str = "image") -> np.ndarray:
-    """H x W gray in the input's own dtype from H x W, H x W x 1, or H x W x 3/4 (BGR/BGRA)."""
-    a = np.asarray(img)
+    """H x W gray in the input's own dtype (native byte order) from H x W, H x W x 1, or H x W x 3/4 (BGR/BGRA)."""
+    a = native(np.asarray(img))
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[:, :, 0]
     if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (3, 4)):
@@ -59,7 +84,7 @@ def to_gray(img, name: str = "image", bit_depth: int | None = None) -> np.ndarra
     :class:`~mccnn_cl.errors.InputWarning`: scaled by 65535 it would fill
     [0, 1/16] only, and the [0, 1]-scale thresholds (cbca_tau, sgm_tau_so,
     blur_tau) would then compare the wrong contrast."""
-    a = np.asarray(img)
+    a = native(np.asarray(img))
     if a.size == 0:
         raise InputError(f"{name} image is empty (shape {a.shape})")
     if bit_depth is not None:
@@ -82,7 +107,7 @@ def to_gray(img, name: str = "image", bit_depth: int | None = None) -> np.ndarra
             from .errors import InputWarning
             warnings.warn(f"{name} image is uint16 but its largest pixel is {int(a.max())} (< 4096): if it "
                           "holds 12-bit (or fewer) data, pass bit_depth=12 (or the sensor's bits); scaled by "
-                          "65535 it uses 1/16 of [0, 1] or less", InputWarning, stacklevel=3)
+                          "65535 it uses 1/16 of [0, 1] or less", InputWarning, stacklevel=user_stacklevel())
     elif a.dtype.kind == "f":
         a = a.astype(np.float32)
         if not np.isfinite(a).all():
@@ -115,7 +140,7 @@ def unit_float64(img) -> np.ndarray:
     use: uint8 / 255 and uint16 / 65535 in float32 first (as :func:`to_gray`,
     so an integer image and its :func:`to_gray` give the same values, bit for
     bit), any other type's values as they are.  Idempotent on its own output."""
-    a = np.asarray(img)
+    a = native(np.asarray(img))
     if a.dtype in _UNIT_SCALE:  # as to_gray scales them
         a = _scaled(a, _UNIT_SCALE[a.dtype])
     return np.asarray(a, dtype=np.float64)

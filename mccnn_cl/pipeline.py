@@ -55,6 +55,23 @@ MAP_BUFFERS = 24
 MIN_TILE_ROWS = 16
 #: Default ``tile_overlap``: rows of context above and below a tile's core.
 TILE_OVERLAP = 64
+#: Fewest rows of a network band the planner takes to keep the whole image at
+#: once (thinner bands recompute the conv layers' P - 1 rows of context too
+#: often: the volume stages run on row tiles instead).
+MIN_BAND_ROWS = 16
+
+
+def _largest(fits, most: int) -> int:
+    """The largest r in 1 .. ``most`` with ``fits(r)`` (true up to some r, false
+    above: memory grows with r), 0 when none fits."""
+    lo, hi = 0, int(most)
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if fits(mid):
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
 
 
 @dataclass
@@ -63,16 +80,21 @@ class MemoryPlan:
 
     ``volume_bytes``: one D x H x W float32 cost volume of the whole image;
     ``volumes``: volumes alive at once (2: the aggregated right reference
-    mirrors the left volume in place); ``peak_bytes``: estimated peak of
-    device buffers (an upper bound); ``budget``: the ``memory_limit`` it was
-    planned for; ``tiles``: ``(core_start, core_stop, start, stop)`` row
+    mirrors the left volume in place); ``peak_bytes``: estimated peak of the
+    call's device buffers (an upper bound; the matcher's weights,
+    ``StereoMatcher.fixed_bytes``, come on top: the plan keeps
+    ``peak_bytes + fixed_bytes <= budget``); ``budget``: the ``memory_limit``
+    it was planned for; ``tiles``: ``(core_start, core_stop, start, stop)`` row
     ranges of the cost volume's domain (one tile covering every row: the
     whole image at once); ``overlap``: rows of context on each side of a
     core; ``host_bytes``: host memory holding the network's cost volume when
     tiled (0 otherwise); ``tile_budget``: device bytes for the network's
-    band volume when the volume goes to the host; ``tiled``: the volume stages run
-    tile by tile (the network's volume through host memory), else on the
-    whole image at once.
+    band volume when the volume goes to the host (``band_rows`` rows); ``tiled``:
+    the volume stages run tile by tile (the network's volume through host
+    memory), else on the whole image at once; ``band_rows``: volume rows per
+    band of the network's cost, chosen so that a band's volume, its feature
+    maps and the image-sized buffers fit ``budget`` (fewer than the cost's
+    ``band_rows`` under a tight limit; None for census, which does not band).
     """
 
     volume_bytes: int
@@ -84,6 +106,7 @@ class MemoryPlan:
     host_bytes: int
     tile_budget: int
     tiled: bool
+    band_rows: int | None = None
 
     @property
     def largest_volume(self) -> int:
@@ -100,6 +123,8 @@ class MemoryPlan:
             text += (f"; {len(self.tiles)} row tiles of {max(cores)} rows + {self.overlap} overlap"
                      + (f", network volume in host memory ({self.host_bytes / mib:.0f} MiB)"
                         if self.host_bytes else ""))
+        if self.band_rows is not None:
+            text += f"; network in bands of {self.band_rows} rows"
         return text
 
 
@@ -187,10 +212,12 @@ class StereoMatcher:
     progress : bool
         Show a tqdm bar while the cost volume is computed.
     memory_limit : None or int
-        Bytes of device memory the method may use (default: 3/4 of the
-        device's global memory).  When the whole image's cost volumes do not
-        fit it, or one volume exceeds the device's max allocation, the
-        volume stages run on row tiles (see :meth:`memory_plan`).
+        Bytes of device memory the matcher may hold at once: its weights,
+        what it keeps between calls and a call's buffers (default: 3/4 of the
+        device's global memory).  The network's bands are made thinner to fit
+        it; when the whole image's cost volumes still do not fit it, or one
+        volume exceeds the device's max allocation, the volume stages run on
+        row tiles (see :meth:`memory_plan`).
     volume_dtype : "float32" or "float16"
         Storage of the cost volumes on the device (arithmetic is float32
         either way): "float16" halves their memory and traffic at the cost
@@ -222,6 +249,12 @@ class StereoMatcher:
             raise InputError("weights are for cost='cnn'; cost='census' uses no network (drop weights= or the cost)")
         # the network's own settings (Weights.stereo), then the caller's explicit overrides
         self.weights = _resolve_weights(weights) if cost == "cnn" else None
+        if self.weights is not None and self.weights.input_channels != 1:
+            raise WeightsError(
+                f"this network takes {self.weights.input_channels}-channel images; StereoMatcher runs gray "
+                "(1-channel) networks: it converts every pair to gray (imageops.to_gray) before the cost.  Run a "
+                "colour network's cost directly (mccnn_cl.costs.registry.make_cost(ctx, weights)(left, right, D) "
+                "with H x W x C images) or use a gray network")
         self.params = check_settings(self.weights, hyperparameters, "the weights")
         self.auto_range = isinstance(max_disparity, str) and max_disparity == "auto"
         self.max_disparity = None if self.auto_range else check_disparity_range(max_disparity)
@@ -246,6 +279,7 @@ class StereoMatcher:
         self.tile_overlap = int(tile_overlap)
 
         # the cost stage (mccnn_cl.costs.registry): chosen from the architecture here, once
+        live0 = self.ctx.memory.live
         self.cost = make_cost(self.ctx, self.weights if cost == "cnn" else "census", half=self.half)
         self.margin = self.cost.margin
 
@@ -263,10 +297,15 @@ class StereoMatcher:
         self.subpixel = Subpixel(ctx, half=self.half)
         self.confidence = Confidence(ctx, half=self.half)
         self.enlarge = Enlarge(ctx)
-        self.median = MedianFilter(ctx, self.params.median_size)
+        # median_size -> MedianFilter, compiled per size: the constructor's now, others on first use (median)
+        self._medians = {self.params.median_size: MedianFilter(ctx, self.params.median_size)}
         self.bilateral = BilateralFilter(ctx)
         self.range_mask = RangeMask(ctx, half=self.half)
         self._coarse = None  # the automatic range's census matcher, made on first use
+        self._last_call = None  # what the kept scratch was sized for (see _compute)
+        #: device bytes the constructor made (the network's weights): held for the matcher's
+        #: life, they count against memory_limit (memory_plan)
+        self.fixed_bytes = max(0, self.ctx.memory.live - live0)
         # cost volumes are reused between stages and calls (see release_buffers)
         self._pool = BufferPool(ctx)
         # one compute at a time: the kept volumes, the cost's scratch and the
@@ -274,38 +313,77 @@ class StereoMatcher:
         self._lock = threading.RLock()
 
     @property
+    def median(self) -> MedianFilter:
+        """The median filter of ``params.median_size`` (built on first use of a size, then kept)."""
+        size = int(self.params.median_size)
+        stage = self._medians.get(size)
+        if stage is None:
+            stage = self._medians[size] = MedianFilter(self.ctx, size)
+        return stage
+
+    def _check_params(self) -> None:
+        """``params`` as the constructor checks them (:class:`Hyperparameters`: names,
+        choices and ranges): a field changed after construction is checked at
+        every call."""
+        p = self.params
+        if not isinstance(p, Hyperparameters):
+            raise InputError(f"StereoMatcher.params must be a Hyperparameters, not {type(p).__name__}")
+        dataclasses.replace(p)  # __post_init__ runs the constructor's checks (InputError)
+
+    @property
     def cost_floor(self) -> float:
         """The matching cost's lower bound (``cost.floor``), which the confidence measures from."""
         return self.cost.floor
 
     def release_buffers(self) -> None:
-        """Free the device volumes kept from the last :meth:`compute` (up to
-        two, ``memory_plan(shape).peak_bytes`` at most).  They are kept so
-        that the next call of the same size reuses them: on CPU devices a fresh
-        volume's first write costs several times a pass over it (first-touch
-        page mapping; ~0.6 s per call on the KITTI pair on PoCL).  Calls of
-        another size free them on their own.  The cost's kept scratch (the
-        networks' conv maps) is freed too."""
+        """Free every device buffer kept from the last :meth:`compute`: the
+        volumes (up to two), the cost's scratch (the networks' conv maps, fst's
+        planar features, the "gemm" head's activations), CBCA's scratch and
+        SGM's path state, the bilateral filter's tap tables, and those of the
+        automatic range's census matcher.  What stays is what the constructor
+        made (the network's weights, ``fixed_bytes``).
+
+        They are kept so that the next call of the same size reuses them: on
+        CPU devices a fresh buffer's first write costs several times a pass
+        over it (first-touch page mapping; ~0.6 s per call on the KITTI pair
+        on PoCL).  A call of another size (or range, ``memory_limit`` or
+        ``params``) frees what the previous call kept before it runs, so
+        that it holds what a call of its own size needs, as on a fresh matcher;
+        a tiled network call frees the kept volumes before the network's bands
+        and the cost's scratch after them (each phase has the limit to itself)."""
         with self._lock:
             self._pool.clear()
-            self.cost.release_buffers()
+            self._release_scratch()
+            self.bilateral._taps.clear()  # the Gaussian tap tables (bytes; made again by the next call)
             if self._coarse is not None:  # the automatic range's census matcher
                 self._coarse.release_buffers()
+
+    def _release_scratch(self) -> None:
+        """Free the stages' kept scratch: the cost's, CBCA's and SGM's."""
+        self.cost.release_buffers()
+        self.cbca.release_buffers()
+        if hasattr(self.sgm, "release_buffers"):  # SGM's path state (stages/sgm.py)
+            self.sgm.release_buffers()
+        self._last_call = None
 
     # -- input checks ------------------------------------------------------
     def _inputs(self, left, right, disparity_range=None, bit_depth=None):
         """Gray images, M, D and the automatic range's report (None unless auto)."""
         I_L, I_R = to_gray(left, "left", bit_depth), to_gray(right, "right", bit_depth)
         auto = None
+        given = None
         if disparity_range is None and self.auto_range:
             check_pair(I_L, I_R, 1, 2 * self.margin + 1)
             auto = self.choose_range(I_L, I_R)
             disparity_range = auto["range"]
+            given = "the automatic range {}..{}"
         if disparity_range is None:
             M, D = self.min_disparity, self.max_disparity
+            given = f"max_disparity={D}" + (f", min_disparity={M}" if M else "")
         else:
             M, D = levels_of(disparity_range)
-        check_pair(I_L, I_R, D, 2 * self.margin + 1, min_disparity=M)
+            given = (given or "disparity_range=({}, {})").format(M, M + D - 1)
+        check_pair(I_L, I_R, D, 2 * self.margin + 1, min_disparity=M, range_name=given)
         return I_L, I_R, M, D, auto
 
     def choose_range(self, left, right) -> dict:
@@ -346,13 +424,25 @@ class StereoMatcher:
                                  bit_depth)
 
     def _compute(self, left, right, return_intermediates, timings, confidence, disparity_range, bit_depth):
+        self._check_params()
         I_L, I_R, M, D, auto = self._inputs(left, right, disparity_range, bit_depth)
         rec = _Recorder(self.ctx, keep=return_intermediates, timed=return_intermediates or timings)
         rec.wanted = {"confidence", "labels"} if confidence else {"labels"}  # labels: check_swapped
         rec.range = (M, D)
         own = (M, D) == (self.min_disparity, self.max_disparity)  # the matcher's own range
         plan = self.memory_plan(I_L.shape) if own else self.memory_plan(I_L.shape, D, M)
-        self._pool.trim(plan.largest_volume)  # kept volumes of another size are freed
+        # the stages' scratch kept by a call of another size, range, limit or params is freed: this
+        # call holds what its own plan counts (as a fresh matcher would), not the largest call's
+        call = (I_L.shape, M, D, self.memory_limit, dataclasses.astuple(self.params))
+        if call != self._last_call:
+            self._release_scratch()
+        self._last_call = call
+        if plan.tiled and not self.cost.local:
+            # the network's bands run before any tile's volume exists: the plan gives them the
+            # whole limit beside the image-sized buffers, so no volume is kept through them
+            self._pool.clear()
+        else:
+            self._pool.trim(plan.largest_volume)  # kept volumes of another size are freed
         self.ctx.memory.reset_peak()
         # buffers alive before the call (weights, other matchers' ...), less the
         # kept volumes this call reuses (they count in its peak)
@@ -394,7 +484,7 @@ class StereoMatcher:
             # SGM's output volume, first written after the cost volume is complete: lent to the
             # cost meanwhile, which carves its scratch (the network's maps) from it
             lent = self._take_volume(D, H, W)
-            C_CNN = self._matching_cost(I_L, I_R, D, out=volume, stats=rec.stats, scratch=lent)
+            C_CNN = self._matching_cost(I_L, I_R, D, out=volume, stats=rec.stats, scratch=lent, rows=plan.band_rows)
             self._pool.give(lent)
             C_CNN = rec("C_CNN", self._mask(C_CNN, D, H, W, rec), (D, H, W), self.vdtype)
             D_SE = self._volume_stages(C_CNN, J_L, J_R, rec)
@@ -430,7 +520,11 @@ class StereoMatcher:
         H, W = J_L.shape
         host = None
         if not self.cost.local:
-            host = rec("C_CNN", self._matching_cost(I_L, I_R, D, to_host=plan.tile_budget, stats=rec.stats))
+            host = rec("C_CNN", self._matching_cost(I_L, I_R, D, to_host=plan.tile_budget, stats=rec.stats,
+                                                    rows=plan.band_rows))
+            # the plan counts the cost's scratch (feature maps) in the band phase only: the tiles
+            # hold volumes instead
+            self.cost.release_buffers()
         D_SE = np.empty((H, W), np.float32)
         for i, (c0, c1, e0, e1) in enumerate(plan.tiles):
             log.info("tile %d/%d: volume rows %d..%d (core %d..%d)", i + 1, len(plan.tiles), e0, e1, c0, c1)
@@ -545,15 +639,15 @@ class StereoMatcher:
         self._pool.give(C_R)
         return D_R
 
-    def _matching_cost(self, I_L, I_R, D, to_host=None, out=None, stats=None, scratch=None):
+    def _matching_cost(self, I_L, I_R, D, to_host=None, out=None, stats=None, scratch=None, rows=None):
         """C_CNN on the device (into ``out`` when given; ``scratch`` lent to the
         cost for the call), or with ``to_host`` (bytes of device memory the
-        bands may use; network only) as a host array computed band by band."""
+        bands may use; network only) as a host array computed band by band;
+        ``rows``: the network's band rows (the plan's ``band_rows``)."""
         def run(progress=None):
+            kw = {"rows": rows} if rows is not None else {}
             if stats is not None:  # a working frame's padded images: the real images' standardisation
-                kw = {"stats": stats}
-            else:
-                kw = {}
+                kw["stats"] = stats
             if to_host is not None:
                 return self.cost.to_host(I_L, I_R, D, max_bytes=to_host, progress=progress, **kw)
             return self.cost(I_L, I_R, D, progress=progress, out=out, scratch=scratch, **kw)
@@ -577,7 +671,14 @@ class StereoMatcher:
         ``memory_limit`` and the device's max allocation, else row tiles.
         ``levels``, ``min_disparity``: the range (default: the matcher's; with
         ``max_disparity="auto"`` ``levels`` must be given); a range not
-        starting at 0 runs on images W_img - min_disparity wide (mccnn_cl.disprange)."""
+        starting at 0 runs on images W_img - min_disparity wide (mccnn_cl.disprange).
+
+        The network's bands are sized here too (``band_rows``): the cost's own
+        (``BAND_BYTES``) when they fit, else the most rows whose band fits the
+        limit: beside the whole image's volumes (at least ``MIN_BAND_ROWS``
+        rows, else row tiles), or, tiled, beside the image-sized buffers alone
+        (the kept volumes are freed before the bands, the bands' feature maps
+        before the tiles)."""
         D = self.max_disparity if levels is None else int(levels)
         M = self.min_disparity if min_disparity is None else int(min_disparity)
         if D is None:
@@ -590,16 +691,28 @@ class StereoMatcher:
         maps = MAP_BUFFERS * Hi * Wi * 4                    # images, arms, disparity maps
         for stage in (self.cbca, self.sgm):  # CBCA's rings, SGM's vertical path state
             maps += stage.scratch_bytes(D, W, self.params)
-        scratch = self.cost.scratch_bytes(H, W)            # the cost's own buffers besides the volume
-        budget, max_alloc = self.memory_limit, self.ctx.max_alloc
-        # whole: SGM's output volume is lent to the cost, which carves scratch from it
-        whole = nvol * row * H + scratch - self.cost.lent_scratch_bytes(H, W, row * H) + maps
+        cost = self.cost
+        banded = not cost.local  # the networks: in bands of volume rows (sized here)
+        most = cost.band_rows(H, W) if banded else None
+        # what the calls may use: the limit less the constructor's buffers (the weights), held throughout
+        limit, own, max_alloc = self.memory_limit, self.fixed_bytes, self.ctx.max_alloc
+        budget = limit - own
+
+        def whole(rows):  # SGM's output volume is lent to the cost, which carves scratch from it
+            return (nvol * row * H + cost.scratch_bytes(H, W, rows) - cost.lent_scratch_bytes(H, W, row * H, rows)
+                    + maps)
+
         overlap = self.tile_overlap
-        if row * H <= max_alloc and whole <= budget:
-            return MemoryPlan(row * H, nvol, whole, budget, [(0, H, 0, H)], overlap, 0, budget, False)
+        if row * H <= max_alloc:
+            rows = most
+            if banded and whole(most) > budget:  # thinner bands, if that keeps the whole image at once
+                thin = _largest(lambda r: whole(r) <= budget, most)
+                rows = thin if thin >= min(most, MIN_BAND_ROWS) else most
+            if whole(rows) <= budget:
+                return MemoryPlan(row * H, nvol, whole(rows), limit, [(0, H, 0, H)], overlap, 0, limit, False, rows)
         # device bytes per tile row: the volumes, and census's bits (computed per
         # tile; the network runs once, before the tiles, into host memory)
-        per_row = nvol * row + (self.cost.scratch_bytes(1, W) if self.cost.local else 0)
+        per_row = nvol * row + (cost.scratch_bytes(1, W) if cost.local else 0)
         ext = min(max_alloc // row, max(0, budget - maps) // per_row)
         n = 1  # the fewest tiles whose largest extent fits; the end tiles overlap on their inner side only
         while ext < H and n is not None:
@@ -610,28 +723,33 @@ class StereoMatcher:
             elif min(H, core + overlap * (1 if n == 2 else 2)) <= ext:
                 break
         if n is None:
-            need = per_row * min(H, 2 * overlap + MIN_TILE_ROWS) + maps
+            need = per_row * min(H, 2 * overlap + MIN_TILE_ROWS) + maps + own
             raise InputError(
                 f"{Wi}x{Hi} with {D} disparities does not fit: row tiles of {MIN_TILE_ROWS} rows plus "
                 f"{overlap} rows of overlap on each side need {need / 2**20:.1f} MiB of device memory "
-                f"(memory_limit {budget / 2**20:.1f} MiB, max allocation {max_alloc / 2**20:.0f} MiB on "
+                f"(memory_limit {limit / 2**20:.1f} MiB, max allocation {max_alloc / 2**20:.0f} MiB on "
                 f"{self.ctx.describe()}); reduce the disparity range or the image width, or raise memory_limit")
         core = -(-H // n)
         tiles = [(c0, min(H, c0 + core), max(0, c0 - overlap), min(H, c0 + core + overlap))
                  for c0 in range(0, H, core)]
         ext_max = max(e1 - e0 for _, _, e0, e1 in tiles)
-        peak = per_row * ext_max + maps
-        host, band_budget = 0, 0
-        if not self.cost.local:  # the network's phase: one band volume + its scratch, before the tiles
+        peak = per_row * ext_max + maps  # the tiles: no network scratch (freed after its bands)
+        host, band_budget, rows = 0, 0, None
+        if banded:  # the network's phase, before the tiles (no volume kept): one band volume + its scratch
             host = row * H
-            if scratch + maps + row > budget:  # not even a one-row band fits beside the feature maps
+
+            def band(r):
+                return r * row + cost.scratch_bytes(H, W, r) + maps
+
+            rows = _largest(lambda r: r * row <= max_alloc and band(r) <= budget, most)
+            if rows == 0:  # not even a one-row band fits beside its feature maps
                 raise InputError(
                     f"{Wi}x{Hi} does not fit: the network's feature maps and buffers need "
-                    f"{(scratch + maps + row) / 2**20:.1f} MiB of device memory (memory_limit "
-                    f"{budget / 2**20:.1f} MiB on {self.ctx.describe()}); reduce the image size or raise memory_limit")
-            band_budget = max(row, budget - maps - scratch)
-            peak = max(peak, min(band_budget, row * H) + scratch + maps)
-        return MemoryPlan(row * H, nvol, peak, budget, tiles, overlap, host, band_budget, True)
+                    f"{(band(1) + own) / 2**20:.1f} MiB of device memory for bands of one row (memory_limit "
+                    f"{limit / 2**20:.1f} MiB on {self.ctx.describe()}); reduce the image size or raise memory_limit")
+            band_budget = rows * row
+            peak = max(peak, band(rows))
+        return MemoryPlan(row * H, nvol, peak, limit, tiles, overlap, host, band_budget, True, rows)
 
 
 #: Thresholds of :func:`check_swapped`, measured on real pairs of
@@ -662,9 +780,10 @@ def check_swapped(labels, disparity, low: int = 0) -> bool:
         import warnings
 
         from .errors import InputWarning
+        from .imageops import user_stacklevel
         warnings.warn(f"the left-right check failed on {mismatch:.0%} of the pixels and {near:.0%} of the map is "
                       f"below {low + 1.5:g} px: are the left and right images swapped? (else: the pair is not rectified, "
-                      "or the disparity range is too small)", InputWarning, stacklevel=4)
+                      "or the disparity range is too small)", InputWarning, stacklevel=user_stacklevel())
         return True
     return False
 

@@ -7,8 +7,9 @@ the same one-line :class:`~mccnn_cl.errors.InputError`; the network costs
 check their own inputs here too (:func:`check_cost_inputs`: one gray image
 each, finite pixels, at least the network's patch).  The smallest image is
 the matching cost's patch (9 x 9 for census and the paper's networks; a
-network's own ``patch_size`` when larger); the disparity range must be smaller
-than the image width (disparities 0 .. D-1 need a right pixel x - d).
+network's own ``patch_size`` when larger); a range from 0 must be smaller
+than the image width (disparities 0 .. D-1 need a right pixel x - d), one
+from M != 0 must leave some pixel a match (:func:`check_pair`).
 """
 
 from __future__ import annotations
@@ -82,21 +83,26 @@ def check_cost_inputs(left, right, max_disparity, channels: int, patch: int) -> 
 
 
 def check_pair(left, right, max_disparity: int, patch: int = PATCH, names=("left", "right"),
-               min_disparity: int = 0) -> None:
+               min_disparity: int = 0, range_name: str | None = None) -> None:
     """Clear errors for a pair the method cannot match with ``max_disparity`` levels.
 
     ``left``, ``right``: arrays H x W or H x W x C (only the first two axes are
     looked at); ``patch``: the matching cost's patch side (see :func:`patch_size`);
     ``names``: what to call the two images in the messages (file names);
-    ``min_disparity``: M, the range being M .. M + max_disparity - 1
-    (:func:`mccnn_cl.disprange.check_range`: some pixel must have a match)."""
+    ``min_disparity``: M, the range being M .. M + max_disparity - 1.  With
+    M = 0 the range must be smaller than the image width (disparities 0 .. D-1
+    need a right pixel x - d); with M != 0 the method works on a frame
+    W - M wide (:mod:`mccnn_cl.disprange`) and the one rule is
+    :func:`mccnn_cl.disprange.check_range` (some pixel must have a match).
+    ``range_name``: how the caller gave the range, for the message (default
+    "max_disparity, --max-disp")."""
     h, w = _same_size(left, right, names)
     patch = max(int(patch), PATCH)
     if h < patch or w < patch:
         raise InputError(f"image {w}x{h} is smaller than the {patch}x{patch} patch the matching cost needs")
-    if max_disparity >= w:
-        raise InputError(f"disparity range {max_disparity} (max_disparity, --max-disp) is not smaller than "
-                         f"the image width {w}")
+    if not min_disparity and max_disparity >= w:
+        raise InputError(f"disparity range {max_disparity} ({range_name or 'max_disparity, --max-disp'}) is not "
+                         f"smaller than the image width {w}")
     if min_disparity:
         from .disprange import check_range
         check_range(min_disparity, max_disparity, w, patch)

@@ -32,20 +32,28 @@ def _cmap(name):
 
 
 def disparity_range(*maps) -> tuple:
-    """(0, max) over the finite values of the given maps — a common scale for comparisons."""
-    hi = 0.0
+    """(min(0, smallest), largest) over the finite values of the given maps — a
+    common scale for comparisons: from 0 for the usual non-negative maps, from
+    the smallest disparity when some are negative (a range with a negative
+    minimum disparity); (0, 1) when no value is finite, ``vmin + 1`` as the top
+    when every value is the same."""
+    lo, hi = 0.0, None
     for m in maps:
         if m is None:
             continue
         m = np.asarray(m, dtype=np.float64)
         fin = m[np.isfinite(m)]
         if fin.size:
-            hi = max(hi, float(fin.max()))
-    return 0.0, hi if hi > 0 else 1.0
+            lo = min(lo, float(fin.min()))
+            hi = float(fin.max()) if hi is None else max(hi, float(fin.max()))
+    if hi is None or hi <= lo:
+        hi = lo + 1.0
+    return lo, hi
 
 
 def colorize(disp, vmin=None, vmax=None, colormap="turbo", invalid=(0, 0, 0)) -> np.ndarray:
-    """Map ``disp`` linearly from [vmin, vmax] onto a cv2 colour map; non-finite pixels get ``invalid``."""
+    """Map ``disp`` linearly from [vmin, vmax] onto a cv2 colour map; non-finite pixels get ``invalid``.
+    Defaults: :func:`disparity_range` of ``disp`` (vmin = min(0, its smallest finite value))."""
     d = np.asarray(disp, dtype=np.float64)
     if d.ndim != 2:
         raise InputError(f"colorize: expected an (H, W) disparity map, got shape {d.shape}")
@@ -107,7 +115,8 @@ def legend_bar(width, vmin, vmax, colormap="turbo", height=34, title="disparity 
 
 
 def colorize_with_legend(disp, vmin=None, vmax=None, colormap="turbo") -> np.ndarray:
-    """:func:`colorize` with a :func:`legend_bar` stacked underneath (same scale)."""
+    """:func:`colorize` with a :func:`legend_bar` stacked underneath (same scale;
+    defaults as :func:`colorize`'s)."""
     d = np.asarray(disp, dtype=np.float64)
     lo, hi = disparity_range(d)
     vmin = lo if vmin is None else vmin

@@ -134,3 +134,57 @@ def test_sgbm_on_tsukuba(shared_data):
         sgbm(left, right[:, :-1], 20)
     with pytest.raises(InputError, match="width"):
         sgbm(left[:, :30], right[:, :30], 20)
+
+
+def test_point_cloud_colours_scaled_as_to_gray():
+    """Colours are brought to uint8 on to_gray's scale (a plain cast wrapped
+    uint16 and truncated [0, 1] floats to 0: a black cloud); other types are
+    refused."""
+    c = depth.Calibration(focal=500.0, baseline=0.5, cx=1.0, cy=1.0, unit="m")
+    disp = np.full((3, 4), 20.0, np.float32)
+    rng = np.random.default_rng(2)
+    bgr = rng.integers(0, 256, (3, 4, 3), dtype=np.uint8)
+    _, want = depth.point_cloud(disp, c, bgr)
+    np.testing.assert_array_equal(want, bgr.reshape(-1, 3)[:, ::-1])
+    for colour in (bgr.astype(np.uint16) * 257, (bgr.astype(np.uint16) * 257).astype(">u2"),
+                   bgr / 255.0, (bgr / 255.0).astype(np.float32)):
+        _, rgb = depth.point_cloud(disp, c, colour)
+        np.testing.assert_array_equal(rgb, want, err_msg=str(colour.dtype))
+    _, rgb = depth.point_cloud(disp, c, bgr.astype(np.uint16) * 256)  # 8-bit data shifted: within 1
+    assert np.abs(rgb.astype(int) - want).max() <= 1 and rgb.max() > 0
+    _, gray = depth.point_cloud(disp, c, bgr[:, :, 0] / 255.0)
+    np.testing.assert_array_equal(gray, np.repeat(bgr[:, :, 0].reshape(-1, 1), 3, 1))
+    _, clipped = depth.point_cloud(disp, c, np.full((3, 4), 1.5))
+    assert (clipped == 255).all()
+    for bad, words in ((bgr.astype(np.int32), "dtype int32"), (np.full((3, 4), np.nan), "finite"),
+                       (bgr[:, :, :2], "shape")):
+        with pytest.raises(InputError, match=words):
+            depth.point_cloud(disp, c, bad)
+
+
+def test_write_ply_scales_float_colours(tmp_path):
+    pts = np.zeros((3, 3), np.float32)
+    depth.write_ply(tmp_path / "c.ply", pts, np.array([[0.0, 0.5, 1.0]] * 3))
+    _, cols = depth.read_ply(tmp_path / "c.ply")
+    np.testing.assert_array_equal(cols, [[0, 128, 255]] * 3)
+    depth.write_ply(tmp_path / "d.ply", pts, np.full((3, 3), 65535, np.uint16))
+    assert (depth.read_ply(tmp_path / "d.ply")[1] == 255).all()
+    with pytest.raises(InputError, match="dtype int64"):
+        depth.write_ply(tmp_path / "e.ply", pts, np.full((3, 3), 300))
+
+
+def test_colorize_negative_disparities():
+    """vmin defaults to min(0, the smallest finite value): a map from a range
+    with a negative minimum gets one colour per disparity, not one colour for
+    every negative value."""
+    from mccnn_cl.visualize import disparity_range
+
+    neg = np.tile(np.arange(-32, 0, dtype=np.float32), (4, 1))
+    assert disparity_range(neg) == (-32.0, -1.0)
+    assert disparity_range(np.array([[3.0, 40.0, np.nan]])) == (0.0, 40.0)  # from 0 as before
+    assert disparity_range(np.array([[-5.0, 40.0]]), None) == (-5.0, 40.0)
+    assert disparity_range(np.full((2, 2), np.nan)) == (0.0, 1.0)
+    img = colorize(neg)
+    assert len(np.unique(img.reshape(-1, 3), axis=0)) == 32
+    legend = colorize_with_legend(neg)  # the 32-px map centred on the legend's 160-px canvas
+    np.testing.assert_array_equal(legend[:4, 64:96], img)

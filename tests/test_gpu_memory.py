@@ -77,12 +77,20 @@ def test_tiled_run_on_a_small_gpu(ctx, shared_data, monkeypatch, cost, weights, 
 
 def test_network_phase_that_cannot_fit_is_an_error(ctx, shared_data, monkeypatch):
     """Row tiles would fit, but not the network's feature maps beside one band of
-    its volume: a clear InputError, never a plan above the limit."""
+    its volume, even of one row: a clear InputError, never a plan above the
+    limit.  Where thinner bands fit, the plan takes them (memory_limit sizes
+    the bands) and stays within the limit."""
     left, right = kitti_crop(shared_data, 100, 300, 190, 241)
     _gpu(ctx, monkeypatch)
     m = StereoMatcher("kitti-fst", max_disparity=24, device=ctx, tile_overlap=16)
     H, W = left.shape[0] - 2 * m.margin, left.shape[1] - 2 * m.margin
-    m.memory_limit = _maps_bytes(m, left.shape) + m.cost.scratch_bytes(H, W) // 2
+    maps = _maps_bytes(m, left.shape) + m.fixed_bytes
+    m.memory_limit = maps + m.cost.scratch_bytes(H, W) // 2  # the cost's own bands do not fit: thinner ones do
+    plan = m.memory_plan(left.shape)
+    assert plan.band_rows < m.cost.band_rows(H, W) and plan.peak_bytes + m.fixed_bytes <= m.memory_limit
+    m.tile_overlap = 4  # tiles of 16 + 2 x 4 rows fit, a one-row band (1 byte short) does not
+    m.memory_limit = maps + m.cost.scratch_bytes(H, W, rows=1) + 24 * W * 4 - 1
+    assert 2 * 24 * W * 4 * (16 + 2 * 4) < m.memory_limit - maps
     with pytest.raises(InputError, match="feature maps"):
         m.memory_plan(left.shape)
     with pytest.raises(InputError, match="feature maps"):

@@ -118,3 +118,43 @@ def test_network_cost_standardises_uint8_with_its_stats(ctx, kitti_bgr):
     r0, r1 = 5, 15
     tile = net.to_host(L[r0:r1 + P - 1], R[r0:r1 + P - 1], D, stats=u8_stats)
     np.testing.assert_array_equal(tile.view(np.uint32), want[:, r0:r1].view(np.uint32))
+
+
+def test_big_endian_uint16_is_read_as_uint16():
+    """A '>u2' image (a big-endian file read as is) was refused with a message
+    listing uint16 as supported: it is converted to native order first."""
+    rng = np.random.default_rng(4)
+    u16 = rng.integers(0, 65536, (20, 30, 3), dtype=np.uint16)
+    big = u16.astype(">u2")
+    assert big.dtype.byteorder == ">" and not big.dtype.isnative
+    np.testing.assert_array_equal(to_gray(big), to_gray(u16))
+    np.testing.assert_array_equal(luminance(big), luminance(u16))
+    np.testing.assert_array_equal(unit_float64(big), unit_float64(u16))
+    np.testing.assert_array_equal(standardise(big), standardise(u16))
+    np.testing.assert_array_equal(to_gray(u16[:, :, 0].astype(">u2"), bit_depth=16),
+                                  to_gray(u16[:, :, 0], bit_depth=16))
+
+
+def test_big_endian_pair_through_the_matcher(ctx):
+    rng = np.random.default_rng(5)
+    left = rng.integers(0, 65536, (30, 48), dtype=np.uint16)
+    right = np.roll(left, -3, axis=1)
+    from mccnn_cl.pipeline import StereoMatcher
+
+    m = StereoMatcher(cost="census", max_disparity=8, device=ctx)
+    np.testing.assert_array_equal(m.compute(left.astype(">u2"), right.astype(">u2")), m.compute(left, right))
+
+
+def test_low_bits_warning_names_the_callers_line():
+    """The uint16 low-bits InputWarning points at the line that called to_gray."""
+    import inspect
+    import warnings
+
+    from mccnn_cl.errors import InputWarning
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        line = inspect.currentframe().f_lineno + 1
+        to_gray(np.full((10, 10), 4095, np.uint16))
+    got = [(w.filename, w.lineno) for w in seen if issubclass(w.category, InputWarning)]
+    assert got == [(__file__, line)], got

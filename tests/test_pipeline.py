@@ -209,3 +209,126 @@ def test_cnn_cost_with_random_weights(ctx, shared_data, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "cost volume (cnn)" in err and "12/12" in err  # the tqdm bar of the second run
     assert mccnn_cl.StereoMatcher is StereoMatcher
+
+
+def cones(gray=False):
+    """The eighth-size Cones pair (tests/cones_eighth, 225 x 188), BGR or gray uint8."""
+    d = os.path.join(os.path.dirname(__file__), "cones_eighth")
+    flag = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
+    return [cv2.imread(os.path.join(d, n), flag) for n in ("im0.png", "im1.png")]
+
+
+def test_params_changed_after_construction(ctx):
+    """``matcher.params`` changed after construction: median_size is used (the
+    filter was built once, at construction) and every field is checked at the
+    call as the constructor checks it (median_size=4, sgm_pi2=-5 ran)."""
+    import dataclasses
+
+    left, right = cones()
+    m = StereoMatcher(cost="census", max_disparity=32, device=ctx)
+    m.params = dataclasses.replace(m.params, median_size=11)
+    got = m.compute(left, right)
+    want = StereoMatcher(cost="census", max_disparity=32, device=ctx, median_size=11).compute(left, right)
+    np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(got, StereoMatcher(cost="census", max_disparity=32, device=ctx).compute(left, right))
+    for name, value, words in (("median_size", 4, "median_size must be a positive odd"),
+                               ("sgm_pi2", -5.0, "sgm_pi2 must be >= 0"),
+                               ("interpolation", "nearest", "interpolation must be")):
+        m.params = dataclasses.replace(Hyperparameters(), median_size=11)
+        setattr(m.params, name, value)
+        with pytest.raises(InputError, match=words):
+            m.compute(left, right)
+    m.params = {"median_size": 5}
+    with pytest.raises(InputError, match="Hyperparameters"):
+        m.compute(left, right)
+
+
+def _held(m, base):
+    import gc
+
+    gc.collect()
+    return m.ctx.memory.live - base
+
+
+@pytest.mark.parametrize("cost", ["census", "cnn"])
+def test_release_buffers_frees_every_kept_buffer(ctx, cost):
+    """release_buffers() leaves only what the constructor made (it left CBCA's
+    scratch and SGM's path state), and a call of another size holds what a
+    fresh matcher's call of that size holds (the network's maps and features
+    pools only grew: 305 MiB after a 718 x 496 call vs 68 MiB fresh)."""
+    from mccnn_cl.opencl.context import ClContext
+
+    big_l, big_r = cones()
+    small_l, small_r = big_l[40:140, 30:190], big_r[40:140, 30:190]
+    m = StereoMatcher(cost=cost, max_disparity=48, device=ClContext(ctx.device))
+    base = m.ctx.memory.live
+    m.compute(big_l, big_r)
+    assert _held(m, base) > 0  # volumes and scratch kept for the next call
+    m.release_buffers()
+    assert _held(m, base) == 0
+    m.compute(big_l, big_r)
+    m.compute(small_l, small_r)
+    fresh = StereoMatcher(cost=cost, max_disparity=48, device=ClContext(ctx.device))
+    fresh_base = fresh.ctx.memory.live
+    fresh.compute(small_l, small_r)
+    assert _held(m, base) == _held(fresh, fresh_base) > 0
+
+
+def test_colour_network_refused_at_construction(ctx):
+    """StereoMatcher converts every pair to gray: a 3-channel network is a
+    WeightsError when the matcher is made, not an InputError at the first call."""
+    w = Weights.random(architecture="mccnn-fst", input_channels=3)
+    with pytest.raises(WeightsError, match="3-channel.*gray"):
+        StereoMatcher(weights=w, max_disparity=16, device=ctx)
+
+
+def test_range_with_a_negative_minimum_may_span_the_width(ctx):
+    """With M < 0 the method works on a W - M wide frame: D >= W is allowed
+    (only disprange.check_range applies) and matches as a narrower range that
+    covers the pair's disparities; D >= W from 0 is refused, naming what the
+    caller gave."""
+    left, right = cones()
+    m = StereoMatcher(cost="census", max_disparity=32, device=ctx)
+    W = left.shape[1]
+    ref = m.compute(left, right, disparity_range=(-150, 73))
+    wide = m.compute(left, right, disparity_range=(-150, 99))  # 250 levels on a 225-px image
+    assert np.isfinite(wide).all()
+    assert float(np.mean(np.abs(wide - ref) > 1)) < 0.01
+    with pytest.raises(InputError, match=rf"disparity_range=\(0, {W}\)\) is not smaller than the image width {W}"):
+        m.compute(left, right, disparity_range=(0, W))
+    with pytest.raises(InputError, match=rf"max_disparity={W}\) is not smaller"):
+        StereoMatcher(cost="census", max_disparity=W, device=ctx).compute(left, right)
+    with pytest.raises(InputError, match="leave no pixel a match"):
+        m.compute(left, right, disparity_range=(-400, -300))
+
+
+def test_shipped_model_named_as_its_file(ctx):
+    """weights="general-fst.npz", the name the demo prints, is the shipped model
+    when no such file exists; a missing file's error lists the shipped names."""
+    from mccnn_cl.weights import shipped_models
+
+    names = list(shipped_models())
+    assert "general-fst" in names
+    m = StereoMatcher(weights="general-fst.npz", max_disparity=16, device=ctx)
+    assert m.weights.architecture == "mccnn-fst"
+    with pytest.raises(WeightsError) as info:
+        StereoMatcher(weights="no-such-net.npz", max_disparity=16, device=ctx)
+    assert "not found" in str(info.value) and all(n in str(info.value) for n in names)
+
+
+def test_low_bits_warning_points_at_the_callers_line(ctx, recwarn):
+    """The uint16 low-bits InputWarning names the caller's line (it named a line
+    inside mccnn_cl/pipeline.py), through StereoMatcher.compute and to_gray."""
+    import inspect
+    import warnings
+
+    from mccnn_cl.errors import InputWarning
+
+    left, right = (a.astype(np.uint16) * 16 for a in cones(gray=True))
+    m = StereoMatcher(cost="census", max_disparity=16, device=ctx)
+    warnings.simplefilter("always")
+    line = inspect.currentframe().f_lineno + 1
+    m.compute(left, right)  # one warning per image, both on this line
+    to_gray(left)  # the helper itself (mccnn_cl.pipeline.to_gray is imageops.to_gray)
+    got = [(w.filename, w.lineno) for w in recwarn.list if issubclass(w.category, InputWarning)]
+    assert got == [(__file__, line), (__file__, line), (__file__, line + 1)], got

@@ -11,11 +11,15 @@ the stated tolerance (docs/method.md, "Large images") is tested on a KITTI
 pair where both runs fit (test_tiled_vs_whole_within_tolerance).
 """
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 
 from mccnn_cl.errors import InputError
+from mccnn_cl.opencl.context import ClContext
+from mccnn_cl import pipeline
 from mccnn_cl.pipeline import MAP_BUFFERS, StereoMatcher
 from mccnn_cl.reference import aggregation as ref
 from mccnn_cl.stages.cbca import CBCA
@@ -202,3 +206,63 @@ def test_tiled_vs_whole_within_tolerance(ctx, shared_data):
     assert len(far_rows) > 20
     far = diff[m.margin + far_rows]
     assert float(np.mean(far <= 0.5)) >= 0.995
+
+
+def cones_gray():
+    """The eighth-size Cones pair (tests/cones_eighth, 225 x 188), gray uint8."""
+    d = Path(__file__).parent / "cones_eighth"
+    return [cv2.imread(str(d / name), cv2.IMREAD_GRAYSCALE) for name in ("im0.png", "im1.png")]
+
+
+@pytest.mark.parametrize("share", [0.70, 0.74])
+def test_tiled_network_calls_stay_within_memory_limit(ctx, share):
+    """The network's row-tile path within memory_limit on every call: the
+    second call held the first's kept tile volumes through the network's
+    bands (up to 1.59 x the limit), and the first held the bands' feature
+    maps through the tiles (826 MiB under an 800 MiB limit on the demo pair).
+    Measured on a context of its own: every device buffer of the matcher,
+    weights and kept buffers included, against the limit."""
+    left, right = cones_gray()
+    D = 224  # volumes that outweigh the network's feature maps
+    m = StereoMatcher(max_disparity=D, device=ClContext(ctx.device))
+    # 70 % of what the whole image needs: two fat tiles (the default 64 rows of overlap), where the
+    # old code's second call reached 1.18 x the limit; 74 %: one tile, where its first call held
+    # the bands' feature maps through the tile (1.08 x) and its second reached 1.35 x
+    limit = m.memory_limit = int(share * m.memory_plan(left.shape).peak_bytes)
+    plan = m.memory_plan(left.shape)
+    assert plan.tiled and plan.host_bytes > 0 and plan.peak_bytes + m.fixed_bytes <= limit
+    maps = []
+    for call in (1, 2):
+        m.ctx.memory.reset_peak()
+        res = m.compute(left, right, timings=True)
+        assert res.plan.tiled and res.peak_device_bytes <= res.plan.peak_bytes
+        assert m.ctx.memory.peak <= limit, f"call {call}: {m.ctx.memory.peak / limit:.3f} x memory_limit"
+        maps.append(res.disparity)
+    np.testing.assert_array_equal(maps[0], maps[1])
+    assert np.isfinite(maps[0]).mean() > 0.95
+
+
+def test_memory_limit_makes_the_network_bands_thinner(ctx):
+    """memory_limit sizes the network's bands: under a limit that one band of
+    BAND_BYTES (the cost's own) does not fit, the bands get fewer rows and the
+    whole image still runs at once, within the limit and bit for bit the
+    unlimited run (bands are exact); the demo pair (718 x 496, 73 levels) was
+    refused under 469 MiB, its volumes need 193."""
+    left, right = cones_gray()
+    D = 64
+    free = StereoMatcher(max_disparity=D, device=ctx)
+    want = free.compute(left, right, timings=True)
+    H, W = left.shape[0] - 2 * free.margin, left.shape[1] - 2 * free.margin
+    most = free.cost.band_rows(H, W)
+    assert not want.plan.tiled and want.plan.band_rows == most
+    # two volumes and the image-sized buffers fit, but not one band of `most` rows with its feature maps
+    limit = want.plan.peak_bytes - free.cost.scratch_bytes(H, W) // 2
+    m = StereoMatcher(max_disparity=D, device=ClContext(ctx.device), memory_limit=limit)
+    plan = m.memory_plan(left.shape)
+    assert not plan.tiled and pipeline.MIN_BAND_ROWS <= plan.band_rows < most
+    assert plan.peak_bytes + m.fixed_bytes <= limit
+    for _ in range(2):
+        m.ctx.memory.reset_peak()
+        got = m.compute(left, right, timings=True)
+        assert m.ctx.memory.peak <= limit
+        np.testing.assert_array_equal(got.disparity, want.disparity)

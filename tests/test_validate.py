@@ -60,3 +60,19 @@ def test_check_pair():
     assert patch_size(None) == 9
     assert patch_size(Weights.random(conv_layers=[[8, 3], [8, 3]], fc_layers=[8, 2])) == 9
     assert patch_size(Weights.random(seed=0)) == 9
+
+
+def test_check_pair_range_from_a_nonzero_minimum():
+    """D < W applies to a range from 0 only: from M != 0 the method works on a
+    W - M wide frame and disprange.check_range is the rule (a 250-level range
+    from -150 on a 225-px image was refused); the message names the range as
+    the caller gave it."""
+    a = np.zeros((40, 225))
+    check_pair(a, a, 250, 9, min_disparity=-150)
+    check_pair(a, a, 239, 9, min_disparity=2)
+    with pytest.raises(InputError, match="leave no pixel a match"):
+        check_pair(a, a, 100, 9, min_disparity=-400)
+    with pytest.raises(InputError, match=r"disparity range 225 \(disparity_range=\(0, 224\)\) is not smaller"):
+        check_pair(a, a, 225, 9, range_name="disparity_range=(0, 224)")
+    with pytest.raises(InputError, match=r"\(max_disparity, --max-disp\)"):  # the command line's default
+        check_pair(a, a, 225, 9)

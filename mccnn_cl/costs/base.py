@@ -21,7 +21,8 @@ def registered() -> dict:
 
 
 class MatchingCost:
-    """``cost(left, right, max_disparity, out=None, progress=None, stats=None, scratch=None) -> device buffer``.
+    """``cost(left, right, max_disparity, out=None, progress=None, stats=None, scratch=None, rows=None)
+    -> device buffer``.
 
     Subclasses set ``margin``, ``local``, ``floor`` and ``kind`` or
     ``architecture``, and implement :meth:`__call__`, :meth:`to_host`,
@@ -51,26 +52,36 @@ class MatchingCost:
         """The cost for ``weights`` (a network's :class:`~mccnn_cl.weights.Weights`)."""
         return cls(ctx, weights, tiles=tiles, half=half)
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None):
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None, rows=None):
         """The volume ``[D][H_img - 2m][W_img - 2m]`` on the device (into ``out``
         when given); ``progress(done, D)`` as disparities or bands complete;
         ``stats``: ``((mean, std), (mean, std))`` of the left and right images to
         standardise with instead of the inputs' own (None: their own);
         ``scratch``: a device buffer lent for the call's own buffers (a cost
-        may leave it unused; its contents are overwritten)."""
+        may leave it unused; its contents are overwritten); ``rows``: volume
+        rows per band of a banded cost (the networks; None: :meth:`band_rows`,
+        a cost that does not band ignores it)."""
         raise NotImplementedError
 
-    def lent_scratch_bytes(self, H: int, W: int, lent: int) -> int:
+    def band_rows(self, H: int, W: int) -> int:
+        """The most volume rows one band of an H x W volume takes (a cost that
+        does not band: all H)."""
+        return int(H)
+
+    def lent_scratch_bytes(self, H: int, W: int, lent: int, rows=None) -> int:
         """Of :meth:`scratch_bytes`, the bytes a lent ``scratch`` buffer of ``lent``
         bytes surely holds (none: a cost that does not use the loan)."""
         return 0
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None) -> np.ndarray:
-        """The volume in host memory, using at most ``max_bytes`` of device memory at a time."""
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None,
+                rows=None) -> np.ndarray:
+        """The volume in host memory, using at most ``max_bytes`` of device memory
+        at a time (bands of at most ``rows`` rows where the cost bands)."""
         raise NotImplementedError
 
-    def scratch_bytes(self, H: int, W: int) -> int:
-        """Upper bound of the device bytes a call allocates besides the H x W volume."""
+    def scratch_bytes(self, H: int, W: int, rows=None) -> int:
+        """Upper bound of the device bytes a call allocates besides the H x W volume
+        (in bands of ``rows`` volume rows where the cost bands; None: :meth:`band_rows`)."""
         raise NotImplementedError
 
     def flops(self, height: int, width: int, max_disparity: int) -> dict:

@@ -50,9 +50,10 @@ class CensusCost(MatchingCost):
         return cls(ctx, half=half)
 
     @staticmethod
-    def scratch_bytes(H: int, W: int) -> int:
+    def scratch_bytes(H: int, W: int, rows=None) -> int:
         """Device bytes a call allocates besides the volume: the two images'
-        census bits (3 words per pixel) on the H x W cost-volume domain."""
+        census bits (3 words per pixel) on the H x W cost-volume domain
+        (``rows``: ignored, census is computed in one launch)."""
         return 2 * 3 * int(H) * int(W) * 4
 
     def release_buffers(self) -> None:
@@ -67,7 +68,7 @@ class CensusCost(MatchingCost):
         volume = 2 * 3 * D * h * w
         return {"transform": transform, "volume": volume, "total": transform + volume}
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None):
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None, rows=None):
         """The volume as a host array (computed on the device, then copied)."""
         if not isinstance(left, np.ndarray):
             raise InputError("census to_host needs host images")
@@ -77,11 +78,11 @@ class CensusCost(MatchingCost):
         d.release()
         return out
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None):
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None, rows=None):
         """Cost volume of the host images ``left`` vs ``right``; ``progress`` is
         accepted as every cost's and not called (one launch), so are ``stats``
-        (census compares intensities, it standardises nothing) and ``scratch``
-        (its bit planes are small: 16 bytes a pixel)."""
+        (census compares intensities, it standardises nothing), ``scratch``
+        (its bit planes are small: 16 bytes a pixel) and ``rows`` (no bands)."""
         if not (isinstance(left, np.ndarray) and isinstance(right, np.ndarray)):
             raise InputError("census needs host images (numpy arrays)")
         if left.shape != right.shape or left.ndim != 2:

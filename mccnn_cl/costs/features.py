@@ -309,6 +309,17 @@ class ConvNetCost(MatchingCost):
     def band_rows(self, h: int, w: int) -> int:
         raise NotImplementedError
 
+    def rows_of(self, h: int, w: int, rows=None) -> int:
+        """Volume rows per band of an h x w volume: :meth:`band_rows` (the most a band
+        may take), or ``rows`` when given (at least 1, at most :meth:`band_rows`:
+        the stereo method's planner picks fewer under a tight ``memory_limit``)."""
+        most = self.band_rows(h, w)
+        if rows is None:
+            return most
+        if isinstance(rows, (bool, np.bool_)) or not isinstance(rows, (int, np.integer)) or rows < 1:
+            raise InputError(f"band rows must be an integer >= 1, not {rows!r}")
+        return min(int(rows), most)
+
     def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None):
         raise NotImplementedError
 
@@ -326,13 +337,14 @@ class ConvNetCost(MatchingCost):
         """The pools the cost's scratch comes from (a lent buffer is carved through them)."""
         return [self.stack._pool]
 
-    def _pooled_scratch(self, h: int, w: int) -> list:
+    def _pooled_scratch(self, h: int, w: int, rows=None) -> list:
         """Upper bounds of the buffers the pools hold at once for an h x w
-        volume (what a lent buffer can hold): the conv stack's two maps."""
-        one = self.stack.scratch_bytes(self.band_rows(h, w), w) // 2
+        volume in bands of ``rows`` rows (what a lent buffer can hold): the
+        conv stack's two maps."""
+        one = self.stack.scratch_bytes(self.rows_of(h, w, rows), w) // 2
         return [one, one]
 
-    def lent_scratch_bytes(self, h: int, w: int, lent: int) -> int:
+    def lent_scratch_bytes(self, h: int, w: int, lent: int, rows=None) -> int:
         """Of :meth:`scratch_bytes`, the bytes surely carved from a lent buffer of
         ``lent`` bytes: all the pools' buffers when they fit, else at least
         the arena's size less its largest buffer and the alignment gaps (a
@@ -340,13 +352,14 @@ class ConvNetCost(MatchingCost):
         before it)."""
         if not self.ctx.sub_buffers:
             return 0
-        items = self._pooled_scratch(h, w)
+        items = self._pooled_scratch(h, w, rows)
         sure = int(lent) - max(items) - len(items) * self.ctx.sub_buffer_align
         return max(0, min(sum(items), sure))
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None):
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None, rows=None):
         """Inputs checked, the volume's buffer (``out`` or a new one), :meth:`_enqueue`
-        over :meth:`band_rows` bands; ``stats``: ``((mean, std) of the left, (mean, std)
+        over bands of :meth:`rows_of` rows (``rows``; None: :meth:`band_rows`);
+        ``stats``: ``((mean, std) of the left, (mean, std)
         of the right)`` to standardise with instead of the images' own
         (:func:`mccnn_cl.imageops.standardise`; None: their own).  ``scratch``: a
         device buffer (not ``out``) lent for this call: the conv maps (and fst's
@@ -355,7 +368,7 @@ class ConvNetCost(MatchingCost):
         it is the caller's again when the call returns (later commands of the
         in-order queue run after the cost's)."""
         if scratch is None or not self.ctx.sub_buffers:
-            return self._call(left, right, max_disparity, out, progress, stats)
+            return self._call(left, right, max_disparity, out, progress, stats, rows)
         if scratch is out:
             raise InputError("the lent scratch buffer must not be the volume's buffer")
         arena = Arena(self.ctx, scratch)
@@ -364,19 +377,19 @@ class ConvNetCost(MatchingCost):
             pool.lend(arena)
         done = False
         try:
-            volume = self._call(left, right, max_disparity, out, progress, stats)
+            volume = self._call(left, right, max_disparity, out, progress, stats, rows)
             done = True
             return volume
         finally:  # after an error (Ctrl-C too) the maps still taken are released, not reported
             for pool in pools:
                 pool.end_loan(check=done)
 
-    def _call(self, left, right, max_disparity, out, progress, stats):
+    def _call(self, left, right, max_disparity, out, progress, stats, rows=None):
         ctx = self.ctx
         L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
         nbytes = D * h * w * self.vdtype.itemsize
         ctx.check_alloc(nbytes, f"cost volume ({D} x {h} x {w})")
-        rows = self.band_rows(h, w)
+        rows = self.rows_of(h, w, rows)
         if out is None:
             out = ctx.empty(nbytes, "cost volume")
         elif out.size < nbytes:
@@ -387,9 +400,10 @@ class ConvNetCost(MatchingCost):
             raise OpenCLError(f"{self.label} ({D} x {h} x {w}) failed on {ctx.describe()}: {exc}") from exc
         return out
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None):
-        """Each band computed into one device buffer of at most ``max_bytes``
-        (default: the max allocation) and copied into the host volume
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None, rows=None):
+        """Each band (at most ``rows`` rows, :meth:`rows_of`) computed into one
+        device buffer of at most ``max_bytes`` (default: the max allocation)
+        and copied into the host volume
         (``_enqueue(..., host=)``); values identical to :meth:`__call__`'s.
         ``stats``: as :meth:`standardised` (a row tile standardised with the whole
         image's stats gives those rows of the whole image's volume;
@@ -402,7 +416,7 @@ class ConvNetCost(MatchingCost):
             raise InputError(f"one row of the cost volume ({D} x {w} {self.vdtype.name}, {row / 2**20:.1f} MiB) "
                              f"does not fit in {limit / 2**20:.1f} MiB of device memory; reduce the "
                              "disparity range or the image width")
-        rows = min(self.band_rows(h, w), limit // row)
+        rows = min(self.rows_of(h, w, rows), limit // row)
         host = np.empty((D, h, w), self.vdtype)
         d_band = ctx.empty(D * rows * w * self.vdtype.itemsize, "cost volume band")
         try:

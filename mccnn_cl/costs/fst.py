@@ -39,7 +39,9 @@ The conv stack's GEMM has the same two shapes (``local_tiles=``, rule
 ``network_local_tiles``; :mod:`.features`).
 
 Memory: the image is processed in bands of volume rows whose feature
-buffers (both images, pixel-major and planar) take at most ``BAND_BYTES``;
+buffers (both images, pixel-major and planar) take at most ``BAND_BYTES``
+(fewer rows with a call's ``rows=``, as the stereo method's planner asks under
+a tight ``memory_limit``);
 the cost interface (``margin``, ``scratch_bytes``, ``__call__``,
 ``to_host``, ``flops``) is the one of :mod:`mccnn_cl.costs.registry`.
 """
@@ -56,7 +58,7 @@ from .features import ConvNetCost, check_tile, fit_tile, normalise, shrinker
 
 FST_CL = "fst.cl"
 FST_WG_CL = "fst_wg.cl"
-#: bytes of one band's feature buffers (both images)
+#: bytes of one band's feature buffers (both images) at most (``rows=`` may ask for fewer rows)
 BAND_BYTES = 256 << 20
 #: zero columns left of x = 0 in the planar features (kernels/fst.cl)
 PADL = 32
@@ -144,11 +146,12 @@ class FstCost(ConvNetCost):
         self.ctx.check_alloc(self.nk * self._wp(w) * 4, f"fst features of one row ({w} x {self.nk})")
         return max(1, min(h, min(BAND_BYTES // row, self.ctx.max_alloc // (self.nk * self._wp(w) * 4))))
 
-    def scratch_bytes(self, h: int, w: int) -> int:
+    def scratch_bytes(self, h: int, w: int, rows=None) -> int:
         """Upper bound of the device bytes a call allocates besides the volume, for
-        an h x w volume: one band's planar features of both images, one
-        pixel-major map, and the conv stack's two widest maps over the band."""
-        rows = self.band_rows(h, w)
+        an h x w volume in bands of ``rows`` rows (:meth:`rows_of`): one band's
+        planar features of both images, one pixel-major map, and the conv
+        stack's two widest maps over the band."""
+        rows = self.rows_of(h, w, rows)
         return rows * self._row_bytes(w) + self.stack.scratch_bytes(rows, w)
 
     def flops(self, height: int, width: int, max_disparity: int) -> dict:
@@ -171,10 +174,10 @@ class FstCost(ConvNetCost):
     def _pools(self) -> list:
         return [self.stack._pool, self._planes]
 
-    def _pooled_scratch(self, h: int, w: int) -> list:
+    def _pooled_scratch(self, h: int, w: int, rows=None) -> list:
         """The conv stack's two maps and both images' planar features of one band."""
-        plane = self.band_rows(h, w) * self.nk * self._wp(w) * 4
-        return super()._pooled_scratch(h, w) + [plane, plane]
+        plane = self.rows_of(h, w, rows) * self.nk * self._wp(w) * 4
+        return super()._pooled_scratch(h, w, rows) + [plane, plane]
 
     def release_buffers(self) -> None:
         """Free the conv stack's kept maps (see ConvStack) and the kept planar features."""

@@ -33,7 +33,9 @@ Volume: ``[D][H][W]`` with H = H_img - 2m, W = W_img - 2m (m the margin);
 cell (d, y, x) compares the left patch centred at image (x + m, y + m) with
 the right one at (x + m - d, y + m); NaN where x - d < 0.  Memory: the image
 is processed in bands of volume rows (A and B of one band at most
-``BAND_BYTES`` each), each band's disparities in chunks of about
+``BAND_BYTES`` each; fewer rows when the caller passes ``rows=``, as the
+stereo method's planner does under a tight ``memory_limit``), each band's
+disparities in chunks of about
 ``CHUNK_CELLS`` cells per launch.  The cost interface shared with census and
 fst: :mod:`mccnn_cl.costs.registry`.
 """
@@ -64,8 +66,9 @@ GEMM_CELLS = 1 << 16
 # (progress reporting, GPU watchdogs) while launches stay large.
 CHUNK_CELLS = 1 << 20
 
-# Bytes of one band's A (and of its B): the image is processed in bands of
-# volume rows so scratch memory stays bounded whatever the image size.
+# Bytes of one band's A (and of its B) at most: the image is processed in bands
+# of volume rows so scratch memory stays bounded whatever the image size (a
+# call's ``rows=`` may ask for fewer rows: ConvNetCost.rows_of).
 BAND_BYTES = 256 << 20
 
 
@@ -249,12 +252,12 @@ class PaperCost(ConvNetCost):
         return {"features": feat, "head": valid * per_cell, "total": feat + valid * per_cell,
                 "valid_cells": valid}
 
-    def scratch_bytes(self, h: int, w: int) -> int:
+    def scratch_bytes(self, h: int, w: int, rows=None) -> int:
         """Upper bound of the device bytes a call allocates besides the volume,
-        for a volume of h x w pixels: one band's A and B, and two feature maps
-        of the widest layer over the band's image rows (input and output of a
-        convolution)."""
-        rows = self.band_rows(h, w)
+        for a volume of h x w pixels in bands of ``rows`` rows (:meth:`rows_of`):
+        one band's A and B, and two feature maps of the widest layer over the
+        band's image rows (input and output of a convolution)."""
+        rows = self.rows_of(h, w, rows)
         widest = max(self.stack.widest, self.hp)
         gemm = 2 * min(GEMM_CELLS, rows * w) * self.hp * 4 if self.head_path == "gemm" else 0
         return 2 * rows * w * self.hp * 4 + 2 * (rows + self.patch) * (w + self.patch - 1) * widest * 4 + gemm

@@ -30,18 +30,23 @@ Every one of them is a :class:`~.base.MatchingCost` (one registry:
     the cost's lower bound (and so every aggregated volume's, as CBCA and SGM
     take means): 0 for census, paper and acrt, -1 for fst; the confidence
     measures costs from it (:mod:`mccnn_cl.stages.confidence`).
-``scratch_bytes(H, W)``
-    upper bound of the device bytes a call allocates besides the H x W volume.
-``__call__(I_L, I_R, D, out=None, progress=None, stats=None, scratch=None) -> device buffer``
-    the volume on the device (into ``out`` when given);
+``scratch_bytes(H, W, rows=None)``
+    upper bound of the device bytes a call allocates besides the H x W volume
+    (the networks: in bands of ``rows`` volume rows, None: ``band_rows(H, W)``,
+    the most a band takes; census ignores ``rows``).
+``band_rows(H, W)``
+    the most volume rows one band takes (census: H, it does not band).
+``__call__(I_L, I_R, D, out=None, progress=None, stats=None, scratch=None, rows=None) -> device buffer``
+    the volume on the device (into ``out`` when given; the networks in bands
+    of ``rows`` rows, fewer than ``band_rows`` when the caller's memory is tight);
     ``progress(done, D)`` is called as disparities or bands complete;
     ``scratch``, a device buffer lent for the call (the stereo method lends
     SGM's output volume, first written after the cost): the networks carve
     their conv maps from it instead of holding buffers of their own.
-``lent_scratch_bytes(H, W, lent)``
-    of ``scratch_bytes(H, W)``, the bytes a loan of ``lent`` bytes surely
+``lent_scratch_bytes(H, W, lent, rows=None)``
+    of ``scratch_bytes(H, W, rows)``, the bytes a loan of ``lent`` bytes surely
     holds (the memory planner counts the rest).
-``to_host(I_L, I_R, D, max_bytes=None, progress=None) -> ndarray``
+``to_host(I_L, I_R, D, max_bytes=None, progress=None, stats=None, rows=None) -> ndarray``
     the volume in host memory, using at most ``max_bytes`` of device memory
     for it at a time where the cost can band (census computes then copies).
 ``flops(H_img, W_img, D) -> dict``

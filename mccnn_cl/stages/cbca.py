@@ -164,6 +164,17 @@ class CBCA:
             self._kernels[(max_arm, path)] = k
         return k
 
+    def release_buffers(self) -> None:
+        """Free the scratch kept between calls (the "fused" path's rings, the
+        "multi" path's buffers: :meth:`scratch_bytes`); the next call makes it
+        again.  Work already queued on them still runs (OpenCL keeps a released
+        buffer until its commands complete)."""
+        for kept in (self._ring[1:] if self._ring else ()), (self._multi[1] if self._multi else ()):
+            for buf in kept:
+                buf.release()
+        self._ring = None
+        self._multi = None
+
     def _rings(self, D, W, max_arm):
         """The fused path's scratch rings (kept and reused while large enough)."""
         nbytes = path_scratch_bytes(D, W, max_arm, "fused")
