@@ -18,23 +18,42 @@ sides is one pair.  ``--pairs-dir DIR`` pairs ``im0.*`` with
 and the batch is refused before any work (:class:`InputError`, exit 2).
 
 A pair's outputs (:class:`Job`): the side files (colour picture, confidence,
-labels, depth, point cloud) are written first, the disparity map last, each to
-a temporary name renamed when complete; so a pair whose every output exists is
-complete, and one with only some is redone whole (``--resume`` skips complete
-pairs).  A failure or an interrupt while a pair is written removes the side
-files that write made -- beside an old disparity map too (``--force``), so
-the pair is then incomplete -- and an interrupted run leaves complete pairs
-only (a process killed outright can leave side files, which ``--resume``
-rewrites).  No output may be an input image of the batch, even with
-``--force`` or ``--resume``.
+labels, depth, point cloud) and the disparity map, each written to a
+temporary name renamed when complete.  A write first removes the pair's old
+disparity map and settings record (``--force``, or a pair ``--resume``
+redoes), then writes its settings record (:func:`batch_settings`, a hidden
+``.<map name>.mccnn.json`` beside the map), the side files, and the disparity
+map last; so a pair whose every output exists is complete and was made in
+one write, and one with only some is redone whole (``--resume`` skips
+complete pairs).  A process killed at any point of a write leaves the pair
+without its disparity map: incomplete.  ``--resume`` compares each complete
+pair's record with this run's settings and refuses, before any work, when
+some were made with other settings (or have no record) -- naming them and
+the settings that differ.  A failure or an interrupt while a pair is written
+removes the side files that write made, and an interrupted run leaves
+complete pairs only (a process killed outright can leave side files, which
+``--resume`` rewrites).  No output may be an input image of the batch, even
+with ``--force`` or ``--resume``.
+
+A full disk (ENOSPC), a read-only file system (EROFS) or an exhausted quota
+(EDQUOT) stops the whole batch at the first pair it hits, naming the file or
+folder (:class:`BatchStopped`, exit status 1): every later pair would fail the
+same way.  Progress: a tqdm bar on a terminal, else a line ``matching: k/N
+pairs, ... ETA ...`` on stderr every tenth of the batch and at least every
+30 s (:class:`Progress`).
 """
 
 from __future__ import annotations
 
+import errno
 import glob
+import hashlib
+import json
+import math
 import os
 import re
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 
@@ -44,6 +63,18 @@ from .errors import InputError, MccnnError
 
 #: left / right file stems of the im0/im1 layout (Middlebury, ETH3D)
 FOLDER_PAIR = ("im0", "im1")
+
+#: end of a pair's settings record, ``.<map name>.mccnn.json`` (:attr:`Job.record`)
+RECORD_SUFFIX = ".mccnn.json"
+
+#: errors of the file system that every later pair would meet too: they stop a batch
+STORAGE_ERRNOS = {errno.ENOSPC: "free some space", errno.EROFS: "write to a writable folder",
+                  errno.EDQUOT: "free some of your quota"}
+
+
+class BatchStopped(MccnnError):
+    """A batch stopped at its first pair that met a full disk, a read-only file
+    system or an exhausted quota (:data:`STORAGE_ERRNOS`)."""
 
 
 @dataclass
@@ -61,6 +92,13 @@ class Job:
     def outputs(self) -> list:
         return [*self.sides, self.out]
 
+    @property
+    def record(self) -> str:
+        """The pair's settings record (:func:`batch_settings`): a hidden
+        ``.<map name>.mccnn.json`` beside the disparity map, written before it."""
+        d, name = os.path.split(self.out)
+        return os.path.join(d, f".{name}{RECORD_SUFFIX}")
+
     def complete(self) -> bool:
         return all(os.path.isfile(p) for p in self.outputs)
 
@@ -70,23 +108,23 @@ class Job:
     def state(self) -> dict:
         """Each output's identity on disk (None: absent), taken before a write so
         that :meth:`remove_partial` knows which files that write made."""
-        return {p: _file_identity(p) for p in self.outputs}
+        return {p: _file_identity(p) for p in [*self.outputs, self.record]}
 
     def remove_partial(self, before=None) -> None:
         """After a failed or interrupted write: unless the disparity map was
-        written (then the pair is complete), delete the side files this write
-        made -- those whose identity differs from ``before`` (:meth:`state`
-        before the write; None: every side file, unless a disparity map exists).
-        Side files of an earlier run that were not rewritten stay; with one of
-        them rewritten and removed, the pair is incomplete and ``--resume``
-        redoes it, even when an old disparity map remains (``--force``)."""
+        written (then the pair is complete), delete the side files (and the
+        settings record) this write made -- those whose identity differs from
+        ``before`` (:meth:`state` before the write; None: every side file,
+        unless a disparity map exists).  Side files of an earlier run that were
+        not rewritten stay; the write removed the old disparity map first
+        (:func:`write_pair`), so the pair is incomplete and ``--resume`` redoes it."""
         if before is None:
             if os.path.exists(self.out):
                 return
             before = {}
         if os.path.exists(self.out) and _file_identity(self.out) != before.get(self.out):
             return  # written by this attempt: the pair is complete
-        for p in self.sides:
+        for p in [*self.sides, self.record]:
             if os.path.isfile(p) and _file_identity(p) != before.get(p):
                 os.unlink(p)
 
@@ -340,11 +378,13 @@ def make_jobs(args, calib=None):
     return jobs
 
 
-def plan_outputs(jobs, args):
+def plan_outputs(jobs, args, settings=None):
     """Jobs to run, and the complete ones ``--resume`` skips; refused before any
     work: an output that is an input image of any pair (even with
-    ``--force``/``--resume``), two outputs that are the same file, and existing
-    outputs without ``--resume``/``--force``."""
+    ``--force``/``--resume``), two outputs that are the same file, existing
+    outputs without ``--resume``/``--force``, and with ``--resume`` and
+    ``settings`` (:func:`batch_settings`) complete pairs whose record states
+    other settings, or none (:func:`check_resume`)."""
     from .cli.common import _check_outputs
     if not os.path.isdir(args.output_dir):
         try:
@@ -361,7 +401,119 @@ def plan_outputs(jobs, args):
             skipped.append(job)
             continue
         todo.append(job)
+    if args.resume and settings is not None:
+        check_resume(skipped, settings, args.output_dir)
     return todo, skipped
+
+
+# -- settings records ----------------------------------------------------------
+
+def _sha256_file(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def weights_digest(weights) -> str:
+    """sha256 of a network: its architecture, every array (shape and bytes) and
+    the stereo settings it carries -- what its disparity maps depend on."""
+    h = hashlib.sha256(str(weights.architecture).encode())
+    for w, b in [*weights.conv, *weights.fc]:
+        for a in (w, b):
+            a = np.ascontiguousarray(a)
+            h.update(f"{a.dtype.str}{a.shape}".encode())
+            h.update(a.tobytes())
+    h.update(json.dumps(weights.stereo, sort_keys=True, default=str).encode())
+    return h.hexdigest()
+
+
+def batch_settings(args, calib=None, weights=None) -> dict:
+    """What a batch's outputs depend on, as a JSON-able dict recorded with each
+    pair (:func:`write_record`): cost, network (sha256 of its arrays and
+    settings, and the name given), disparity range, volume storage, ``--set``
+    values, and with depth the calibration (sha256) and point-cloud encoding.
+    Not in it: the device, ``--memory-limit``, ``--workers`` (they do not
+    choose the result) and which side files are written (a missing one makes
+    the pair incomplete anyway)."""
+    from .cli.common import _hyperparameters
+    low, levels = batch_range(args, calib)
+    out = {"cost": args.cost,
+           "disparities": "auto" if levels == "auto" else f"{low}..{low + levels - 1}",
+           "volume_dtype": getattr(args, "volume_dtype", "float32") or "float32",
+           "set": json.loads(json.dumps(_hyperparameters(getattr(args, "hyper", []) or []),
+                                        sort_keys=True, default=str))}
+    if args.cost == "cnn" and weights is not None:
+        out["weights"] = f"sha256 {weights_digest(weights)[:16]} ({getattr(args, 'weights', None) or 'shipped'})"
+    if calib is not None and getattr(calib, "has_depth", False) and not getattr(args, "no_depth", False):
+        out["calib"] = f"sha256 {_sha256_file(args.calib)[:16]} ({os.path.basename(args.calib)})"
+        out["ply"] = "ascii" if getattr(args, "ply_ascii", False) else "binary"
+    return out
+
+
+def _same_settings(a, b) -> bool:
+    """Equal settings; a network or calibration counts by its sha256, not the name it was given by."""
+    def norm(s):
+        return {k: (v.split(" (")[0] if k in ("weights", "calib") and isinstance(v, str) else v)
+                for k, v in s.items()}
+    return norm(a) == norm(b)
+
+
+def write_record(job, settings) -> None:
+    """The pair's settings record (:attr:`Job.record`), atomically."""
+    from .atomic import atomic_write
+    from . import __version__
+    text = json.dumps({"settings": settings, "written_by": f"mccnn-cl {__version__}"}, indent=1, sort_keys=True)
+
+    def write(tmp):
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text + "\n")
+    atomic_write(job.record, write)
+
+
+def read_record(job):
+    """The settings in the pair's record; None when it has none or it cannot be read."""
+    try:
+        with open(job.record, encoding="utf-8") as f:
+            settings = json.load(f)["settings"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return settings if isinstance(settings, dict) else None
+
+
+def check_resume(complete, settings, output_dir) -> None:
+    """``--resume``: InputError before any work when complete pairs were made
+    with other settings than ``settings`` (or have no record of theirs): it
+    names them and what differs; the same settings, or ``--force``, go on."""
+    other, unknown, diffs = [], [], {}
+    for job in complete:
+        rec = read_record(job)
+        if rec is None:
+            unknown.append(job.name)
+        elif not _same_settings(rec, settings):
+            other.append(job.name)
+            for k in sorted(set(rec) | set(settings)):
+                if rec.get(k) != settings.get(k) and not _same_settings({k: rec.get(k)}, {k: settings.get(k)}):
+                    diffs.setdefault(k, (rec.get(k), settings.get(k)))
+    if not other and not unknown:
+        return
+
+    def names(items, n=6):
+        return ", ".join(items[:n]) + (f" ... and {len(items) - n} more" if len(items) > n else "")
+
+    def show(v):
+        return "none" if v is None else (json.dumps(v) if isinstance(v, dict) else str(v))
+    parts = []
+    if other:
+        what = "; ".join(f"{k} {show(a)} there, {show(b)} now" for k, (a, b) in diffs.items())
+        parts.append(f"{len(other)} complete pair(s) were made with other settings ({names(other)}: {what})")
+    if unknown:
+        parts.append(f"{len(unknown)} complete pair(s) have no record of their settings ({names(unknown)}; "
+                     "written by an earlier mccnn-cl or without one)")
+    raise InputError(f"--resume in {output_dir}: " + "; ".join(parts) + "; nothing was matched: rerun with the "
+                     "settings they were made with, or pass --force instead of --resume to redo every pair "
+                     "with these")
 
 
 def check_png_range(out, args, calib=None) -> None:
@@ -437,13 +589,21 @@ def done_line(job, result) -> str:
             f"{fin.mean():.1%} valid, {result.seconds:.2f} s")
 
 
-def write_pair(job, result, args, calib) -> None:
-    """Every output of ``job``: side files first, the disparity map last (each
-    atomic); on any failure or interrupt the pair's side files are removed."""
+def write_pair(job, result, args, calib, settings=None) -> None:
+    """Every output of ``job``: the old disparity map and settings record
+    removed first (so a write killed at any point leaves the pair incomplete),
+    then the record of ``settings`` (:func:`batch_settings`; none when None),
+    the side files, and the disparity map last (each atomic); on any failure
+    or interrupt the side files this write made are removed."""
     from .cli.common import _check_calib_size, _save_confidence, _save_outputs
     from .io import read_image
     before = job.state()
     try:
+        for p in (job.out, job.record):  # a rewrite (--force, or a pair --resume redoes)
+            if os.path.isfile(p):
+                os.unlink(p)
+        if settings is not None:
+            write_record(job, settings)
         left_img = read_image(job.left) if calib is not None else None  # point-cloud colours
         said = vars(args).setdefault("_calib_sizes_said", set())  # once per image size and run, not per pair
         if left_img is not None and left_img.shape[:2] not in said:
@@ -469,10 +629,143 @@ def describe_failure(exc) -> tuple:
     return f"{type(exc).__name__}: {msg}", False
 
 
+def _storage_error(exc):
+    """The OSError of :data:`STORAGE_ERRNOS` in ``exc`` or what caused it, else None."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in STORAGE_ERRNOS:
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _probe_folder(folder, nbytes=65536):
+    """The OSError of :data:`STORAGE_ERRNOS` that writing ``nbytes`` into
+    ``folder`` meets (a full disk, a read-only file system, a quota), else
+    None: asked after a write that failed without saying why (cv2 only
+    returns False).  ``nbytes``: at least what the failed file needed (the
+    write's own temporary file is gone by now, so a small probe could fit)."""
+    from .atomic import PREFIX
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f"{PREFIX}{os.getpid()}-", dir=folder)
+    except OSError as exc:
+        return exc if exc.errno in STORAGE_ERRNOS else None
+    try:
+        block, left = b"\0" * min(int(nbytes), 1 << 20), int(nbytes)
+        while left > 0:
+            left -= os.write(fd, block[:left])
+        os.fsync(fd)
+    except OSError as exc:
+        return exc if exc.errno in STORAGE_ERRNOS else None
+    finally:
+        os.close(fd)
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+    return None
+
+
+def storage_stop(exc, job, folder, writing=True, left=None, probe_bytes=65536):
+    """A :class:`BatchStopped` when ``exc`` (the failure of ``job``) is a full
+    disk, a read-only file system or an exhausted quota -- every later pair
+    would fail the same way -- naming the file (or ``folder``); None for a
+    failure of this pair only.  ``writing``: the failure came from writing
+    its outputs into ``folder`` (a failure that gives no reason is then
+    checked by writing ``probe_bytes``, :func:`_probe_folder`: give at least
+    the largest output's size, e.g. the float32 map's bytes); ``left``:
+    pairs left, said in the message."""
+    from .atomic import PREFIX
+    err = _storage_error(exc)
+    if err is None and writing:
+        err = _probe_folder(folder, probe_bytes)
+    if err is None:
+        return None
+    name = os.fsdecode(err.filename) if err.filename is not None else None
+    if name is not None and os.path.basename(name).startswith(PREFIX):
+        name = os.path.dirname(name) or "."  # a temporary file: its folder
+    if name is None and writing:
+        name = folder
+    where = f"{name}: " if name else ""
+    doing = f"writing pair {job.name}" if writing else f"matching pair {job.name}"
+    rest = f" with {left} pair(s) left" if left else ""
+    return BatchStopped(f"{where}{os.strerror(err.errno)} ({doing}): the batch stops here{rest}, as every "
+                        f"later pair would fail too; {STORAGE_ERRNOS[err.errno]} and run it again with --resume")
+
+
+def _probe_size(result) -> int:
+    """Bytes a probe write after a failed write of ``result``'s files needs: more
+    than any one of them (the float32 map's size and 64 KiB: a 16-bit PNG, an
+    8-bit colour picture with its legend, a PFM)."""
+    return (result.disparity.nbytes if result is not None else 0) + 65536
+
+
+class Progress:
+    """Progress of a batch: a tqdm bar on a terminal; elsewhere (a log, a pipe)
+    a line ``<desc>: k/N <unit>s, <elapsed> elapsed, ETA <left>`` on stderr,
+    flushed, every tenth of the total and at least every ``every_s`` seconds
+    (said when a pair ends), and at the end.  ``write`` prints a message
+    (stdout) without breaking the bar."""
+
+    def __init__(self, total, unit="pair", desc="matching", every_s=30.0, position=0, tty=None,
+                 clock=time.monotonic):
+        from .cli.common import _tty
+        self.total, self.unit, self.desc, self.every_s, self.clock = int(total), unit, desc, every_s, clock
+        self.n = 0
+        self.tty = _tty() if tty is None else tty
+        self.bar = None
+        if self.tty:
+            from tqdm import tqdm
+            self.bar = tqdm(total=self.total, unit=unit, desc=desc, position=position)
+        self.step = max(1, math.ceil(self.total / 10))
+        self.start = self.last = clock()
+
+    def update(self, n=1) -> None:
+        if self.bar is not None:
+            self.bar.update(n)
+            return
+        before, self.n = self.n, self.n + n
+        now = self.clock()
+        if (self.n >= self.total or self.n // self.step > before // self.step
+                or now - self.last >= self.every_s):
+            self.last = now
+            elapsed = now - self.start
+            line = f"{self.desc}: {self.n}/{self.total} {self.unit}s, {_interval(elapsed)} elapsed"
+            if self.n < self.total:
+                line += f", ETA {_interval(elapsed / self.n * (self.total - self.n))}" if self.n else ""
+            print(line, file=sys.stderr, flush=True)
+
+    def write(self, msg) -> None:
+        if self.bar is not None:
+            self.bar.write(msg)
+        else:
+            print(msg, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _interval(seconds) -> str:
+    s = int(round(seconds))
+    h, rest = divmod(s, 3600)
+    return f"{h}:{rest // 60:02d}:{rest % 60:02d}" if h else f"{rest // 60:02d}:{rest % 60:02d}"
+
+
 # -- the batch ------------------------------------------------------------------
 
 def prepare(args):
-    """Checks shared by the one-process and the Dask batch: (jobs to run, skipped, calib)."""
+    """Checks shared by the one-process and the Dask batch: (jobs to run,
+    skipped, calib, weights, settings) -- settings the record of every pair
+    written (:func:`batch_settings`), checked against the records of complete
+    pairs with ``--resume``."""
     if args.output is not None:
         raise InputError("-o is for one pair; a batch writes into --output-dir")
     if args.output_dir is None:
@@ -485,19 +778,20 @@ def prepare(args):
         raise InputError("in a batch, --confidence and --labels take no file name (maps go next to each output)")
     if args.resume and args.force:
         raise InputError("--resume keeps complete outputs and --force overwrites them: give one")
-    from .cli.common import _read_calibration
+    from .cli.common import _load_weights, _read_calibration
     calib = _read_calibration(args)
     jobs = make_jobs(args, calib)
-    todo, skipped = plan_outputs(jobs, args)
-    return todo, skipped, calib
+    weights = _load_weights(args)  # a bad weights file fails here, before any work
+    settings = batch_settings(args, calib, weights)
+    todo, skipped = plan_outputs(jobs, args, settings)
+    return todo, skipped, calib, weights, settings
 
 
 def run_batch(args) -> int:
     """``mccnn-cl match`` on a batch in this process (no ``--workers``/``--scheduler``)."""
-    from .cli.common import _load_weights, _make_matcher, _say
-    todo, skipped, calib = prepare(args)
+    from .cli.common import _make_matcher, _say
+    todo, skipped, calib, weights, settings = prepare(args)
     summary = Summary(skipped=[j.name for j in skipped])
-    weights = _load_weights(args)
     want = args.confidence is not None or args.labels is not None
     low, levels = batch_range(args, calib)
     matchers, ctx = {}, None
@@ -511,17 +805,24 @@ def run_batch(args) -> int:
             matchers[max_disp] = _make_matcher(args, max_disp, weights, ctx=ctx, min_disparity=low)
         return matchers[max_disp]
 
-    from tqdm import tqdm
-    with tqdm(total=len(todo), unit="pair", desc="matching", disable=None) as bar:
-        for job in todo:
+    with Progress(len(todo)) as bar:
+        for i, job in enumerate(todo):
+            writing, result = False, None
             try:
                 result = compute_pair(job, matcher_for, levels, want)
-                write_pair(job, result, args, calib)
+                writing = True
+                write_pair(job, result, args, calib, settings)
             except (KeyboardInterrupt, SystemExit):
                 raise
             except Exception as exc:  # noqa: BLE001 - reported per pair, the batch goes on
+                stop = storage_stop(exc, job, args.output_dir, writing, left=len(todo) - i - 1,
+                                    probe_bytes=_probe_size(result))
                 reason, bad_input = describe_failure(exc)
                 summary.failed.append((job.name, reason, bad_input))
+                if stop is not None:  # a full disk, a read-only file system, a quota: no later pair can be written
+                    bar.close()
+                    summary.report()
+                    raise stop from exc
                 bar.write(f"{job.name}: failed: {reason}")
             else:
                 summary.done.append(job.name)

@@ -38,7 +38,8 @@ import threading
 
 import numpy as np
 
-from .batch import Job, PairResult, Summary, batch_range, compute_pair, describe_failure, done_line, write_pair
+from .batch import (Job, PairResult, Progress, Summary, _probe_size, batch_range, compute_pair, describe_failure,
+                    done_line, storage_stop, write_pair)
 from .errors import InputError
 
 log = logging.getLogger(__name__)
@@ -195,8 +196,12 @@ def tile_task(config, job, max_disp, tile, tile_budget, want_confidence):
             d_cost = m.cost(I_L[e0:e1 + 2 * mg], I_R[e0:e1 + 2 * mg], D, out=m._take_volume(D, e1 - e0, W))
         else:  # the network on the tile's rows of the whole image's standardisation
             stats = (image_stats(I_L), image_stats(I_R))
+            # as StereoMatcher._tiled_volume_stages: no kept volume during the network's bands (the plan
+            # does not count one there), and no feature maps during the volume stages
+            m._pool.clear()
             host = m.cost.to_host(I_L[e0:e1 + 2 * mg], I_R[e0:e1 + 2 * mg], D, max_bytes=tile_budget,
                                   stats=stats)
+            m.cost.release_buffers()
             d_cost = m._take_volume(D, e1 - e0, W)
             ctx.cl.enqueue_copy(ctx.queue, d_cost, np.ascontiguousarray(host))
             del host
@@ -300,11 +305,10 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
     for job, exc in failed_early:
         yield job, exc
     bars = []
-    if progress:
-        from tqdm import tqdm
-        bars.append(tqdm(total=len(futures), unit="pair", desc="matching", disable=None))
+    if progress:  # a bar on a terminal, else a line now and then (mccnn_cl.batch.Progress)
+        bars.append(Progress(len(futures)))
         if tile_futures:
-            bars.append(tqdm(total=len(tile_futures), unit="tile", desc="tiles", disable=None, position=1))
+            bars.append(Progress(len(tile_futures), unit="tile", desc="tiles", position=1))
     done = set()
     try:
         for fut in as_completed(futures + tile_futures):
@@ -361,14 +365,15 @@ def run(args, single: bool) -> int:
         raise InputError("give --workers N (a cluster on this machine) or --scheduler ADDRESS, not both")
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
+    settings = None
     if single:
         if getattr(args, "resume", False):
             raise InputError("--resume is for batches")
         calib = _read_calibration(args)  # Middlebury 2001-2006: the range only, no depth (a note)
         todo, skipped = [_single_job(args, calib)], []
+        _load_weights(args)  # a bad weights file fails here, before any cluster starts
     else:
-        todo, skipped, calib = prepare(args)
-    _load_weights(args)  # a bad weights file fails here, before any cluster starts
+        todo, skipped, calib, _, settings = prepare(args)  # weights checked there
     limit = None
     if args.memory_limit is not None:
         if not args.memory_limit > 0:
@@ -379,6 +384,7 @@ def run(args, single: bool) -> int:
                             min_disparity=low, **_hyperparameters(args.hyper))
     want = args.confidence is not None or args.labels is not None
     summary = Summary(skipped=[j.name for j in skipped])
+    folder = os.path.dirname(os.path.abspath(todo[0].out)) if single and todo else args.output_dir
     if todo:
         from distributed import Client
         cluster = local_cluster(args.workers) if args.workers is not None else None
@@ -386,22 +392,30 @@ def run(args, single: bool) -> int:
             with Client(cluster if cluster is not None else args.scheduler) as client:
                 _say(f"dask: {n_workers(client)} workers ({'local' if cluster else args.scheduler}), "
                      f"{len(todo)} pair(s)" + (f", {len(skipped)} complete, skipped" if skipped else ""))
-                def failed(job, exc):  # as the one-process batch: this pair fails, the batch goes on
+                seen = 0
+
+                def failed(job, exc, result=None):  # as the one-process batch: this pair fails, the batch goes on ...
                     if single:
                         raise exc
                     reason, bad = describe_failure(exc)
                     summary.failed.append((job.name, reason, bad))
+                    stop = storage_stop(exc, job, folder, result is not None, left=len(todo) - seen,
+                                        probe_bytes=_probe_size(result))
+                    if stop is not None:  # ... unless no later pair can be written either (a full disk ...)
+                        summary.report()
+                        raise stop from exc
                     _say(f"{job.name}: failed: {reason}")
 
                 for job, outcome in match_pairs(client, todo, config, max_disp, want,
                                                  split_tiles=True if args.split_tiles else None, progress=True):
+                    seen += 1
                     if isinstance(outcome, BaseException):
                         failed(job, outcome)
                         continue
                     try:
-                        write_pair(job, outcome, args, calib)
+                        write_pair(job, outcome, args, calib, settings)
                     except Exception as exc:  # noqa: BLE001
-                        failed(job, exc)
+                        failed(job, exc, outcome)
                         continue
                     summary.done.append(job.name)
                     if args.verbose or single or outcome.auto is not None:  # an automatic range is always said

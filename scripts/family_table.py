@@ -7,7 +7,9 @@ with the authors' table ``mccnn_cl.settings.AUTHORS[(ARCH, DATASET)]`` instead (
 ``kitti-fst@mccnn-fst/mb``), and ``SPEC[@ARCH/DATASET]+KEY=VALUE,KEY=VALUE`` overrides single
 settings (e.g. ``general-fst+blur_sigma=3,cbca_iterations=2``).  Every (method, pair) result is appended to ``--out`` as one JSON line
 (the :func:`mccnn_cl.evaluation.scoring.evaluate_pair` record plus ``method``), and pairs already there are
-skipped, so an interrupted run continues where it stopped.  ``--summary`` prints the per-family
+skipped, so an interrupted run continues where it stopped: each record is one write, flushed and
+fsynced, and a last line left torn by a crash or a full disk is skipped with a warning (and cut off
+before the next record is appended).  ``--summary`` prints the per-family
 means of the records as a Markdown table (each family's metrics; seconds per pair).
 
     python scripts/family_table.py --data ../shared/data --pairs kitti2015/000000 'middlebury/Cloth*' \\
@@ -95,6 +97,49 @@ def _matcher(spec, D, ctx):
     return StereoMatcher(max_disparity=D, weights=weights, device=ctx, **extra)
 
 
+def read_records(path, repair=False):
+    """The records of a JSON-lines file.  A last line that does not parse (torn by a crash or a
+    full disk mid-write) is skipped with a warning on stderr; with ``repair`` it is also cut off
+    and the file made to end with a newline, so that the next record starts a line of its own.
+    An unreadable line before the last is an error naming the file and line (not a torn write)."""
+    with open(path, "rb") as f:
+        data = f.read()
+    chunks = data.split(b"\n")
+    lines = [c + b"\n" for c in chunks[:-1]] + ([chunks[-1]] if chunks[-1] else [])
+    recs, end = [], 0  # end: bytes of the whole, readable lines
+    for i, line in enumerate(lines, start=1):
+        if line.strip():
+            try:
+                recs.append(json.loads(line))
+            except ValueError as exc:
+                if i < len(lines):
+                    sys.exit(f"error: {path}, line {i}: not a JSON record ({exc}); only a last line "
+                             "torn by a crash is skipped")
+                print(f"warning: {path}, line {i}: the last record is unreadable ({len(line)} bytes, torn by "
+                      f"a crash or a full disk?): skipped" + (" and cut off" if repair else ""),
+                      file=sys.stderr, flush=True)
+                break
+        end += len(line)
+    if repair and (end != len(data) or (data and not data.endswith(b"\n"))):
+        with open(path, "r+b") as f:
+            f.truncate(end)
+            if end and not data[:end].endswith(b"\n"):
+                f.seek(end)
+                f.write(b"\n")  # a whole last record written without its newline
+            f.flush()
+            os.fsync(f.fileno())
+    return recs
+
+
+def append_record(path, rec) -> None:
+    """One record as one line: one write, flushed and fsynced."""
+    line = (json.dumps(rec, default=float) + "\n").encode()
+    with open(path, "ab") as f:
+        f.write(line)
+        f.flush()
+        os.fsync(f.fileno())
+
+
 def run(args):
     from mccnn_cl.opencl.context import ClContext
     from mccnn_cl.evaluation.datasets import discover
@@ -104,10 +149,8 @@ def run(args):
         sys.exit(f"error: no pair under {args.data} matches {args.pairs}")
     done = set()
     if os.path.exists(args.out):
-        with open(args.out) as f:
-            for line in f:
-                r = json.loads(line)
-                done.add((r["method"], r["pair"]))
+        for r in read_records(args.out, repair=True):
+            done.add((r["method"], r["pair"]))
     ctx = ClContext(args.device)
     reuse = CostReuse() if args.reuse_cost else None
     methods = [m.partition("=") for m in args.methods]
@@ -135,8 +178,7 @@ def run(args):
             if flag.get("reused"):
                 rec["cost_reused"] = True
             del rec["methods"]
-            with open(args.out, "a") as f:
-                f.write(json.dumps(rec, default=float) + "\n")
+            append_record(args.out, rec)
             print(f"{time.strftime('%H:%M:%S')} {label:<14} {ref.key:<36} D={D:<4} "
                   f"bad1 {res['bad1_all']:.2f} bad2 {res['bad2_all']:.2f} bad3 {res['bad3_all']:.2f} "
                   f"({res['seconds']:.1f} s, {time.time() - t0:.0f} s with loading)", flush=True)
@@ -146,10 +188,8 @@ def summary(paths, held_only_of=None, methods=None):
     from mccnn_cl.evaluation.scoring import FAMILY_METRICS
     recs = {}
     for path in paths:
-        with open(path) as f:
-            for line in f:
-                r = json.loads(line)
-                recs[(r["method"], r["pair"])] = r  # the last record of a (method, pair) wins
+        for r in read_records(path):
+            recs[(r["method"], r["pair"])] = r  # the last record of a (method, pair) wins
     order = methods or list(dict.fromkeys(m for m, _ in recs))
     fams = {}
     for (m, p), r in recs.items():

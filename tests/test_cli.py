@@ -353,3 +353,65 @@ def test_demo_with_shipped_weights(tmp_path):
     assert w == 2 * 718 + 6 and h > 2 * (24 + 496) + 12  # 2 x 2 tiles at 1x, captions, legend
     rc, _, se = run("demo", "-o", out)  # the picture exists now
     assert_one_line_error(rc, se, 2, "exists", "--force")
+
+
+# -- evaluate keeps what it did: a failing pair, an interrupt ------------------------------------
+
+def _scenes(root, names_widths):
+    """Middlebury-layout copies of tests/cones_eighth under root/NAME, cropped to WIDTH columns,
+    with calib.txt's ndisp as given: [(name, width, ndisp)]."""
+    from mccnn_cl.io import write_pfm
+    src = Path(__file__).resolve().parent / "cones_eighth"
+    for name, width, ndisp in names_widths:
+        d = root / name
+        d.mkdir(parents=True)
+        for n in ("im0.png", "im1.png"):
+            write_image(d / n, read_image(src / n)[:, :width])
+        write_pfm(d / "disp0GT.pfm", read_pfm(src / "disp0GT.pfm")[:, :width])
+        write_image(d / "mask0nocc.png", read_image(src / "mask0nocc.png", gray=True)[:, :width])
+        (d / "calib.txt").write_text(f"width={width}\nheight=188\nndisp={ndisp}\n")
+
+
+def test_evaluate_reports_a_failing_pair_and_keeps_the_others(tmp_path):
+    """A pair that cannot be matched (its range is wider than the image) is reported by name with
+    its reason, in the table and in --json; the other pairs are scored; the exit status is 2."""
+    _scenes(tmp_path, [("Narrow", 60, 80), ("Wide", 225, 32)])
+    rc, so, se = run("evaluate", tmp_path, "--cost", "census", "--baseline", "none", "--json")
+    assert rc == 2, se
+    doc = json.loads(so)  # the whole document, though a pair failed
+    assert [r["pair"] for r in doc["pairs"]] == ["middlebury/Wide"] and doc["pairs_total"] == 2
+    (f,) = doc["failed"]
+    assert f["pair"] == "middlebury/Narrow" and "width 60" in f["reason"] and f["bad_input"] is True
+    assert doc["complete"] is True
+    assert doc["mean"]["mccnn"]["bad2_all"] == doc["pairs"][0]["methods"]["mccnn"]["bad2_all"]
+    assert "middlebury/Narrow: failed:" in se and "1 of 2 pair(s) failed: middlebury/Narrow" in se
+    rc, so, se = run("evaluate", tmp_path, "--cost", "census", "--baseline", "none")
+    assert rc == 2, se
+    assert "middlebury/Wide" in so and "failed middlebury/Narrow: " in so
+    assert "INCOMPLETE: 1 of 2 pair(s) evaluated, 1 failed" in so
+
+
+def test_evaluate_interrupted_writes_what_it_did(tmp_path, monkeypatch, capsys):
+    """Ctrl-C during the second pair: the first pair's scores are printed (--json: the whole
+    document, "complete": false), then exit 130."""
+    import mccnn_cl.evaluation.scoring as scoring
+    from mccnn_cl.cli import main
+    _scenes(tmp_path, [("A", 120, 24), ("B", 120, 24), ("C", 120, 24)])
+    real, calls = scoring.evaluate_pair, []
+
+    def interrupted(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(scoring, "evaluate_pair", interrupted)
+    assert main(["evaluate", str(tmp_path), "--cost", "census", "--baseline", "none", "--json"]) == 130
+    cap = capsys.readouterr()
+    doc = json.loads(cap.out)
+    assert [r["pair"] for r in doc["pairs"]] == ["middlebury/A"] and doc["complete"] is False
+    assert doc["pairs_total"] == 3 and doc["failed"] == [] and "interrupted" in cap.err
+    calls.clear()
+    assert main(["evaluate", str(tmp_path), "--cost", "census", "--baseline", "none"]) == 130
+    out = capsys.readouterr().out
+    assert "middlebury/A" in out and "INCOMPLETE: 1 of 3 pair(s) evaluated, interrupted" in out

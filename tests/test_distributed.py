@@ -69,8 +69,13 @@ def glob_args(kitti):
     return ["-l", str(kitti / "image_2/*.png"), "-r", str(kitti / "image_3/*.png")]
 
 
+def listing(d):
+    """A folder's files, without the hidden settings records of batches (``.<map>.mccnn.json``)."""
+    return sorted(p for p in os.listdir(d) if not p.startswith("."))
+
+
 def files(d):
-    return {p: (d / p).read_bytes() for p in sorted(os.listdir(d))}
+    return {p: (d / p).read_bytes() for p in listing(d)}
 
 
 @pytest.fixture(scope="module")
@@ -162,7 +167,7 @@ def test_auto_range_per_pair(kitti, cluster, tmp_path, capsys):
     c = tmp_path / "c"
     assert main(args + ["--output-dir", str(c), "--format", "png"]) == 2
     so = capsys.readouterr().out
-    assert "failed shifted:" in so and "negative disparities" in so and os.listdir(c) == ["plain.png"]
+    assert "failed shifted:" in so and "negative disparities" in so and listing(c) == ["plain.png"]
     assert f"disparities {max(ranges['plain'][0], 0)}..{ranges['plain'][1]} (auto: " in so
     assert main(args + ["--output-dir", str(tmp_path / "d"), "--scheduler", cluster.scheduler.address,
                         "--split-tiles"]) == 2
@@ -189,7 +194,7 @@ def test_folder_layout(kitti, reference, cluster, tmp_path, capsys):
     assert main(["match", "--pairs-dir", str(root), "--output-dir", str(a), *COMMON]) == 0
     assert main(["match", "-l", str(root / "*/im0.png"), "-r", str(root / "*/im1.png"), "--output-dir", str(b),
                  "--scheduler", cluster.scheduler.address, *COMMON]) == 0
-    assert sorted(os.listdir(a)) == [f"S{f}.pfm" for f in FRAMES[:3]]
+    assert sorted(listing(a)) == [f"S{f}.pfm" for f in FRAMES[:3]]
     assert files(a) == files(b)
     for f in FRAMES[:3]:
         assert (a / f"S{f}.pfm").read_bytes() == (reference / f"{f}_10.pfm").read_bytes()
@@ -219,7 +224,7 @@ def test_failing_pairs_reported_others_written(kitti, reference, cluster, tmp_pa
     assert "done 2, skipped 0 (outputs complete), failed 2" in so
     assert "failed corrupt:" in so and "corrupt.png" in so
     assert "failed sizes:" in so and "differ" in so
-    assert sorted(os.listdir(out)) == [f"{f}.pfm" for f in FRAMES[:2]]
+    assert sorted(listing(out)) == [f"{f}.pfm" for f in FRAMES[:2]]
     for f in FRAMES[:2]:
         assert (out / f"{f}.pfm").read_bytes() == (reference / f"{f}_10.pfm").read_bytes()
 
@@ -231,11 +236,11 @@ def test_resume_writes_only_missing(kitti, reference, cluster, tmp_path, capsys,
     assert main(args) == 0
     # an interrupted run: pair 0 lost its disparity map (its side files remain), pair 1 everything
     os.unlink(out / f"{FRAMES[0]}_10.pfm")
-    for p in os.listdir(out):
+    for p in listing(out):
         if p.startswith(FRAMES[1]):
             os.unlink(out / p)
     os.utime(out / f"{FRAMES[0]}_10_color.png", (1, 1))
-    before = {p: os.stat(out / p).st_mtime_ns for p in os.listdir(out)}
+    before = {p: os.stat(out / p).st_mtime_ns for p in listing(out)}
     capsys.readouterr()
     assert main(args) == 2  # without --resume: refused, nothing overwritten
     assert "exists" in capsys.readouterr().err
@@ -243,7 +248,7 @@ def test_resume_writes_only_missing(kitti, reference, cluster, tmp_path, capsys,
     assert main(args + ["--resume"] + extra) == 0
     assert f"done 2, skipped {len(FRAMES) - 2}" in capsys.readouterr().out
     assert files(out) == files(reference)
-    after = {p: os.stat(out / p).st_mtime_ns for p in os.listdir(out)}
+    after = {p: os.stat(out / p).st_mtime_ns for p in listing(out)}
     rewritten = {p for p in after if before.get(p) != after[p]}
     assert rewritten == {p for p in after if p.startswith((FRAMES[0], FRAMES[1]))}
 
@@ -264,7 +269,7 @@ def test_interrupt_leaves_complete_pairs_only(kitti, reference, tmp_path, monkey
     out = tmp_path / "out"
     assert main(["match", *glob_args(kitti), "--output-dir", str(out), "--color", "--confidence", *COMMON]) == 130
     first = sorted(f"{FRAMES[0]}_10{s}" for s in (".pfm", "_color.png", "_confidence.pfm"))
-    assert sorted(os.listdir(out)) == first
+    assert sorted(listing(out)) == first
     monkeypatch.setattr(commands, "write_disparity", real)
     before = {p: os.stat(out / p).st_mtime_ns for p in first}
     capsys.readouterr()
@@ -365,6 +370,29 @@ def test_huge_image_split_network_cost(shared_data, cluster, tmp_path):
     _split_equals_tiled_run(job, cluster, "cnn", "kitti-fst", 200, tiles=2)
 
 
+def test_network_tile_tasks_stay_within_memory_limit(shared_data, tmp_path):
+    """A worker's network tile task (run here in-process, twice, as a worker runs
+    its tiles) keeps no volume through the network's bands and no feature maps
+    through the volume stages, as StereoMatcher's tiled call does: the device
+    peak stays within the memory limit on every task (before, the second task
+    held the first's kept volumes through its bands)."""
+    job = _tall_pair(shared_data, tmp_path, width=200)
+    config = dd.matcher_config(cost="cnn", weights="kitti-fst", memory_limit=None)
+    D = 64
+    m = dd._matcher(config, D)  # the in-process worker's matcher (built once, kept)
+    try:
+        L = _gray(read_image(job.left))
+        m.memory_limit = limit = _limit_for_tiles(m, L.shape, 3)
+        plan = dd.plan_task(config, L.shape, D)
+        assert plan["tiled"] and len(plan["tiles"]) >= 3
+        for tile in plan["tiles"][:3]:
+            m.ctx.memory.reset_peak()
+            dd.tile_task(config, job, D, tile, plan["tile_budget"], False)
+            assert m.ctx.memory.peak <= limit, (tile, m.ctx.memory.peak, limit)
+    finally:
+        dd._MATCHERS.pop(dd._key(config, D), None)
+
+
 def test_worker_devices(monkeypatch, capsys):
     """LocalCluster worker i takes device i of the preferred kind; --device pins every worker."""
     import mccnn_cl.opencl.context as cl
@@ -463,7 +491,7 @@ def test_pairing_question_marks_classes_and_single_files(kitti, reference, tmp_p
     f = FRAMES[0]
     assert main(["match", "-l", str(kitti / f"image_2/{f}_10.png"), "-r", str(kitti / f"image_3/{f}_10.png"),
                  "--output-dir", str(out), *COMMON]) == 0
-    assert os.listdir(out) == [f"{f}_10.pfm"]
+    assert listing(out) == [f"{f}_10.pfm"]
     assert (out / f"{f}_10.pfm").read_bytes() == (reference / f"{f}_10.pfm").read_bytes()
 
 
@@ -494,7 +522,7 @@ def test_calib_without_focal_length_gives_the_range(kitti, shared_data, cluster,
     cap = capsys.readouterr()
     assert "has no focal length/baseline" in cap.err and "ndisp=32" in cap.err
     assert "done 2, skipped 0" in cap.out
-    assert sorted(os.listdir(out)) == sorted(f"{n}{s}" for n in names for s in (".pfm", "_color.png"))
+    assert sorted(listing(out)) == sorted(f"{n}{s}" for n in names for s in (".pfm", "_color.png"))
     for i, n in enumerate(names):
         assert (out / f"{n}.pfm").read_bytes() == single[i].read_bytes()  # ndisp = 32 levels
     assert cap.out.count("384x288, 32 disparities") == 2  # --verbose: a line per pair
@@ -505,7 +533,7 @@ def test_calib_without_focal_length_gives_the_range(kitti, shared_data, cluster,
         assert main(["match", *pairs[0], "-o", str(one), "--cost", "census", "--calib", calib, *extra]) == 0
         assert "has no focal length/baseline" in capsys.readouterr().err
         assert one.read_bytes() == single[0].read_bytes()
-        assert sorted(os.listdir(tmp_path)) == ["in", "one.pfm", "out", "single0.pfm", "single1.pfm"]
+        assert sorted(listing(tmp_path)) == ["in", "one.pfm", "out", "single0.pfm", "single1.pfm"]
 
 
 def test_batch_says_once_when_calib_is_for_another_size(shared_data, tmp_path, capsys):
@@ -555,8 +583,11 @@ def test_remove_partial_removes_only_what_the_write_made(tmp_path):
 @pytest.mark.parametrize("where", ["one process", "cluster"])
 def test_failed_force_rewrite_leaves_pair_incomplete(kitti, reference, cluster, tmp_path, monkeypatch, capsys,
                                                      where):
-    """--force over complete pairs, one pair's rewrite failing before its disparity map: the side
-    files the rewrite made go though the old map remains, so --resume redoes that pair."""
+    """--force over complete pairs, one pair's rewrite failing before its disparity map: the
+    rewrite removed the old map (and record) first and the side files it made go, so nothing of
+    that pair remains and --resume redoes it."""
+    import errno
+
     import mccnn_cl.cli.common as common  # the writer batches call
     out = tmp_path / "out"
     args = ["match", *glob_args(kitti), "--output-dir", str(out), "--color", "--confidence", *COMMON]
@@ -565,18 +596,186 @@ def test_failed_force_rewrite_leaves_pair_incomplete(kitti, reference, cluster, 
 
     def failing(path, disp):
         if os.path.basename(path).startswith(FRAMES[0]):
-            raise OSError(28, "No space left on device")
+            raise OSError(errno.EIO, "Input/output error")  # this pair's only (a full disk stops the batch)
         real(path, disp)
 
     monkeypatch.setattr(common, "write_disparity", failing)
     extra = ["--scheduler", cluster.scheduler.address] if where == "cluster" else []
-    old_map = (out / f"{FRAMES[0]}_10.pfm").read_bytes()
     capsys.readouterr()
     assert main(args + ["--force", *extra]) == 1
     assert f"done {len(FRAMES) - 1}, skipped 0 (outputs complete), failed 1" in capsys.readouterr().out
-    assert sorted(p for p in os.listdir(out) if p.startswith(FRAMES[0])) == [f"{FRAMES[0]}_10.pfm"]
-    assert (out / f"{FRAMES[0]}_10.pfm").read_bytes() == old_map
+    assert [p for p in os.listdir(out) if FRAMES[0] in p] == []
     monkeypatch.setattr(common, "write_disparity", real)
     assert main(args + ["--resume", *extra]) == 0
     assert f"done 1, skipped {len(FRAMES) - 1}" in capsys.readouterr().out
     assert files(out) == {p: b for p, b in files(reference).items() if not p.endswith("_labels.png")}
+
+
+# -- crash safety: a killed --force, settings records, a full disk, progress in logs ------------
+
+def _two_pairs(kitti, root, frames=(0, 1)):
+    """root/l/{a,b}.png and root/r/{a,b}.png: copies of two frames' crops."""
+    for side, src in (("l", "image_2"), ("r", "image_3")):
+        (root / side).mkdir(parents=True, exist_ok=True)
+        for name, i in zip("ab", frames):
+            shutil.copyfile(kitti / src / f"{FRAMES[i]}_10.png", root / side / f"{name}.png")
+    return ["-l", str(root / "l"), "-r", str(root / "r")]
+
+
+#: runs `mccnn-cl ARGS` in a process that dies outright (no clean-up) when the disparity map of
+#: pair "a" is about to be written: after its side files, as a SIGKILL or a power cut can
+_DIE_BEFORE_MAP = """
+import os, sys
+import mccnn_cl.cli.common as common
+real = common.write_disparity
+def write(path, disp):
+    if os.path.basename(path).startswith("a."):
+        os._exit(9)
+    real(path, disp)
+common.write_disparity = write
+from mccnn_cl.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_force_killed_before_the_map_leaves_the_pair_incomplete(kitti, tmp_path, capsys):
+    """--force killed after a pair's new side files but before its map: the old map must not make
+    the pair look complete (old map + new side files); --resume redoes it, and the folder then equals
+    a fresh run's."""
+    io = ["--color", "--confidence", *COMMON]
+    pairs = _two_pairs(kitti, tmp_path / "in")
+    out = tmp_path / "out"
+    assert main(["match", *pairs, "--output-dir", str(out), *io]) == 0
+    _two_pairs(kitti, tmp_path / "in", frames=(2, 1))  # pair a's images change (new rectification, ...)
+    p = subprocess.run([sys.executable, "-c", _DIE_BEFORE_MAP, "match", *pairs, "--output-dir", str(out),
+                        "--force", *io], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 9, p.stderr
+    assert (out / "a_color.png").exists() and not (out / "a.pfm").exists()  # a is incomplete
+    capsys.readouterr()
+    assert main(["match", *pairs, "--output-dir", str(out), "--resume", *io]) == 0
+    assert "done 1, skipped 1" in capsys.readouterr().out
+    fresh = tmp_path / "fresh"
+    assert main(["match", *pairs, "--output-dir", str(fresh), *io]) == 0
+    assert files(out) == files(fresh)
+    assert (out / ".a.pfm.mccnn.json").read_bytes() == (fresh / ".a.pfm.mccnn.json").read_bytes()
+
+
+@pytest.mark.parametrize("where", ["one process", "cluster"])
+def test_resume_refuses_pairs_made_with_other_settings(kitti, reference, cluster, tmp_path, capsys, where):
+    """Each pair records its settings; --resume with other ones (here --max-disp) refuses before any
+    work, naming the pairs and what differs, instead of keeping maps of another range."""
+    import json
+
+    out = tmp_path / "out"
+    shutil.copytree(reference, out)
+    extra = ["--scheduler", cluster.scheduler.address] if where == "cluster" else []
+    io = ["--output-dir", str(out), "--color", "--confidence", "--labels", "--resume", *extra]
+    before = files(out)
+    capsys.readouterr()
+    rc = main(["match", *glob_args(kitti), *io, "--cost", "census", "--max-disp", str(D + 8)])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    rec = json.loads((out / f".{FRAMES[0]}_10.pfm.mccnn.json").read_text())["settings"]
+    assert rec["cost"] == "census" and rec["disparities"] == f"0..{D - 1}"
+    assert f"{len(FRAMES)} complete pair(s) were made with other settings" in err
+    assert f"disparities 0..{D - 1} there, 0..{D + 7} now" in err and "--force" in err and FRAMES[0] in err
+    assert files(out) == before
+    assert main(["match", *glob_args(kitti), *io, *COMMON]) == 0  # the same settings: every pair kept
+    assert f"done 0, skipped {len(FRAMES)}" in capsys.readouterr().out
+    os.unlink(out / f".{FRAMES[1]}_10.pfm.mccnn.json")  # a pair of an older mccnn-cl: settings unknown
+    assert main(["match", *glob_args(kitti), *io, *COMMON]) == 2
+    assert f"1 complete pair(s) have no record of their settings ({FRAMES[1]}_10" in capsys.readouterr().err
+    assert files(out) == before
+
+
+@pytest.mark.parametrize("where, code", [("one process", "ENOSPC"), ("one process", "EROFS"),
+                                         ("one process", "EDQUOT"), ("cluster", "ENOSPC")])
+def test_full_disk_stops_the_batch_naming_the_file(kitti, cluster, tmp_path, monkeypatch, capsys, where, code):
+    """A full disk, a read-only file system or a quota: the batch stops at the first pair, naming
+    the file, instead of matching every pair to fail it the same way."""
+    import errno
+
+    import mccnn_cl.cli.common as common
+    calls = []
+
+    def full(path, disp):
+        calls.append(path)
+        raise OSError(getattr(errno, code), os.strerror(getattr(errno, code)))
+
+    monkeypatch.setattr(common, "write_disparity", full)
+    out = tmp_path / "out"
+    extra = ["--scheduler", cluster.scheduler.address] if where == "cluster" else []
+    rc = main(["match", *glob_args(kitti), "--output-dir", str(out), "--color", *COMMON, *extra])
+    cap = capsys.readouterr()
+    assert rc == 1
+    assert len(calls) == 1, calls  # no later pair was written
+    name = os.path.basename(calls[0])[:-len(".pfm")]  # on a cluster: the pair done first
+    assert calls[0] == str(out / f"{name}.pfm")
+    assert f"{calls[0]}: {os.strerror(getattr(errno, code))} (writing pair {name}): the batch stops here" in cap.err
+    assert "--resume" in cap.err and "done 0, skipped 0 (outputs complete), failed 1" in cap.out
+    assert os.listdir(out) == []  # the pair's colour picture (and settings record) went with it
+
+
+def test_write_failing_without_a_reason_on_a_full_folder_stops_the_batch(kitti, tmp_path, monkeypatch, capsys):
+    """cv2 only returns False on a full disk: a small write into the folder (the probe) finds the
+    reason; on a folder with room the same failure is this pair's only."""
+    import errno
+    import types
+
+    import mccnn_cl.batch as batch
+    import mccnn_cl.cli.common as common
+
+    def failing(path, disp):
+        raise InputError(f"{path}: cv2 could not write the PNG")
+
+    monkeypatch.setattr(common, "write_disparity", failing)
+    pairs = _two_pairs(kitti, tmp_path / "in")
+    rc = main(["match", *pairs, "--output-dir", str(tmp_path / "roomy"), *COMMON])
+    assert rc == 2 and "done 0, skipped 0 (outputs complete), failed 2" in capsys.readouterr().out
+
+    def quota(**kwargs):
+        raise OSError(errno.EDQUOT, os.strerror(errno.EDQUOT), os.path.join(kwargs["dir"], ".mccnn-tmp-1-x"))
+
+    monkeypatch.setattr(batch, "tempfile", types.SimpleNamespace(mkstemp=quota), raising=False)
+    out = tmp_path / "full"
+    rc = main(["match", *pairs, "--output-dir", str(out), *COMMON])
+    cap = capsys.readouterr()
+    assert rc == 1 and "failed 1" in cap.out
+    assert f"{out}: {os.strerror(errno.EDQUOT)} (writing pair a): the batch stops here with 1 pair(s) left" in cap.err
+    # the failed write's temporary file is gone when the probe runs: it writes more than any output needed
+    asked = []
+    monkeypatch.setattr(batch, "_probe_folder", lambda folder, nbytes=0: asked.append(nbytes))
+    assert main(["match", *pairs, "--output-dir", str(tmp_path / "full2"), *COMMON]) == 2
+    h, w = read_image(tmp_path / "in/l/a.png").shape[:2]
+    assert len(asked) == 2 and min(asked) > h * w * 4  # > the float32 map, the largest output
+
+
+@pytest.mark.parametrize("where", ["one process", "cluster"])
+def test_progress_lines_when_not_a_terminal(kitti, cluster, tmp_path, capsys, where):
+    """Redirected (a log, a pipe), a batch says 'k/N pairs ... ETA' on stderr as pairs end."""
+    extra = ["--scheduler", cluster.scheduler.address] if where == "cluster" else []
+    assert main(["match", *glob_args(kitti), "--output-dir", str(tmp_path / "out"), *COMMON, *extra]) == 0
+    err = capsys.readouterr().err
+    n = len(FRAMES)
+    assert f"matching: 1/{n} pairs, " in err and ", ETA " in err
+    assert f"matching: {n}/{n} pairs, " in err
+
+
+def test_progress_lines_every_tenth_and_every_30_s():
+    from mccnn_cl.batch import Progress
+
+    now = [0.0]
+    import io
+    import contextlib
+    buf = io.StringIO()
+    with contextlib.redirect_stderr(buf):
+        p = Progress(100, tty=False, clock=lambda: now[0])
+        for i in range(100):
+            now[0] += 0.5 if i < 50 else 20.0  # 50 quick pairs, then slow ones
+            p.update(1)
+    lines = buf.getvalue().splitlines()
+    counts = [int(line.split()[1].split("/")[0]) for line in lines]
+    assert counts[:5] == [10, 20, 30, 40, 50]  # every tenth while quick
+    assert counts[5:7] == [52, 54]  # then at least every 30 s
+    assert counts[-1] == 100 and lines[-1].startswith("matching: 100/100 pairs") and "ETA" not in lines[-1]
+    assert lines[0] == "matching: 10/100 pairs, 00:05 elapsed, ETA 00:45"

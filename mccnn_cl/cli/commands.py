@@ -19,6 +19,7 @@ import argparse
 import json
 import math
 import os
+import sys
 import time
 
 import numpy as np
@@ -195,56 +196,96 @@ def cmd_evaluate(args):
         baselines.remove("census")
     weights = _load_weights(args)
     meta = weights.meta if weights is not None else None
+    from ..batch import describe_failure
+    from ..errors import OpenCLError
     from ..opencl.context import ClContext
-    results, matchers, census, ctx = [], {}, {}, None
+    results, failed, matchers, census, ctx = [], [], {}, {}, None
+    interrupted = False
     from tqdm import tqdm
     bar = tqdm(refs, unit="pair", desc="evaluating", disable=None if not args.json else True)
-    for ref in bar:
-        pair = ref.load()
-        if pair.disp is None:
-            bar.write(f"{pair.key}: no ground truth, skipped")
-            continue
-        stated_min, stated_levels = default_range(pair)  # the layout's range (calib.txt), else 0..227
-        if request == "auto":
-            key, min_disp, max_disp = "auto", 0, "auto"
-            _check_pair(pair.left, pair.right, 1, weights, (pair.key + " left", "right"))
-        else:
-            min_disp = stated_min if args.min_disp is None and args.disp_range is None else request[0]
-            max_disp = request[1] or stated_levels
-            key = (min_disp, max_disp)
-            _check_pair(pair.left, pair.right, max_disp, weights, (pair.key + " left", "right"),
-                        min_disparity=min_disp)
-        if key not in matchers:
-            if ctx is None:
-                ctx = ClContext(args.device)
-            matchers[key] = _make_matcher(args, max_disp, weights, ctx=ctx, min_disparity=min_disp)
-            if "census" in baselines:
-                census[key] = _make_matcher(argparse.Namespace(**{**vars(args), "cost": "census", "hyper": []}),
-                                            max_disp, None, ctx=ctx, min_disparity=min_disp)
-        status = training_status(meta, pair.key, pair.name) if weights is not None else "n/a"
-        base_min, base_levels = (stated_min, stated_levels) if request == "auto" else (min_disp, max_disp)
-        results.append(evaluate_pair(pair, matchers[key], base_levels,
-                                     baseline="sgbm" if "sgbm" in baselines else None,
-                                     fill=not args.no_fill, error_maps=args.error_maps, status=status,
-                                     min_disparity=base_min,
-                                     others={"census": census[key]} if "census" in baselines else None))
-    if not results:
+    try:
+        for ref in bar:
+            try:
+                pair = ref.load()
+                if pair.disp is None:
+                    bar.write(f"{pair.key}: no ground truth, skipped", file=sys.stderr)
+                    continue
+                stated_min, stated_levels = default_range(pair)  # the layout's range (calib.txt), else 0..227
+                if request == "auto":
+                    key, min_disp, max_disp = "auto", 0, "auto"
+                    _check_pair(pair.left, pair.right, 1, weights, (pair.key + " left", "right"))
+                else:
+                    min_disp = stated_min if args.min_disp is None and args.disp_range is None else request[0]
+                    max_disp = request[1] or stated_levels
+                    key = (min_disp, max_disp)
+                    _check_pair(pair.left, pair.right, max_disp, weights, (pair.key + " left", "right"),
+                                min_disparity=min_disp)
+                if key not in matchers:
+                    if ctx is None:
+                        ctx = ClContext(args.device)
+                    matchers[key] = _make_matcher(args, max_disp, weights, ctx=ctx, min_disparity=min_disp)
+                    if "census" in baselines:
+                        census[key] = _make_matcher(argparse.Namespace(**{**vars(args), "cost": "census", "hyper": []}),
+                                                    max_disp, None, ctx=ctx, min_disparity=min_disp)
+                status = training_status(meta, pair.key, pair.name) if weights is not None else "n/a"
+                base_min, base_levels = (stated_min, stated_levels) if request == "auto" else (min_disp, max_disp)
+                results.append(evaluate_pair(pair, matchers[key], base_levels,
+                                             baseline="sgbm" if "sgbm" in baselines else None,
+                                             fill=not args.no_fill, error_maps=args.error_maps, status=status,
+                                             min_disparity=base_min,
+                                             others={"census": census[key]} if "census" in baselines else None))
+            except (KeyboardInterrupt, SystemExit):
+                raise
+            except OpenCLError as exc:
+                if ctx is None:  # no device at all: no pair can run (said as before, exit 1)
+                    raise
+                _failed(failed, ref, exc, describe_failure, bar)
+            except Exception as exc:  # noqa: BLE001 - this pair fails, the others go on
+                _failed(failed, ref, exc, describe_failure, bar)
+    except KeyboardInterrupt:
+        interrupted = True  # what was done is written, marked incomplete, then exit 130
+    finally:
+        bar.close()
+    if not results and not failed and not interrupted:
         raise InputError("none of the pairs has ground truth")
     mean = mean_metrics(results)
+    complete = not interrupted
     if args.json:
         doc = {"cost": args.cost, "weights": _weights_label(args), "fill": not args.no_fill,
                "baselines": [b for b in baselines if b != "none"], "pairs": results, "mean": mean,
-               "families": family_means(results)}
+               "families": family_means(results), "failed": failed, "complete": complete,
+               "pairs_total": len(refs)}
         _say(json.dumps(_jsonable(doc), indent=2))
     else:
         who = f"MC-CNN ({_weights_label(args)})" if args.cost == "cnn" else "census cost + the MC-CNN stereo method"
         beside = " and ".join({"sgbm": "OpenCV SGBM", "census": "census (cens)"}[b] for b in baselines if b != "none")
         _say(f"{who}" + (f" beside {beside}" if beside else "") + "; errors in % of GT pixels, "
              + ("holes filled as the KITTI devkit does" if not args.no_fill else "holes counted as errors"))
-        _say(format_family_tables(results))
+        if results:
+            _say(format_family_tables(results))
+        for f in failed:
+            _say(f"failed {f['pair']}: {f['reason']}")
+        if failed or interrupted:
+            _say(f"INCOMPLETE: {len(results)} of {len(refs)} pair(s) evaluated"
+                 + (f", {len(failed)} failed" if failed else "")
+                 + (", interrupted" if interrupted else "") + "; the means cover the evaluated pairs only")
         _say("training: whether the weights' metadata lists the pair as a training pair "
              "(held out = not used); n/a for --cost census")
+    if interrupted:
+        print("mccnn-cl: interrupted", file=sys.stderr, flush=True)
+        return 130
+    if failed:
+        print(f"mccnn-cl: error: {len(failed)} of {len(refs)} pair(s) failed: "
+              + ", ".join(f["pair"] for f in failed), file=sys.stderr, flush=True)
+        return 2 if all(f["bad_input"] for f in failed) else 1
     return 0
+
+
+def _failed(failed, ref, exc, describe_failure, bar):
+    """A pair that failed: recorded (``pair``, ``reason``, ``bad_input``) and said on stderr."""
+    reason, bad_input = describe_failure(exc)
+    failed.append({"pair": ref.key, "reason": reason, "bad_input": bad_input})
+    bar.write(f"{ref.key}: failed: {reason}", file=sys.stderr)
 
 
 def _weights_label(args):

@@ -317,6 +317,19 @@ def _confidence_outputs(out, args):
     return paths
 
 
+def _writing(path, write, *args) -> None:
+    """``write(*args)``, an OSError of it naming ``path`` (the file being written) when it
+    names no file or only the writer's temporary file: so that a full disk or a read-only
+    folder says which output it stopped (:func:`mccnn_cl.batch.storage_stop`)."""
+    from ..atomic import PREFIX
+    try:
+        write(*args)
+    except OSError as exc:
+        if exc.filename is None or os.path.basename(os.fsdecode(exc.filename)).startswith(PREFIX):
+            exc.filename = os.fspath(path)
+        raise
+
+
 def _save_confidence(out, res, args):
     """--confidence: .pfm / .npy float32 in [0, 1], .png 16-bit round(c * 65535);
     --labels: 0 correct, 1 mismatch, 2 occlusion as 8-bit .png or int32 .npy."""
@@ -330,18 +343,18 @@ def _save_confidence(out, res, args):
             continue
         ext = os.path.splitext(path)[1].lower()
         if ext == ".pfm":
-            write_pfm(path, a.astype(np.float32))
+            _writing(path, write_pfm, path, a.astype(np.float32))
         elif ext == ".npy":
-            atomic_write(path, lambda tmp, a=a: np.save(tmp, a))
+            _writing(path, atomic_write, path, lambda tmp, a=a: np.save(tmp, a))
         elif a is res.labels:
-            write_image(path, a.astype(np.uint8))
+            _writing(path, write_image, path, a.astype(np.uint8))
         else:
             raw = np.round(np.clip(a, 0, 1) * 65535.0).astype(np.uint16)
 
             def write(tmp, raw=raw, path=path):
                 if not cv2.imwrite(tmp, raw):
                     raise InputError(f"{path}: cv2 could not write the PNG")
-            atomic_write(path, write)
+            _writing(path, atomic_write, path, write)
 
 
 def _tty() -> bool:
@@ -368,10 +381,10 @@ def _save_outputs(out, disp, left_img, args, calib, disparity_range):
         fin = disp[np.isfinite(disp)]
         vmax = min(float(fin.max()), hi) if fin.size else hi
         vmin = 0 if lo >= 0 else (max(float(fin.min()), lo) if fin.size else lo)
-        write_image(color, colorize_with_legend(disp, vmin, max(vmax, vmin + 1.0)))
+        _writing(color, write_image, color, colorize_with_legend(disp, vmin, max(vmax, vmin + 1.0)))
     if calib is not None and calib.has_depth:
         from ..depth import disparity_to_depth, point_cloud, write_ply
-        _write_depth(depth_path, disparity_to_depth(disp, calib))
+        _writing(depth_path, _write_depth, depth_path, disparity_to_depth(disp, calib))
         pts, rgb = point_cloud(disp, calib, left_img)
-        write_ply(ply, pts, rgb, binary=not args.ply_ascii)
-    write_disparity(out, disp)  # last: a pair whose disparity file exists is complete (mccnn_cl.batch)
+        _writing(ply, write_ply, ply, pts, rgb, not args.ply_ascii)
+    _writing(out, write_disparity, out, disp)  # last: a pair whose disparity file exists is complete (mccnn_cl.batch)
