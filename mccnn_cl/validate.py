@@ -90,19 +90,27 @@ def check_pair(left, right, max_disparity: int, patch: int = PATCH, names=("left
     looked at); ``patch``: the matching cost's patch side (see :func:`patch_size`);
     ``names``: what to call the two images in the messages (file names);
     ``min_disparity``: M, the range being M .. M + max_disparity - 1.  With
-    M = 0 the range must be smaller than the image width (disparities 0 .. D-1
-    need a right pixel x - d); with M != 0 the method works on a frame
-    W - M wide (:mod:`mccnn_cl.disprange`) and the one rule is
-    :func:`mccnn_cl.disprange.check_range` (some pixel must have a match).
+    M >= 0 the range must be smaller than the image width (disparities 0 .. D-1
+    need a right pixel x - d); with M < 0 the method works on a frame
+    W - M wide (:mod:`mccnn_cl.disprange`), so D may exceed W, but the largest
+    disparity M + D - 1 must stay below W - 1; with M != 0
+    :func:`mccnn_cl.disprange.check_range` also holds (some pixel must have a match).
     ``range_name``: how the caller gave the range, for the message (default
     "max_disparity, --max-disp")."""
     h, w = _same_size(left, right, names)
     patch = max(int(patch), PATCH)
     if h < patch or w < patch:
         raise InputError(f"image {w}x{h} is smaller than the {patch}x{patch} patch the matching cost needs")
-    if not min_disparity and max_disparity >= w:
+    if min_disparity >= 0 and max_disparity >= w:
         raise InputError(f"disparity range {max_disparity} ({range_name or 'max_disparity, --max-disp'}) is not "
                          f"smaller than the image width {w}")
+    top = min_disparity + max_disparity - 1
+    if min_disparity < 0 and top >= w - 1:
+        # the working frame is W - M wide, so D may exceed W; levels d >= W - 1 would match no pixel (as
+        # D >= W does from 0)
+        raise InputError(f"disparities {min_disparity}..{top} ({range_name or '--min-disp, --max-disp'}) reach "
+                         f"the image width {w}: no pixel has a match at {w - 1} or more; the largest must be "
+                         f"below {w - 1}")
     if min_disparity:
         from .disprange import check_range
         check_range(min_disparity, max_disparity, w, patch)

@@ -63,13 +63,18 @@ def test_check_pair():
 
 
 def test_check_pair_range_from_a_nonzero_minimum():
-    """D < W applies to a range from 0 only: from M != 0 the method works on a
-    W - M wide frame and disprange.check_range is the rule (a 250-level range
-    from -150 on a 225-px image was refused); the message names the range as
-    the caller gave it."""
+    """D < W applies to ranges from M >= 0 only: from M < 0 the method works on a
+    W - M wide frame, so D may exceed W (a 250-level range from -150 on a 225-px
+    image was refused), but the largest disparity must stay below W - 1 (no
+    pixel matches beyond, as with D >= W from 0); disprange.check_range holds
+    too; the message names the range as the caller gave it."""
     a = np.zeros((40, 225))
     check_pair(a, a, 250, 9, min_disparity=-150)
-    check_pair(a, a, 239, 9, min_disparity=2)
+    check_pair(a, a, 254, 9, min_disparity=-30)  # -30 .. 223
+    with pytest.raises(InputError, match=r"disparities -30\.\.224 \(--min-disp, --max-disp\) reach the image width 225"):
+        check_pair(a, a, 255, 9, min_disparity=-30)
+    with pytest.raises(InputError, match="is not smaller than the image width 225"):
+        check_pair(a, a, 239, 9, min_disparity=2)
     with pytest.raises(InputError, match="leave no pixel a match"):
         check_pair(a, a, 100, 9, min_disparity=-400)
     with pytest.raises(InputError, match=r"disparity range 225 \(disparity_range=\(0, 224\)\) is not smaller"):
