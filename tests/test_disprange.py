@@ -354,7 +354,10 @@ def test_bad_ranges_api(ctx):
     with pytest.raises(InputError, match="smaller than the maximum"):
         m.compute(left, left, disparity_range=(5, 5))
     with pytest.raises(InputError, match="not smaller than the image width"):
-        m.compute(left, left, disparity_range=(-30, 30))
+        m.compute(left, left, disparity_range=(0, 50))
+    m.compute(left, left, disparity_range=(-30, 30))  # 61 levels on a 50-px image: the working frame is 80 wide
+    with pytest.raises(InputError, match="reach the image width 50"):
+        m.compute(left, left, disparity_range=(-30, 49))
     with pytest.raises(InputError, match="leave no pixel a match"):
         StereoMatcher(cost="census", max_disparity=5, min_disparity=45, device=ctx).compute(left, left)
     with pytest.raises(InputError, match="leave no pixel a match"):
@@ -374,7 +377,7 @@ def _cli(*args, cwd):
 
 @pytest.mark.parametrize("args,message", [
     (["--disp-range=10:5"], "minimum must be smaller"),
-    (["--min-disp", "-10", "--max-disp", "300"], "not smaller than the image width"),
+    (["--min-disp", "-10", "--max-disp", "300"], "reach the image width 225"),
     (["--min-disp", "300", "--max-disp", "10"], "leave no pixel a match"),
     (["--disp-range", "auto", "--max-disp", "10"], "drop --max-disp"),
     (["--disp-range", "wide"], "expects 'auto' or MIN:MAX"),
