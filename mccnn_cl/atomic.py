@@ -105,3 +105,85 @@ def atomic_write(path, write_fn) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def atomic_write_bytes(path, data: bytes) -> None:
+    """``data`` at ``path``, whole or not at all (:func:`atomic_write`)."""
+    def write(tmp):
+        with open(tmp, "wb") as f:
+            f.write(data)
+    atomic_write(path, write)
+
+
+#: Locks this process holds (:func:`exclusive_lock`): real path -> [fd, depth].
+_HELD: dict = {}
+
+
+def lock_holder(path) -> str:
+    """The line the holder of the lock file ``path`` wrote into it (its pid, host
+    and start time), "" when there is none or it cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(300).decode("utf-8", "replace").strip()
+    except OSError:
+        return ""
+
+
+class exclusive_lock:
+    """Context manager: hold an exclusive ``flock`` on the file ``path`` (created
+    if missing) while open, without waiting.  When another process holds it,
+    raises :class:`~mccnn_cl.errors.InputError` with ``busy`` formatted with
+    ``holder`` (the line that process wrote into the file: ``pid N on HOST,
+    since TIME``) and ``path``.  Re-entrant within one process (a nested use of
+    the same path is free; the lock goes with the outermost).  The kernel
+    releases the lock when its holder exits, killed or not; the file stays
+    (deleting it would let a third process lock a new file while a second
+    holds the old one)."""
+
+    def __init__(self, path, busy: str = "{path} is locked by another process ({holder})"):
+        self.path = os.fspath(path)
+        self.busy = busy
+        self._key = None
+
+    def __enter__(self):
+        import fcntl
+        import socket
+        import time
+
+        key = os.path.realpath(self.path)
+        if key in _HELD:
+            _HELD[key][1] += 1
+            self._key = key
+            return self.path
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise InputError(f"cannot create the lock file {self.path}: {exc.strerror or exc}") from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise InputError(self.busy.format(holder=lock_holder(self.path) or "holder unknown",
+                                              path=self.path)) from None
+        except OSError as exc:  # a file system without locks: say so rather than run unprotected
+            os.close(fd)
+            raise InputError(f"cannot lock {self.path}: {exc.strerror or exc}") from exc
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()}, since "
+                          f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode(), 0)
+        except OSError:
+            pass
+        _HELD[key] = [fd, 1]
+        self._key = key
+        return self.path
+
+    def __exit__(self, *exc):
+        held = _HELD.get(self._key)
+        if held is not None:
+            held[1] -= 1
+            if held[1] == 0:
+                del _HELD[self._key]
+                os.close(held[0])  # releases the lock
+        self._key = None
+        return False

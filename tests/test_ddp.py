@@ -95,6 +95,32 @@ def _worker(data: Path, out: Path) -> None:
                 shutil.copy(d / "checkpoint.pt", d / "mid.pt")
             res = train(cfg, [pair], [], device, d, log=lambda *a: None, resume=d / "checkpoint.pt")
         torch.save(res["model"].state_dict(), d / f"rank{rank}.pt")
+    # Interrupted: rank 1 alone gets SIGTERM during step 1 of 2; the ranks agree on it at that step's
+    # all-reduce, rank 0 writes the mid-epoch checkpoint, both raise TrainingInterrupted; resumed, the
+    # run equals "resume-full".
+    import signal
+
+    import mccnn_cl.train.train as T
+    d = out / "interrupt"
+    d.mkdir(parents=True, exist_ok=True)
+    real, fired = T.crop_loss, []
+
+    def hooked(*a, **k):
+        if rank == 1 and not fired:
+            fired.append(1)
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real(*a, **k)
+    T.crop_loss = hooked
+    stopped = None
+    try:
+        train(cfg, [pair], [], device, d, log=lambda *a: None)
+    except T.TrainingInterrupted as exc:
+        stopped = [exc.signum, exc.epoch, exc.step, exc.code]
+    finally:
+        T.crop_loss = real
+    (d / f"stopped{rank}.json").write_text(json.dumps(stopped))
+    res = train(cfg, [pair], [], device, d, log=lambda *a: None, resume=d / "checkpoint.pt")
+    torch.save(res["model"].state_dict(), d / f"rank{rank}.pt")
     assert main(["--data", str(data / "middlebury"), "--crops-per-step", str(CROPS), "--out", str(out / "cli"),
                  *CLI_ARGS]) == 0
     if created:
@@ -216,6 +242,7 @@ def test_cli_under_torchrun(ddp_out, shared_data, tmp_path):
     t = w.meta["training"]
     assert t["processes"] == WORLD and t["command"].startswith(f"torchrun --nproc_per_node={WORLD} -m")
     assert json.loads((ddp_out / "cli" / "run.json").read_text())["processes"] == WORLD
+    assert [(p["processes"], p["steps"]) for p in t["parts"]] == [(WORLD, [0, 1])]
     assert main(["--data", str(shared_data / "middlebury"), "--crops-per-step", str(CROPS * WORLD),
                  "--out", str(tmp_path / "one"), *CLI_ARGS]) == 0
     one = Weights.load(tmp_path / "one" / "weights.npz")
@@ -223,6 +250,32 @@ def test_cli_under_torchrun(ddp_out, shared_data, tmp_path):
     a, b = MCCNN.from_weights(w).state_dict(), MCCNN.from_weights(one).state_dict()
     cfg = TrainConfig(arch="fst", conv_layers=[[8, 3]] * 3, fc_layers=[], seed=0)
     assert _max_rel_diff(a, b, _init_state(cfg)) < TOL
+
+
+def test_ddp_signal_stops_every_rank_after_the_same_step(ddp_out):
+    """SIGTERM to one rank only: both ranks stop after the same step (agreed in the step's
+    all-reduce) with the mid-epoch checkpoint, and the resumed run is bit-identical to the
+    uninterrupted one."""
+    d = ddp_out / "interrupt"
+    for r in range(WORLD):
+        assert json.loads((d / f"stopped{r}.json").read_text()) == [15, 1, 1, 143], r
+        full = torch.load(ddp_out / "resume-full" / f"rank{r}.pt")
+        resumed = torch.load(d / f"rank{r}.pt")
+        for k, v in full.items():
+            assert torch.equal(v, resumed[k]), (r, k)
+
+
+def test_resume_with_another_process_count_warns(ddp_out, shared_data, tmp_path, capsys):
+    """The torchrun CLI run's end-of-epoch checkpoint continued by one process: allowed, with a
+    warning naming both process counts, and each part's processes in the provenance."""
+    capsys.readouterr()
+    assert main(["--data", str(shared_data / "middlebury"), "--crops-per-step", str(CROPS), "--out",
+                 str(tmp_path / "one"), *CLI_ARGS, "--epochs", "2", "--resume",
+                 str(ddp_out / "cli" / "checkpoint.pt")]) == 0
+    warn = [s for s in capsys.readouterr().out.splitlines() if s.startswith("warning: resuming")]
+    assert warn and f"processes {WORLD} -> 1" in warn[0] and "epochs 1 -> 2" in warn[0]
+    t = Weights.load(tmp_path / "one" / "weights.npz").meta["training"]
+    assert [(p["processes"], p["steps"]) for p in t["parts"]] == [(WORLD, [0, 1]), (1, [1, 2])]
 
 
 if __name__ == "__main__" and sys.argv[1:2] == ["--worker"]:

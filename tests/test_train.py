@@ -475,3 +475,318 @@ def test_select_pairs_skips_unlabeled(shared_data, tmp_path):
     train_refs, held = select_pairs([shared_data / "middlebury", tmp_path], holdout=["middlebury/Cloth*"])
     assert [r.key for r in held] == [f"middlebury/Cloth{i}" for i in range(1, 5)]
     assert len(train_refs) == 20 and not any(r.kind == "eth3d" for r in train_refs)
+
+
+# -- crash safety of a run: folder, lock, signals, resume checks, logs --------------------------
+
+#: a tiny fst crop run (2 epochs of 6 steps: a few seconds), the data given separately
+TINY = ["--arch", "fst", "--sampler", "crop", "--epochs", "2", "--steps-per-epoch", "6", "--crop", "15", "15",
+        "--spread", "12", "--conv", json.dumps([[8, 3]] * 3), "--augment", "--subpixel", "--val-pixels", "100",
+        "--val-examples", "200", "--threads", "1", "--no-progress", "--lr-steps", "0.5", "0.8"]
+
+#: runs the command line in a subprocess with a real signal sent to itself during step N of the run
+#: (argv: N, signal name, the command's arguments)
+SIGNAL_AT_STEP = r"""
+import os, signal, sys
+import mccnn_cl.train.train as T
+at, sig = int(sys.argv[1]), getattr(signal, sys.argv[2])
+n = [0]
+crop_loss = T.crop_loss
+def hooked(*a, **k):
+    n[0] += 1
+    if n[0] == at:
+        os.kill(os.getpid(), sig)
+    return crop_loss(*a, **k)
+T.crop_loss = hooked
+sys.exit(T.main(sys.argv[3:]))
+"""
+
+
+def _tiny(shared_data, out, *extra, include="middlebury/Tsukuba", holdout=("middlebury/Venus",)):
+    return ["--data", str(shared_data / "middlebury"), "--include", include, "--holdout", *holdout,
+            *TINY, "--out", str(out), *extra]
+
+
+def _signalled(at: int, sig: str, argv, log_path):
+    """The command line in a subprocess, signal ``sig`` sent to itself during step ``at``; stdout and
+    stderr into ``log_path`` (a file, as with ``nohup ... > log``)."""
+    import subprocess
+    import sys
+    env = {**__import__("os").environ, "OMP_NUM_THREADS": "1"}
+    env.pop("PYTHONUNBUFFERED", None)  # as in a plain shell: stdout to a file is block-buffered
+    log = open(log_path, "w")
+    return subprocess.Popen([sys.executable, "-c", SIGNAL_AT_STEP, str(at), sig, *argv], stdout=log,
+                            stderr=subprocess.STDOUT, env=env), log
+
+
+def _wait_stopped(proc, timeout=120.0):
+    import time
+    t = time.time()
+    while time.time() - t < timeout:
+        assert proc.poll() is None, "the run ended before it stopped itself"
+        with open(f"/proc/{proc.pid}/stat") as f:
+            if f.read().rsplit(")", 1)[1].split()[0] == "T":
+                return
+        time.sleep(0.05)
+    raise AssertionError("the run did not stop itself")
+
+
+def _same_weights(a, b) -> bool:
+    wa, wb = Weights.load(a), Weights.load(b)
+    return all(np.array_equal(x, y) for (w1, b1), (w2, b2) in zip(wa.conv, wb.conv) for x, y in ((w1, w2), (b1, b2)))
+
+
+@pytest.fixture(scope="module")
+def tiny_uninterrupted(shared_data, tmp_path_factory):
+    """The tiny run without interruption (in this process: the same single-threaded arithmetic)."""
+    out = tmp_path_factory.mktemp("tiny") / "full"
+    n = torch.get_num_threads()
+    try:
+        assert main(_tiny(shared_data, out)) == 0
+    finally:
+        torch.set_num_threads(n)
+    return out
+
+
+@pytest.mark.parametrize("at,sig,code,where", [(4, "SIGTERM", 143, "epoch 1 step 4/6"),
+                                               (6, "SIGINT", 130, "epoch 1 step 6/6")])
+def test_signal_saves_a_checkpoint_and_resume_is_bit_identical(at, sig, code, where, shared_data, tmp_path,
+                                                               tiny_uninterrupted, capsys):
+    """SIGTERM / Ctrl-C between steps (mid-epoch; at an epoch's last step, saved at its end): the
+    checkpoint is written, one line says where and how to resume, the exit status is 128 + signal,
+    and the resumed run equals the uninterrupted one bit for bit."""
+    out = tmp_path / "run"
+    proc, log = _signalled(at, sig, _tiny(shared_data, out), tmp_path / "log.txt")
+    assert proc.wait(timeout=300) == code
+    log.close()
+    text = (tmp_path / "log.txt").read_text()
+    assert "Traceback" not in text
+    last = text.strip().splitlines()[-1]
+    assert last.startswith(f"interrupted ({sig}) at {where}; saved {out / 'checkpoint.pt'}"), text
+    assert f"--resume {out / 'checkpoint.pt'}" in last
+    assert not (out / "weights.npz").exists()
+    assert main(_tiny(shared_data, out, "--resume", str(out / "checkpoint.pt"))) == 0
+    assert "warning" not in capsys.readouterr().out
+    assert _same_weights(out / "weights.npz", tiny_uninterrupted / "weights.npz")
+    h, ref = (json.loads((d / "history.json").read_text()) for d in (out, tiny_uninterrupted))
+    assert [e["train_loss"] for e in h] == [e["train_loss"] for e in ref]
+    t = Weights.load(out / "weights.npz").meta["training"]
+    assert t["examples"] == Weights.load(tiny_uninterrupted / "weights.npz").meta["training"]["examples"]
+
+
+def test_log_lines_reach_a_redirected_log_at_once(shared_data, tmp_path):
+    """stdout to a file (nohup ... > log.txt): each line is there when written, with an ETA; run.json
+    has eta_s.  The run stops itself (SIGSTOP) in its second epoch: the first epoch's line must be in
+    the file by then."""
+    import signal
+    out = tmp_path / "run"
+    proc, log = _signalled(9, "SIGSTOP", _tiny(shared_data, out), tmp_path / "log.txt")
+    try:
+        _wait_stopped(proc)
+        lines = (tmp_path / "log.txt").read_text().splitlines()
+        epoch1 = [json.loads(s) for s in lines if s.startswith('{"epoch": 1,')]
+        assert epoch1 and isinstance(epoch1[0]["eta_s"], float) and epoch1[0]["eta_s"] > 0, lines
+        run = json.loads((out / "run.json").read_text())
+        assert run["step"] == 6 and run["eta_s"] > 0
+    finally:
+        proc.send_signal(signal.SIGCONT)
+        assert proc.wait(timeout=300) == 0
+        log.close()
+    assert json.loads((out / "run.json").read_text())["eta_s"] == 0
+
+
+def test_second_run_on_a_busy_folder_is_refused(shared_data, tmp_path, capsys):
+    """While one run trains in a folder (it holds OUT/.lock), a second run there is refused at once,
+    naming the first one's pid; the first then finishes untouched."""
+    import signal
+    out = tmp_path / "run"
+    proc, log = _signalled(3, "SIGSTOP", _tiny(shared_data, out), tmp_path / "log.txt")
+    try:
+        _wait_stopped(proc)
+        capsys.readouterr()
+        assert main(_tiny(shared_data, out)) == 2
+        err = capsys.readouterr().err
+        assert f"another training run is using {out} (pid {proc.pid} on" in err and err.count("\n") == 1, err
+    finally:
+        proc.send_signal(signal.SIGCONT)
+        assert proc.wait(timeout=300) == 0
+        log.close()
+    assert Weights.load(out / "weights.npz").meta["training"]["epochs_done"] == 2
+
+
+def test_run_files_are_written_atomically_checkpoint_first(tsukuba, venus, tmp_path, monkeypatch):
+    """Every file of the run goes through mccnn_cl.atomic (a temporary file of a unique name, then a
+    rename: two writers never share a temporary file), and at an epoch's end checkpoint.pt comes first."""
+    import mccnn_cl.atomic as atomic
+    written, real = [], atomic.atomic_write
+
+    def spy(path, fn):
+        written.append(str(path))
+        return real(path, fn)
+    monkeypatch.setattr(atomic, "atomic_write", spy)
+    cfg = _crop_cfg("fst", epochs=1, checkpoint_minutes=1e6)
+    train(cfg, [crop(tsukuba, 0, 160, 0, 300)], [crop(venus, 100, 260, 0, 300)], "cpu", tmp_path,
+          log=lambda *a: None)
+    names = [p.rsplit("/", 1)[-1] for p in written]
+    assert names[0] == "checkpoint.pt", names
+    assert {"checkpoint.pt", "run.json", "history.json", "training.png", "latest.npz", "best.npz"} <= set(names)
+    assert all(p.startswith(str(tmp_path)) for p in written)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".lock", "best.npz", "checkpoint.pt", "history.json",
+                                                           "latest.npz", "run.json", "training.png"]
+
+
+def test_new_run_in_an_earlier_runs_folder_is_refused_without_force(shared_data, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(_tiny(shared_data, out, "--epochs", "1", "--steps-per-epoch", "2")) == 0
+    before = (out / "checkpoint.pt").read_bytes()
+    capsys.readouterr()
+    assert main(_tiny(shared_data, out, "--epochs", "1", "--steps-per-epoch", "3")) == 2
+    err = capsys.readouterr().err
+    assert f"{out} holds an earlier run" in err and "--force" in err and f"--resume {out / 'checkpoint.pt'}" in err
+    assert (out / "checkpoint.pt").read_bytes() == before            # nothing of it touched
+    # an existing --export file elsewhere is not overwritten either
+    other = tmp_path / "w.npz"
+    other.write_bytes(b"keep")
+    assert main(_tiny(shared_data, tmp_path / "new", "--epochs", "1", "--steps-per-epoch", "2",
+                      "--export", str(other))) == 2
+    assert other.read_bytes() == b"keep" and not (tmp_path / "new" / "checkpoint.pt").exists()
+    # --force: a new run, none of the earlier one's files left
+    assert main(_tiny(shared_data, out, "--epochs", "1", "--steps-per-epoch", "3", "--force")) == 0
+    assert "--force: removed the earlier run's" in capsys.readouterr().out
+    assert json.loads((out / "run.json").read_text())["step"] == 3
+
+
+def test_unwritable_output_is_found_before_the_data_and_a_full_disk_is_one_line(shared_data, tmp_path,
+                                                                                 monkeypatch, capsys):
+    import errno
+    import mccnn_cl.train.train as T
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+
+    def no_data(*a, **k):
+        raise AssertionError("the data was read before the run folder was checked")
+    with monkeypatch.context() as m:
+        m.setattr(T, "select_pairs", no_data)
+        assert main(_tiny(shared_data, blocker / "run")) == 2
+        assert f"cannot create the run folder {blocker / 'run'}" in capsys.readouterr().err
+        assert main(_tiny(shared_data, blocker)) == 2
+        assert "is a file" in capsys.readouterr().err
+        assert main(_tiny(shared_data, tmp_path / "ok", "--export", str(tmp_path / "missing" / "w.npz"))) == 2
+        assert f"cannot write into {tmp_path / 'missing'}" in capsys.readouterr().err
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(torch, "save", full)
+    out = tmp_path / "run"
+    assert main(_tiny(shared_data, out)) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: cannot write {out / 'checkpoint.pt'}: No space left on device (its previous version, " \
+                  "if any, is unchanged)\n"
+
+
+def test_resume_with_other_pairs_warns_and_provenance_covers_every_part(shared_data, tmp_path, capsys):
+    """Part 1 trains on Tsukuba (Venus held out), part 2 on Venus (Tsukuba and Cones held out): the
+    resume warns, the checkpoint keeps each part's pairs, trained_on is both, and neither trained
+    pair is called held out."""
+    out = tmp_path / "run"
+    assert main(_tiny(shared_data, out, "--stop-after", "1")) == 0
+    ck = torch.load(out / "checkpoint.pt", weights_only=False)
+    capsys.readouterr()
+    assert main(_tiny(shared_data, out, "--resume", str(out / "checkpoint.pt"), include="middlebury/Venus",
+                      holdout=("middlebury/Tsukuba", "middlebury/Cones"))) == 0
+    said = capsys.readouterr().out
+    warn = [s for s in said.splitlines() if s.startswith("warning: resuming")]
+    assert warn and "training pairs +middlebury/Venus -middlebury/Tsukuba" in warn[0], said
+    assert "held-out pairs +middlebury/Cones +middlebury/Tsukuba -middlebury/Venus" in warn[0]
+    assert list(ck["parts"][0]["trained_on"]) == ["middlebury/Tsukuba"]   # the pairs are in the checkpoint
+    assert ck["parts"][0]["held_out"] == ["middlebury/Venus"]
+    t = Weights.load(out / "weights.npz").meta["training"]
+    assert sorted(t["trained_on"]) == ["middlebury/Tsukuba", "middlebury/Venus"]
+    assert t["held_out"] == ["middlebury/Cones"]
+    assert [(p["trained_on"], p["held_out"]) for p in t["parts"]] == [
+        (["middlebury/Tsukuba"], ["middlebury/Venus"]),
+        (["middlebury/Venus"], ["middlebury/Cones", "middlebury/Tsukuba"])]
+    assert [p["steps"] for p in t["parts"]] == [[0, 6], [6, 12]]
+    latest = Weights.load(out / "latest.npz").meta["training"]
+    assert latest["held_out"] == ["middlebury/Cones"] and len(latest["trained_on"]) == 2
+
+
+def test_resume_with_another_process_count_warns_and_is_recorded(tsukuba, venus, tmp_path):
+    """An end-of-epoch checkpoint of a 2-process run resumed by one process (the checkpoint's process
+    count edited: torchrun itself is tests/test_ddp.py's): a warning naming both counts, and each
+    part's processes in the provenance."""
+    cfg = _crop_cfg("fst")
+    pairs, val = [crop(tsukuba, 0, 160, 0, 300)], [crop(venus, 100, 260, 0, 300)]
+    train(cfg, pairs, val, "cpu", tmp_path, log=lambda *a: None, stop_after=1)
+    path = tmp_path / "checkpoint.pt"
+    ck = torch.load(path, weights_only=False)
+    ck["world_size"] = 2
+    for p in ck.get("parts", []):
+        p["processes"] = 2
+    torch.save(ck, path)
+    said = []
+    res = train(cfg, pairs, val, "cpu", tmp_path, log=lambda *a: said.append(" ".join(a)), resume=path)
+    warn = [s for s in said if s.startswith("warning")]
+    assert warn and "processes 2 -> 1" in warn[0], said
+    assert [(p["processes"], p["steps"]) for p in res["provenance"]["parts"]] == [(2, [0, 6]), (1, [6, 12])]
+
+
+def test_run_json_is_valid_json_before_any_validation(tsukuba, venus, tmp_path):
+    """No validation yet (a mid-epoch checkpoint): best_val_err3 is null, not Infinity; a checkpoint
+    with no best yet resumes and its first validation counts as the best."""
+    def strict(text):
+        return json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in run.json"))
+    cfg = _crop_cfg("fst")
+    pairs, val = [crop(tsukuba, 0, 160, 0, 300)], [crop(venus, 100, 260, 0, 300)]
+    train(cfg, pairs, val, "cpu", tmp_path, log=lambda *a: None, stop_after_steps=2)
+    assert strict((tmp_path / "run.json").read_text())["best_val_err3"] is None
+    assert not (tmp_path / "best.npz").exists()
+    path = tmp_path / "checkpoint.pt"
+    ck = torch.load(path, weights_only=False)
+    ck["best_err3"] = None
+    torch.save(ck, path)
+    res = train(cfg, pairs, val, "cpu", tmp_path, log=lambda *a: None, resume=path)
+    best = strict((tmp_path / "run.json").read_text())["best_val_err3"]
+    assert best == min(h["val_err3"] for h in res["history"]) and (tmp_path / "best.npz").exists()
+    # no validation at all (no held-out pairs): still valid JSON
+    train(cfg, pairs, [], "cpu", tmp_path / "noval", log=lambda *a: None)
+    assert strict((tmp_path / "noval" / "run.json").read_text())["best_val_err3"] is None
+
+
+def test_resume_from_a_missing_or_damaged_checkpoint_is_one_line(shared_data, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(_tiny(shared_data, out, "--epochs", "1", "--steps-per-epoch", "2")) == 0
+    capsys.readouterr()
+    missing = tmp_path / "nowhere" / "checkpoint.pt"
+    assert main(_tiny(shared_data, tmp_path / "b", "--resume", str(missing))) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: --resume {missing}: no such file") and err.count("\n") == 1
+    good = (out / "checkpoint.pt").read_bytes()
+    (out / "checkpoint.pt").write_bytes(good[:len(good) // 2])    # truncated (a full disk, a bad copy)
+    assert main(_tiny(shared_data, out, "--resume", str(out / "checkpoint.pt"))) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: --resume {out / 'checkpoint.pt'}: the checkpoint is damaged") and \
+        err.count("\n") == 1, err
+    assert "latest.npz and best.npz" in err and f"--init {out / 'latest.npz'}" in err
+    assert main(_tiny(shared_data, out, "--resume", str(out / "latest.npz"))) == 2
+    assert "is a weights file, not a checkpoint" in capsys.readouterr().err
+    (out / "checkpoint.pt").write_bytes(b"")
+    assert main(_tiny(shared_data, out, "--resume", str(out / "checkpoint.pt"))) == 2
+    assert "damaged" in capsys.readouterr().err
+
+
+def test_resume_of_a_checkpoint_without_parts(tsukuba, venus, tmp_path):
+    """A checkpoint of an earlier version (no pair keys recorded): resumes, says the pairs are unknown,
+    and the provenance keeps that part's pairs as unknown (null) rather than inventing them."""
+    cfg = _crop_cfg("fst")
+    pairs, val = [crop(tsukuba, 0, 160, 0, 300)], [crop(venus, 100, 260, 0, 300)]
+    train(cfg, pairs, val, "cpu", tmp_path, log=lambda *a: None, stop_after=1)
+    path = tmp_path / "checkpoint.pt"
+    ck = torch.load(path, weights_only=False)
+    del ck["parts"]
+    torch.save(ck, path)
+    said = []
+    res = train(cfg, pairs, val, "cpu", tmp_path, log=lambda *a: said.append(" ".join(a)), resume=path)
+    assert any("pairs unknown" in s for s in said if s.startswith("warning")), said
+    assert [(p["trained_on"], p["steps"]) for p in res["provenance"]["parts"]] == [
+        (None, [0, 6]), (["middlebury/Tsukuba"], [6, 12])]

@@ -19,7 +19,11 @@ improves, ``best.npz``; ``checkpoint.pt`` is also written every
 ``--checkpoint-minutes`` within an epoch.  Every random draw derives from
 ``--seed`` (per epoch, and per step for crops), so a run is deterministic for
 a seed and thread count, and ``--resume`` continues it bit for bit, also from
-a mid-epoch checkpoint.
+a mid-epoch checkpoint.  A run locks its folder (``OUT/.lock``), refuses a
+folder holding an earlier run unless ``--resume`` or ``--force``, writes every
+file atomically, and on Ctrl-C or SIGTERM stops between steps with a
+checkpoint (exit status 130 / 143; docs/training.md, "Running, stopping and
+resuming safely").
 
 Launched by torchrun (``WORLD_SIZE`` > 1) it trains with
 DistributedDataParallel, one process per device (gloo on the CPU, NCCL on
@@ -32,16 +36,20 @@ N times as many; only rank 0 validates, logs and writes files.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import fnmatch
+import io
 import json
 import math
 import os
 import platform
 import shlex
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import asdict, dataclass, field, replace
 from datetime import timedelta
@@ -63,7 +71,7 @@ from .patches import PatchSampler
 from .budget import Calibration, plan, sync_device
 
 __all__ = ["TrainConfig", "train", "select_pairs", "lr_at", "augment_batch", "init_distributed", "record_init",
-           "main"]
+           "load_checkpoint", "TrainingInterrupted", "main"]
 
 
 @dataclass
@@ -288,20 +296,62 @@ def _patch_loss(net, left, right):
 
 # -- the loop ------------------------------------------------------------------
 
+def _say(*args, **kw) -> None:
+    """``print`` flushed at once: a log redirected to a file (``nohup ... > log.txt``) is
+    block-buffered, and a training run's lines must reach it as they are written."""
+    print(*args, **kw, flush=True)
+
+
+def _json_safe(obj):
+    """``obj`` with every non-finite float (inf, NaN) as None: valid JSON for any reader
+    (Python's ``json`` would write ``Infinity``/``NaN``, which other tools reject)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    return obj
+
+
+def _json_line(obj) -> str:
+    return json.dumps(_json_safe(obj), allow_nan=False)
+
+
+@contextlib.contextmanager
+def _writing(path):
+    """An OSError (disk full, folder gone, I/O error) while writing ``path`` as one
+    InputError line naming it; the file written before stays whole (atomic writes)."""
+    try:
+        yield
+    except OSError as exc:
+        raise InputError(f"cannot write {path}: {exc.strerror or exc} (its previous version, if any, is "
+                         "unchanged)") from exc
+
+
 def _atomic_json(obj, path: Path) -> None:
-    """``obj`` as indented JSON at ``path``, whole or not at all (:func:`mccnn_cl.atomic.atomic_write`)."""
+    """``obj`` as indented, valid JSON at ``path`` (non-finite numbers as null), whole or not at all
+    (:func:`mccnn_cl.atomic.atomic_write`: a temporary file of a unique name, then a rename)."""
     from ..atomic import atomic_write
+
+    text = json.dumps(_json_safe(obj), indent=1, allow_nan=False)
 
     def write(tmp):
         with open(tmp, "w") as f:
-            json.dump(obj, f, indent=1)
-    atomic_write(path, write)
+            f.write(text)
+    with _writing(path):
+        atomic_write(path, write)
 
 
 def _atomic_torch_save(obj, path: Path):
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    """``torch.save(obj)`` at ``path``, whole or not at all (a temporary file of a unique name, so two
+    writers never write into one temporary file; see :mod:`mccnn_cl.atomic`)."""
+    from ..atomic import atomic_write_bytes
+
+    with _writing(path):
+        buf = io.BytesIO()
+        torch.save(obj, buf)
+        atomic_write_bytes(path, buf.getvalue())
 
 
 def plot_history(history: list, path, title: str = "MC-CNN training", loss_name: str = "cross-entropy") -> None:
@@ -328,10 +378,12 @@ def plot_history(history: list, path, title: str = "MC-CNN training", loss_name:
     ax.legend(lines, labels, loc="upper right", fontsize=8)
     ax.set_title(title)
     fig.tight_layout()
-    tmp = str(path) + ".tmp.png"
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, path)
+    from ..atomic import atomic_write
+    try:
+        with _writing(path):
+            atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=100))  # tmp keeps .png: the format
+    finally:
+        plt.close(fig)
 
 
 def _machine(device) -> str:
@@ -350,10 +402,11 @@ def _machine(device) -> str:
 
 
 def _export(model, path: Path, meta: dict) -> None:
-    """Write the weights .npz atomically (a reader never sees half a file)."""
-    tmp = path.with_name(path.name + ".tmp.npz")
-    copy.deepcopy(model).cpu().to_weights(meta).save(tmp)  # a copy: the trained (maybe DDP-held) net stays put
-    os.replace(tmp, path)
+    """Write the weights .npz atomically (a reader never sees half a file; a temporary file of a
+    unique name: :meth:`mccnn_cl.weights.Weights.save`)."""
+    w = copy.deepcopy(model).cpu().to_weights(meta)  # a copy: the trained (maybe DDP-held) net stays put
+    with _writing(path):
+        w.save(path)
 
 
 def crop_sampler(cfg: TrainConfig, train_pairs, patch_size: int) -> CropSampler:
@@ -446,21 +499,222 @@ def calibrate(cfg, train_pairs, val_pairs, device, steps: int = 20, warmup: int 
                        checkpoint_s=checkpoint_s, steps=steps)
 
 
-def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None, log=print,
-          stop_after: int | None = None, stop_after_steps: int | None = None, init=None) -> dict:
+# -- run folder, checkpoints, interruption ----------------------------------------
+
+#: The lock file a run holds (``flock``) in its folder while it trains (rank 0 under torchrun).
+LOCK_NAME = ".lock"
+#: The files a run writes into its folder (``--force`` removes an earlier run's before starting).
+RUN_FILES = ("checkpoint.pt", "run.json", "history.json", "training.png", "latest.npz", "best.npz")
+#: Files whose presence marks a folder as holding a run.
+RUN_MARKERS = ("checkpoint.pt", "run.json", "history.json")
+
+
+def run_lock(out_dir):
+    """The run folder's lock (:class:`mccnn_cl.atomic.exclusive_lock` on ``OUT/.lock``): a second
+    run on the same folder is refused, naming the process that holds it."""
+    from ..atomic import exclusive_lock
+    return exclusive_lock(Path(out_dir) / LOCK_NAME,
+                          busy=f"another training run is using {out_dir} ({{holder}}; lock file {{path}}): "
+                               "wait for it to end, or give another --out")
+
+
+def prepare_run_folder(out_dir) -> Path:
+    """Create ``out_dir`` (with its parents) and check that files can be written into it: one
+    InputError line naming the folder otherwise (not a traceback at the first checkpoint)."""
+    from ..atomic import check_writable
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir} is a file, not a folder")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the run folder {out_dir}: {exc.strerror or exc}") from exc
+    check_writable(out_dir)
+    return out_dir
+
+
+def _weights_hint(folder: Path, given: Path | None = None) -> str:
+    ck = folder / "checkpoint.pt"
+    if given is not None and ck.is_file() and not _same_file(ck, given):
+        return f"the run's own checkpoint is {ck}"
+    have = [n for n in ("latest.npz", "best.npz") if (folder / n).is_file()]
+    if not have:
+        return "resume from a copy of an earlier checkpoint.pt if you have one, or start a new run"
+    return (f"resume from a copy of an earlier checkpoint.pt if you have one; {' and '.join(have)} in {folder} "
+            f"{'hold' if len(have) > 1 else 'holds'} weights only (no optimizer state, no position in the "
+            f"schedule) and cannot be resumed: to keep that training, start a new run from them with --init "
+            f"{folder / have[0]} and another --out (a new schedule, not the interrupted run's result)")
+
+
+def load_checkpoint(path, map_location="cpu") -> dict:
+    """Read a run's ``checkpoint.pt`` for ``--resume``; a missing, unreadable or damaged file
+    (or a weights .npz given instead) is one InputError line naming it and what can be done."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"--resume {path}: no such file; {_weights_hint(p.parent, p)}"
+                         if p.parent.is_dir() else f"--resume {path}: no such file (nor its folder)")
+    if p.is_dir():
+        hint = f" (its checkpoint: --resume {p / 'checkpoint.pt'})" if (p / "checkpoint.pt").is_file() else ""
+        raise InputError(f"--resume {path} is a folder, not a checkpoint file{hint}")
+    if p.suffix == ".npz":
+        raise InputError(f"--resume {path} is a weights file, not a checkpoint: it holds no optimizer state or "
+                         f"position in the schedule; resume with the run's checkpoint.pt, or start a new run from "
+                         f"these weights with --init {path}")
+    try:
+        with open(p, "rb") as f:
+            data = f.read()
+    except OSError as exc:
+        raise InputError(f"--resume {path}: cannot read it ({exc.strerror or exc})") from exc
+    try:  # read first, parsed apart: torch reports a truncated archive as an OSError too
+        ck = torch.load(io.BytesIO(data), map_location=map_location, weights_only=False)
+    except Exception as exc:  # noqa: BLE001 - truncated zip, bad pickle, ...: all mean a damaged file
+        why = str(exc).strip().splitlines()[0][:120] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"--resume {path}: the checkpoint is damaged (truncated or overwritten; {why}); "
+                         f"{_weights_hint(p.parent, p)}") from exc
+    need = ("model", "optimizer", "config", "history", "epoch")
+    if not isinstance(ck, dict) or any(k not in ck for k in need):
+        raise InputError(f"--resume {path}: not a training checkpoint of this package (expected the keys "
+                         f"{', '.join(need)}); {_weights_hint(p.parent)}")
+    return ck
+
+
+def check_resumable(ck: dict, cfg: TrainConfig, world: int, resume) -> None:
+    """InputError when checkpoint ``ck`` cannot continue as ``cfg`` with ``world`` processes."""
+    c = ck["config"]
+    if (c["conv_layers"] != cfg.conv_layers or c["fc_layers"] != cfg.fc_layers
+            or c.get("arch", "paper") != cfg.arch):
+        raise InputError(f"{resume}: checkpoint has another architecture")
+    if ck.get("mid") is not None and ck.get("world_size", 1) != world:
+        raise InputError(f"{resume}: a mid-epoch checkpoint of a run with {ck.get('world_size', 1)} "
+                         f"process(es): resume it with as many (here {world}), or from an epoch's end")
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Raised by :func:`train` after a SIGINT (Ctrl-C) or SIGTERM, once the checkpoint is written
+    (between steps: the mid-epoch checkpoint; at an epoch's end: that epoch's).  ``code``: the exit
+    status the command line returns (128 + the signal: 130, 143)."""
+
+    def __init__(self, signum: int, epoch: int, step: int, steps: int, checkpoint: Path):
+        self.signum, self.epoch, self.step, self.steps, self.checkpoint = signum, epoch, step, steps, checkpoint
+        self.code = 128 + signum
+        super().__init__(self.line())
+
+    def line(self) -> str:
+        return (f"interrupted ({signal.Signals(self.signum).name}) at epoch {self.epoch} step "
+                f"{self.step}/{self.steps}; saved {self.checkpoint}; resume with --resume {self.checkpoint} "
+                "(and the same options)")
+
+
+class _Stopped(KeyboardInterrupt):
+    """A signal that stops at once: SIGTERM outside the training loop (loading data, exporting),
+    or a second SIGINT/SIGTERM within it."""
+
+    def __init__(self, signum):
+        super().__init__(signum)
+        self.signum = signum
+
+
+class _SignalFlag:
+    """While entered (main thread only): SIGINT and SIGTERM set ``signum`` instead of stopping the
+    process, so the loop can stop between steps with a checkpoint; a second signal stops it at
+    once (KeyboardInterrupt).  The previous handlers come back on exit."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.signum = None
+        self._prev = {}
+
+    def _handle(self, signum, frame):
+        if self.signum is not None:
+            raise _Stopped(signum)
+        self.signum = signum
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for s in self.SIGNALS:
+                self._prev[s] = signal.signal(s, self._handle)
+        return self
+
+    def __exit__(self, *exc):
+        for s, h in self._prev.items():
+            signal.signal(s, h)
+        self._prev = {}
+        return False
+
+
+def _merge_parts(parts: list) -> list:
+    """Consecutive parts of a run with the same pairs and process count as one."""
+    out = []
+    for p in parts:
+        q = out[-1] if out else None
+        if q is not None and all(q.get(k) == p.get(k) for k in ("trained_on", "held_out", "processes")):
+            q["steps"] = [q["steps"][0], p["steps"][1]]
+        else:
+            out.append(dict(p))
+    return out
+
+
+def pairs_of_parts(parts: list, held_now: list) -> tuple:
+    """(trained_on, held_out) of a run made of ``parts``: every pair any part trained on (pair key ->
+    GT locations, the latest part's count), and the pairs held out by a part (``held_now`` last)
+    that no part trained on."""
+    trained = {}
+    for p in parts:
+        trained.update(p.get("trained_on") or {})
+    held = []
+    for k in [k for p in parts for k in (p.get("held_out") or [])] + list(held_now):
+        if k not in trained and k not in held:
+            held.append(k)
+    return trained, held
+
+
+def _data_changes(before: dict, trained: dict, held: list) -> list:
+    """The differences in pairs between a checkpoint's last part ``before`` and this run."""
+    if before.get("trained_on") is None:
+        return ["pairs unknown (a checkpoint of an older version records none)"]
+    out = []
+    for name, old, new in (("training pairs", set(before["trained_on"]), set(trained)),
+                           ("held-out pairs", set(before.get("held_out") or []), set(held))):
+        if old != new:
+            out.append(f"{name} " + " ".join([f"+{k}" for k in sorted(new - old)]
+                                             + [f"-{k}" for k in sorted(old - new)]))
+    return out
+
+
+def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None, log=_say,
+          stop_after: int | None = None, stop_after_steps: int | None = None, init=None,
+          resume_state: dict | None = None) -> dict:
     """Train on ``train_pairs`` (StereoPairs with GT), validate on ``val_pairs`` each epoch.
 
     Writes ``checkpoint.pt`` (every epoch and every ``cfg.checkpoint_minutes``
     within one), ``history.json``, ``run.json`` (progress: step, examples,
-    wall time), ``training.png``, ``latest.npz`` (weights after each epoch)
+    wall time, ETA), ``training.png``, ``latest.npz`` (weights after each epoch)
     and ``best.npz`` (whenever the validation WTA error improves) in
-    ``out_dir``.  ``resume``: a checkpoint path to continue from (bit for bit,
-    also from a mid-epoch checkpoint).  ``stop_after``: run at most this many
+    ``out_dir``, each atomically (a temporary file of a unique name, then a
+    rename), ``checkpoint.pt`` first at an epoch's end; an OSError while
+    writing (disk full) is an InputError naming the file.  ``out_dir`` is
+    locked (``OUT/.lock``, :func:`run_lock`) while the run trains: a second
+    run on it is refused.  ``resume``: a checkpoint path to continue from (bit
+    for bit, also from a mid-epoch checkpoint; ``resume_state``: that file
+    already read by :func:`load_checkpoint`).  ``stop_after``: run at most this many
     epochs in this call; ``stop_after_steps``: stop (with a checkpoint) after
     this many steps in this call (the schedule still spans ``cfg.epochs``).
     ``init``: a :class:`~mccnn_cl.weights.Weights` of ``cfg``'s layers to start
     from instead of He initialisation (fine-tuning; :mod:`.selftrain`).
     Returns ``{"model": MCCNN (on device), "history": [...], "provenance": {...}}``.
+
+    SIGINT (Ctrl-C) or SIGTERM (called from the main thread) stops the run
+    after the current step: the mid-epoch checkpoint is written (at an
+    epoch's last step, the epoch's end first) and :class:`TrainingInterrupted`
+    is raised; ``--resume`` then continues bit for bit.  A second signal
+    stops at once (KeyboardInterrupt; the last checkpoint stays whole).
+
+    The checkpoint records every part of the run (each call that trained:
+    its steps, process count, training and held-out pair keys); the
+    provenance's ``trained_on`` is every pair of every part and its
+    ``held_out`` never names a pair some part trained on.  A resume with
+    other pairs or another process count is allowed, with a warning.
 
     Inside an initialised process group of N > 1 ranks (:func:`init_distributed`)
     this is one rank of a DistributedDataParallel run: every rank draws the
@@ -473,8 +727,9 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
     weighted by ``N * n_rank / n_step`` (its share of the step's examples), so
     DDP's gradient average is the gradient of the step's mean loss, also when
     the ranks' crops hold different numbers of examples.  Only rank 0
-    validates, logs and writes files; the others wait at a barrier after each
-    epoch.  All ranks load ``resume``.
+    validates, logs and writes files (and holds the lock); the others wait at
+    a barrier after each epoch.  All ranks load ``resume``; a signal is agreed
+    on by all ranks at the next step (an all-reduce each step already runs).
     """
     if cfg.arch not in ARCHS:
         raise InputError(f"unknown architecture {cfg.arch!r} (expected one of {', '.join(ARCHS)})")
@@ -482,14 +737,24 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         raise InputError(f"sampler must be 'patch' or 'crop', got {cfg.sampler!r}")
     if cfg.sampler == "patch" and (cfg.batch_size < 2 or cfg.batch_size % 2):
         raise InputError(f"batch size must be even (half positive, half negative), got {cfg.batch_size}")
+    rank, _ = _rank_world()
+    out_dir = Path(out_dir)
+    with contextlib.ExitStack() as stack:
+        if rank == 0:
+            prepare_run_folder(out_dir)
+            stack.enter_context(run_lock(out_dir))
+        flag = stack.enter_context(_SignalFlag())
+        return _train(cfg, train_pairs, val_pairs, device, out_dir, resume, log, stop_after, stop_after_steps,
+                      init, resume_state, flag)
+
+
+def _train(cfg, train_pairs, val_pairs, device, out_dir, resume, log, stop_after, stop_after_steps, init,
+           resume_state, flag) -> dict:
     device = torch.device(device)
     rank, world = _rank_world()
     lead = rank == 0
     if not lead:
         log = lambda *a, **k: None  # noqa: E731
-    out_dir = Path(out_dir)
-    if lead:
-        out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     model = new_model(cfg, device)
     if init is not None:
@@ -516,27 +781,32 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         unit = f"{world} processes x {unit}"
     vset = validation_set(cfg, val_pairs if lead else [], model.patch_size)
     total_iters = cfg.epochs * iters_per_epoch
+    trained_now = {k: int(v) for k, v in sampler.counts().items()}
+    held_now = vset.keys if lead else [p.key for p in val_pairs]
     history, start_epoch, start_i, elapsed0, examples0 = [], 0, 0, 0.0, 0
     mid = None
     best = float("inf")
+    parts_before = []
     if resume is not None:
-        ck = torch.load(resume, map_location=device, weights_only=False)
+        ck = resume_state if resume_state is not None else load_checkpoint(resume)
+        check_resumable(ck, cfg, world, resume)
         c = ck["config"]
-        if (c["conv_layers"] != cfg.conv_layers or c["fc_layers"] != cfg.fc_layers
-                or c.get("arch", "paper") != cfg.arch):
-            raise InputError(f"{resume}: checkpoint has another architecture")
-        if ck.get("mid") is not None and ck.get("world_size", 1) != world:
-            raise InputError(f"{resume}: a mid-epoch checkpoint of a run with {ck.get('world_size', 1)} "
-                             f"process(es): resume it with as many (here {world}), or from an epoch's end")
-        changed = resume_changes(c, cfg)
+        ck_world = ck.get("world_size", 1)
+        parts_before = ck.get("parts") or [{"steps": [0, None], "processes": ck_world, "trained_on": None,
+                                            "held_out": None}]  # an older version's: pairs not recorded
+        changed = [d for d in [resume_changes(c, cfg)] if d]
+        if ck_world != world:
+            changed.append(f"processes {ck_world} -> {world} (the batch of a step changes with them)")
+        changed += _data_changes(parts_before[-1], trained_now, held_now)
         if changed:  # allowed (e.g. a shorter schedule when the machine slows), never silent
-            log(f"warning: resuming {resume} with settings the run did not start with ({changed}): "
-                "the result is not the one an uninterrupted run would give")
+            log(f"warning: resuming {resume} with settings the run did not start with ({'; '.join(changed)}): "
+                "the result is not the one an uninterrupted run would give; the provenance records each part")
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         history, elapsed0 = ck["history"], ck.get("elapsed", 0.0)
         examples0 = ck.get("examples_seen", sum(h["examples"] for h in history))
-        best = ck.get("best_err3", float("inf"))
+        best = ck.get("best_err3")
+        best = float("inf") if best is None else float(best)
         mid = ck.get("mid")
         if mid is not None:
             start_epoch, start_i = mid["epoch"], mid["i"]
@@ -544,6 +814,20 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         else:
             start_epoch = ck["epoch"] + 1
             log(f"resumed from {resume} after epoch {ck['epoch'] + 1}")
+    start_step = start_epoch * iters_per_epoch + start_i
+    if parts_before and parts_before[-1]["steps"][1] is None:
+        parts_before[-1]["steps"][1] = start_step
+    part = {"steps": [start_step, start_step], "processes": world, "trained_on": trained_now,
+            "held_out": list(held_now)}
+
+    def parts():
+        """Every part of the run so far (this one once it has trained a step, or when it is the first)."""
+        now = [part] if part["steps"][1] > part["steps"][0] or not parts_before else []
+        return _merge_parts(copy.deepcopy(parts_before) + copy.deepcopy(now))
+
+    def run_pairs():
+        return pairs_of_parts(parts(), held_now)
+
     log(f"{cfg.arch} net, {cfg.sampler} sampler: training on {len(train_pairs)} pairs ({', '.join(sampler.keys)}), "
         f"{per_epoch_locs} GT locations; validating on {', '.join(vset.keys) or 'nothing'}")
     log(f"{cfg.epochs} epochs x {iters_per_epoch} steps x {unit}; device {device}"
@@ -559,24 +843,39 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
     steps_left = stop_after_steps
     last_ck = time.time()
 
+    def eta_s(step):
+        """Seconds to the end of the schedule at this call's pace so far (epoch ends included)."""
+        done = step - start_step
+        if done <= 0:
+            return None
+        return round((time.time() - t_start) / done * max(total_iters - step, 0), 1)
+
     def progress(step_epoch, step_i):
-        return {"arch": cfg.arch, "sampler": cfg.sampler, "epoch": step_epoch, "step": step_epoch * iters_per_epoch
-                + step_i, "total_steps": total_iters, "examples_seen": int(examples_seen),
-                "wall_time_s": round(elapsed0 + time.time() - t_start, 1), "best_val_err3": best,
+        step = step_epoch * iters_per_epoch + step_i
+        return {"arch": cfg.arch, "sampler": cfg.sampler, "epoch": step_epoch, "step": step,
+                "total_steps": total_iters, "examples_seen": int(examples_seen),
+                "wall_time_s": round(elapsed0 + time.time() - t_start, 1), "eta_s": eta_s(step),
+                "best_val_err3": best if math.isfinite(best) else None,
                 "updated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                 **({"processes": world} if world > 1 else {})}
 
     def save_ck(epoch, mid_state):
+        step_epoch, step_i = (mid_state["epoch"], mid_state["i"]) if mid_state else (epoch + 1, 0)
+        part["steps"][1] = step_epoch * iters_per_epoch + step_i
         _atomic_torch_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
                             "history": history, "config": asdict(cfg), "elapsed": elapsed0 + time.time() - t_start,
                             "examples_seen": examples_seen, "best_err3": best, "mid": mid_state,
-                            "world_size": world},
+                            "world_size": world, "parts": parts()},
                            out_dir / "checkpoint.pt")
-        _atomic_json(progress(mid_state["epoch"] if mid_state else epoch + 1, mid_state["i"] if mid_state else 0),
-                     out_dir / "run.json")
+        _atomic_json(progress(step_epoch, step_i), out_dir / "run.json")
+
+    def interrupted(signum, epoch_1, step, steps):
+        return TrainingInterrupted(signum, epoch_1, step, steps, out_dir / "checkpoint.pt")
 
     end_epoch = cfg.epochs if stop_after is None else min(cfg.epochs, start_epoch + stop_after)
     stopped = False
+    stop_signal = None     # the signal all ranks agreed to stop on (world 1: this process's)
+    stop_at = None         # (epoch 1-based, step, steps) where it stopped
     for epoch in range(start_epoch, end_epoch):
         rng = np.random.default_rng([cfg.seed, epoch])
         gen = torch.Generator().manual_seed(int(rng.integers(2**62)))
@@ -627,10 +926,17 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
                 loss = step_net(*step)
                 # The step's example count and loss sum over all ranks; weighting each rank's mean
                 # loss by N * n_ex / n_step makes DDP's gradient average the gradient of the step's
-                # mean loss (the crop loss averages over a count proportional to n_ex).
-                tot = torch.tensor([float(n_ex), float(loss.detach()) * n_ex], dtype=torch.float64, device=device)
+                # mean loss (the crop loss averages over a count proportional to n_ex).  The last two
+                # entries: the sum of the signal numbers the ranks have received and how many have one,
+                # so that all ranks stop after the same step (in the same all-reduce: no extra one).
+                sig = flag.signum or 0
+                tot = torch.tensor([float(n_ex), float(loss.detach()) * n_ex, float(sig), float(sig > 0)],
+                                   dtype=torch.float64, device=device)
                 dist.all_reduce(tot)
-                n_tot, loss_tot = tot.tolist()
+                n_tot, loss_tot, sig_sum, n_sig = tot.tolist()
+                if n_sig > 0 and stop_signal is None:
+                    s_avg = sig_sum / n_sig  # ranks with different signals: SIGTERM
+                    stop_signal = int(s_avg) if s_avg in (signal.SIGINT, signal.SIGTERM) else int(signal.SIGTERM)
                 loss = loss * (world * n_ex / n_tot)
                 step_loss, n_step = loss_tot / n_tot, int(round(n_tot))
             opt.zero_grad(set_to_none=True)
@@ -640,6 +946,9 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
             seen += n_step
             seen_here += n_step
             examples_seen += n_step
+            part["steps"][1] = it + 1
+            if world == 1 and flag.signum is not None:
+                stop_signal = flag.signum
             if bar is not None:
                 bar.update(1)
                 if i % 50 == 0:
@@ -648,14 +957,17 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
             last = i + 1 == n_it
             if steps_left is not None:
                 steps_left -= 1
-            if lead and not last and (time.time() - last_ck > 60 * cfg.checkpoint_minutes or steps_left == 0):
+            stop_now = not last and (steps_left == 0 or stop_signal is not None)
+            if lead and not last and (time.time() - last_ck > 60 * cfg.checkpoint_minutes or stop_now):
                 save_ck(epoch - 1, {"epoch": epoch, "i": i + 1, "loss_sum": loss_sum, "seen": seen,
                                     "gen": gen.get_state()})
                 last_ck = time.time()
-                log(json.dumps({"checkpoint": progress(epoch, i + 1),
+                log(_json_line({"checkpoint": progress(epoch, i + 1),
                                 "train_loss_so_far": round(loss_sum / max(seen, 1), 5)}))
-            if steps_left == 0 and not last:
+            if stop_now:
                 stopped = True
+                if stop_signal is not None:
+                    stop_at = (epoch + 1, i + 1, n_it)
                 break
         if bar is not None:
             bar.close()
@@ -679,33 +991,44 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
             improved = err is not None and err < best
             if improved:
                 best = err
+            # checkpoint.pt first: the file a resume needs, whatever happens to the others
+            save_ck(epoch, None)
+            last_ck = time.time()
+            trained, held = run_pairs()
             snap = {"training": {"arch": cfg.arch, "epoch": epoch + 1, "examples_seen": int(examples_seen),
-                                 "wall_time_s": rec["wall_time_s"], "held_out": vset.keys,
-                                 "trained_on": {k: int(v) for k, v in sampler.counts().items()},
+                                 "wall_time_s": rec["wall_time_s"], "held_out": held, "trained_on": trained,
                                  "validation": {k: v for k, v in rec.items() if k.startswith("val_")},
                                  "config": {k: v for k, v in asdict(cfg).items() if k != "progress"}}}
             _export(model, out_dir / "latest.npz", snap)
             if improved:
                 _export(model, out_dir / "best.npz", snap)
-            save_ck(epoch, None)
-            last_ck = time.time()
             _atomic_json(history, out_dir / "history.json")
             plot_history(history, out_dir / "training.png",
                          title=f"MC-CNN-{cfg.arch} training ({cfg.sampler} sampler)",
                          loss_name={"paper": "cross-entropy", "fst": "hinge loss",
                                     "acrt": "binary cross-entropy"}[cfg.arch])
-            log(json.dumps({k: (round(v, 5) if isinstance(v, float) else v) for k, v in rec.items()}))
+            line = {k: (round(v, 5) if isinstance(v, float) else v) for k, v in rec.items()}
+            line["eta_s"] = eta_s((epoch + 1) * iters_per_epoch)
+            log(_json_line(line))
         if world > 1:
             dist.barrier()
+        if world == 1 and flag.signum is not None:  # a signal during the epoch's end (validation, files)
+            stop_signal = flag.signum
+        if stop_signal is not None and epoch + 1 < cfg.epochs:
+            stop_at = (epoch + 1, n_it, n_it)
+            break
         if steps_left == 0:
             break
     if world > 1:
         dist.barrier()  # rank 0's files (also a mid-epoch checkpoint at a stop) are written when train returns
+    if stop_at is not None:
+        raise interrupted(stop_signal, *stop_at)
     elapsed = elapsed0 + (time.time() - t_start)
+    trained, held = run_pairs()
     prov = {
         "architecture": ARCHS[cfg.arch],
-        "trained_on": {k: int(v) for k, v in sampler.counts().items()},
-        "held_out": vset.keys,
+        "trained_on": trained,
+        "held_out": held,
         "epochs": cfg.epochs,
         "epochs_done": len(history),
         "examples": int(examples_seen),
@@ -713,6 +1036,9 @@ def train(cfg: TrainConfig, train_pairs, val_pairs, device, out_dir, resume=None
         **({"processes": world, "batch_per_step": (f"{world} x {cfg.crops_per_step} crops" if cfg.sampler == "crop"
                                                   else f"{world} x {cfg.batch_size} examples")}
            if world > 1 else {}),
+        "parts": [{"steps": p["steps"], "processes": p["processes"],
+                   "trained_on": None if p.get("trained_on") is None else sorted(p["trained_on"]),
+                   "held_out": p.get("held_out")} for p in parts()],
         "wall_time_s": round(elapsed, 1),
         "machine": _machine(device) if world == 1 else f"{world} processes x {_machine(device)}",
         "torch": torch.__version__,
@@ -836,6 +1162,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--out", required=True, help="run folder (checkpoint, history, plot)")
     g.add_argument("--export", default=None, help="weights .npz to write at the end (default OUT/weights.npz)")
     g.add_argument("--resume", default=None, help="checkpoint.pt to continue from")
+    g.add_argument("--force", action="store_true",
+                   help="start a new run in a folder that holds an earlier one (its run files are removed; "
+                        "without --force such a run is refused), or over an existing --export file")
     g.add_argument("--init", default=None, metavar="WEIGHTS",
                    help="start from these weights (.npz or a shipped name, same layers) instead of He init")
     g.add_argument("--stop-after", type=int, default=None,
@@ -870,8 +1199,37 @@ def _git_commit() -> str | None:
         return None
 
 
+@contextlib.contextmanager
+def _term_stops():
+    """While open (main thread only): SIGTERM raises :class:`_Stopped` (as SIGINT raises
+    KeyboardInterrupt), so that the command ends with one line, not a silent kill; the training
+    loop replaces both with a checkpoint-then-stop (:class:`_SignalFlag`)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        raise _Stopped(signum)
+    prev = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, prev)
+
+
+def _line_buffered() -> None:
+    """stdout line-buffered even when it is not a terminal (``nohup ... > log.txt``): each log
+    line reaches the file when it is written, not in blocks of several kB."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.reconfigure(line_buffering=True)
+        except (AttributeError, ValueError, io.UnsupportedOperation):  # not a TextIOWrapper (captured)
+            pass
+
+
 def main(argv=None) -> int:
     t0 = time.time()  # --fit-minutes counts from here
+    _line_buffered()
     args = build_parser().parse_args(argv)
     if args.threads:  # per process under torchrun
         torch.set_num_threads(args.threads)
@@ -881,7 +1239,8 @@ def main(argv=None) -> int:
             pass
     device, created = init_distributed(args.device)  # torchrun: join the group, cuda:LOCAL_RANK
     try:
-        return _main(args, argv, device, t0)
+        with _term_stops():
+            return _main(args, argv, device, t0)
     finally:
         if created:
             dist.destroy_process_group()
@@ -905,8 +1264,56 @@ def _fit_schedule(cfg, args, train_pairs, val_pairs, device, t0, world):
     return replace(cfg, epochs=epochs, steps_per_epoch=spe), fit
 
 
+def _agree(err: str | None, world: int) -> None:
+    """Raise InputError(``err``) on every rank when any rank has one (under torchrun the ranks must
+    stop together: one that went on would wait for the others at the first collective)."""
+    if world > 1:
+        errs = [None] * world
+        dist.all_gather_object(errs, err)
+        err = next((e for e in errs if e), None)
+    if err:
+        raise InputError(err)
+
+
+def _same_file(a, b) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.abspath(a) == os.path.abspath(b)
+
+
+def _prepare_out(args, out: Path, export: Path, stack) -> None:
+    """Rank 0, before any data is read: the run folder exists and is writable, the export's folder
+    too, and the folder is locked for this run.  InputError (one line) otherwise."""
+    prepare_run_folder(out)
+    from ..atomic import check_writable
+    if args.export is not None:
+        if export.is_dir():
+            raise InputError(f"--export {export} is a folder: give a file name (.npz)")
+        check_writable(export.parent if str(export.parent) else Path("."))
+    stack.enter_context(run_lock(out))
+
+
+def _earlier_run(args, out: Path, export: Path) -> list:
+    """The files of an earlier run in ``out`` (and an existing export) that a new run would
+    overwrite: refused unless --force (then returned, to be removed); [] when continuing it."""
+    if args.resume is not None and _same_file(args.resume, out / "checkpoint.pt"):
+        return []
+    earlier = [out / n for n in RUN_FILES if (out / n).exists()]
+    marked = [p for p in earlier if p.name in RUN_MARKERS]
+    if export.exists():
+        earlier.append(export)
+    if not (marked or export.exists()) or args.force:
+        return earlier
+    what = f"{out} holds an earlier run ({', '.join(p.name for p in marked)})" if marked else f"{export} exists"
+    how = (f"continue it with --resume {out / 'checkpoint.pt'}, " if (out / "checkpoint.pt").exists() else "")
+    raise InputError(f"{what}: {how}pass --force to start a new run over it (its files are removed), "
+                     "or give another --out" + (" / --export" if args.export else ""))
+
+
 def _main(args, argv, device, t0=None) -> int:
     rank, world = _rank_world()
+    lead = rank == 0
     commit = _git_commit()  # the code that trains, not whatever HEAD is when it ends
     ad = ARCH_DEFAULTS[args.arch]
 
@@ -927,56 +1334,99 @@ def _main(args, argv, device, t0=None) -> int:
                       steps_per_epoch=args.steps_per_epoch, checkpoint_minutes=args.checkpoint_minutes,
                       seed=args.seed, val_examples=args.val_examples, val_pixels=args.val_pixels,
                       val_ndisp=args.val_ndisp, progress=not args.no_progress)
+    out = Path(args.out)
+    export = Path(args.export) if args.export else out / "weights.npz"
     try:
-        train_refs, held_refs = select_pairs(args.data, args.holdout, args.include, args.dataset)
-        train_pairs = [r.load() for r in train_refs]
-        no_gt = [p.key for p in train_pairs if p.disp is None]
-        if no_gt:
-            print(f"skipping {len(no_gt)} pair(s) without ground truth: {', '.join(no_gt)}", file=sys.stderr)
-            train_pairs = [p for p in train_pairs if p.disp is not None]
-        if not train_pairs:
-            raise InputError("none of the training pairs has ground truth")
-        val_pairs = [r.load() for r in held_refs]
-        init = None
-        if args.init is not None:
-            from mccnn_cl.errors import WeightsError
-            from mccnn_cl.models import resolve
+        with contextlib.ExitStack() as stack:
+            # Before any data is read: the folder, its lock, an earlier run there, the checkpoint.
+            err, ck, earlier = None, None, []
             try:
-                init = resolve(args.init)
-            except WeightsError as exc:
-                raise InputError(f"--init {args.init}: {exc}") from exc
-        fit = None
-        if args.fit_minutes is not None:
-            cfg, fit = _fit_schedule(cfg, args, train_pairs, val_pairs, device, t0, world)
-        result = train(cfg, train_pairs, val_pairs, device, args.out, resume=args.resume,
-                       stop_after=args.stop_after, stop_after_steps=args.stop_after_steps, init=init)
+                if lead:
+                    _prepare_out(args, out, export, stack)
+                if args.resume is not None:
+                    ck = load_checkpoint(args.resume)
+                    check_resumable(ck, cfg, world, args.resume)
+                if lead:
+                    earlier = _earlier_run(args, out, export)
+            except InputError as exc:
+                err = str(exc)
+            _agree(err, world)
+            if earlier:  # --force over an earlier run
+                for p in earlier:
+                    with _writing(p):
+                        p.unlink()
+                _say(f"--force: removed the earlier run's {', '.join(p.name for p in earlier)} in "
+                     f"{os.path.commonpath([str(p.parent) for p in earlier])}")
+            train_refs, held_refs = select_pairs(args.data, args.holdout, args.include, args.dataset)
+            train_pairs = [r.load() for r in train_refs]
+            no_gt = [p.key for p in train_pairs if p.disp is None]
+            if no_gt:
+                print(f"skipping {len(no_gt)} pair(s) without ground truth: {', '.join(no_gt)}", file=sys.stderr)
+                train_pairs = [p for p in train_pairs if p.disp is not None]
+            if not train_pairs:
+                raise InputError("none of the training pairs has ground truth")
+            val_pairs = [r.load() for r in held_refs]
+            init = None
+            if args.init is not None:
+                from mccnn_cl.errors import WeightsError
+                from mccnn_cl.models import resolve
+                try:
+                    init = resolve(args.init)
+                except WeightsError as exc:
+                    raise InputError(f"--init {args.init}: {exc}") from exc
+            fit = None
+            if args.fit_minutes is not None:
+                cfg, fit = _fit_schedule(cfg, args, train_pairs, val_pairs, device, t0, world)
+            result = train(cfg, train_pairs, val_pairs, device, out, resume=args.resume,
+                           stop_after=args.stop_after, stop_after_steps=args.stop_after_steps, init=init,
+                           resume_state=ck)
+            if lead:
+                _export_run(result, args, argv, world, commit, init, fit, export)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if rank == 0:
-        prov = result["provenance"]
-        launcher = "python -m" if world == 1 else f"torchrun --nproc_per_node={world} -m"
-        prov["command"] = f"{launcher} mccnn_cl.train.train " + " ".join(
-            shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
-        prov["git_commit"] = commit
-        if init is not None:
-            try:
-                record_init(prov, init, args.init)
-            except Exception as exc:  # noqa: BLE001 - a provenance problem must not lose the trained weights
-                prov["init"] = {"weights": str(args.init), "licence": init.meta.get("licence"),
-                                "provenance_error": f"{type(exc).__name__}: {exc}"}
-                print(f"warning: the lineage of --init {args.init} could not be recorded ({type(exc).__name__}: "
-                      f"{exc}); the weights are written without it", file=sys.stderr)
-        if fit is not None:
-            prov["fit_minutes"] = fit
-        prov["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-        prov = json.loads(json.dumps(prov, default=str))  # anything JSON cannot hold, as text: never a lost export
-        export = args.export or str(Path(args.out) / "weights.npz")
-        result["model"].cpu().to_weights({"training": prov}).save(export)
-        print(f"exported {export}")
+    except TrainingInterrupted as exc:
+        if lead:
+            print(exc.line(), file=sys.stderr)
+        return exc.code
+    except KeyboardInterrupt as exc:  # before the first step, or a second signal
+        signum = getattr(exc, "signum", signal.SIGINT)
+        if lead:
+            ckp = out / "checkpoint.pt"
+            where = (f"the last checkpoint is {ckp}: resume with --resume {ckp}" if ckp.is_file()
+                     else "nothing was saved")
+            print(f"interrupted ({signal.Signals(signum).name}); {where}", file=sys.stderr)
+        return 128 + signum
     if world > 1:
         dist.barrier()  # every rank ends once the export is written
     return 0
+
+
+def _export_run(result, args, argv, world, commit, init, fit, export: Path) -> None:
+    prov = result["provenance"]
+    launcher = "python -m" if world == 1 else f"torchrun --nproc_per_node={world} -m"
+    prov["command"] = f"{launcher} mccnn_cl.train.train " + " ".join(
+        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+    prov["git_commit"] = commit
+    if init is not None:
+        try:
+            record_init(prov, init, args.init)
+        except Exception as exc:  # noqa: BLE001 - a provenance problem must not lose the trained weights
+            prov["init"] = {"weights": str(args.init), "licence": init.meta.get("licence"),
+                            "provenance_error": f"{type(exc).__name__}: {exc}"}
+            print(f"warning: the lineage of --init {args.init} could not be recorded ({type(exc).__name__}: "
+                  f"{exc}); the weights are written without it", file=sys.stderr)
+        if prov.get("init"):  # a pair the start was trained on is not held out either
+            prov["held_out"] = [k for k in prov.get("held_out", []) if k not in pairs_of(prov.get("trained_on"))]
+    if fit is not None:
+        prov["fit_minutes"] = fit
+    prov["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    # anything JSON cannot hold, as text (non-finite numbers as null): never a lost export
+    prov = _json_safe(json.loads(json.dumps(prov, default=str)))
+    w = result["model"].cpu().to_weights({"training": prov})
+    with _writing(export):
+        w.save(export)
+    _say(f"exported {export}")
 
 
 if __name__ == "__main__":
