@@ -408,14 +408,6 @@ def plan_outputs(jobs, args, settings=None):
 
 # -- settings records ----------------------------------------------------------
 
-def _sha256_file(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def weights_digest(weights) -> str:
     """sha256 of a network: its architecture, every array (shape and bytes) and
     the stereo settings it carries -- what its disparity maps depend on."""
@@ -447,7 +439,8 @@ def batch_settings(args, calib=None, weights=None) -> dict:
     if args.cost == "cnn" and weights is not None:
         out["weights"] = f"sha256 {weights_digest(weights)[:16]} ({getattr(args, 'weights', None) or 'shipped'})"
     if calib is not None and getattr(calib, "has_depth", False) and not getattr(args, "no_depth", False):
-        out["calib"] = f"sha256 {_sha256_file(args.calib)[:16]} ({os.path.basename(args.calib)})"
+        from .importers import sha256
+        out["calib"] = f"sha256 {sha256(args.calib)[:16]} ({os.path.basename(args.calib)})"
         out["ply"] = "ascii" if getattr(args, "ply_ascii", False) else "binary"
     return out
 
