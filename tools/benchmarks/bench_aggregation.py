@@ -1,7 +1,7 @@
 """Timing of cross arms, CBCA and SGM on a KITTI-sized random volume.
 
-    python -m bench.bench_aggregation            # or: python bench/bench_aggregation.py
-    python bench/bench_aggregation.py --H 376 --W 1240 --D 228 --repeat 1
+    python tools/benchmarks/bench_aggregation.py
+    python tools/benchmarks/bench_aggregation.py --H 376 --W 1240 --D 228 --repeat 1
 
 Prints, for each stage, the wall time (queue finished), the CPU time of this
 process over the same interval (PoCL's threads included: on a shared machine
@@ -9,7 +9,11 @@ wall time depends on the load, CPU time much less), and the bandwidth the
 wall time achieves counting the volume bytes the stage must move at least
 (reads + writes of D x H x W float32), beside the buffer-copy bandwidth
 measured in the same run (copy of one volume: read + write).  Best of
-``--repeat`` runs after one warm-up run.
+``--repeat`` runs after one warm-up run.  SGM's volume traffic is that of
+the kernels it runs (:func:`sgm_traffic`): the paired sweeps (the default
+on devices of few compute units) read the cost volume twice and write the
+output twice with one read of it, 5 V; the one-direction kernels read it
+four times, write the output once and read + write it three times, 11 V.
 """
 
 from __future__ import annotations
@@ -49,6 +53,15 @@ def timed(ctx, fn, repeat):
         if t < best:
             best, CPU["last"] = t, _cpu() - c0
     return best
+
+
+def sgm_traffic(sgm, V) -> int:
+    """Bytes an SGM call moves with ``sgm``'s kernels (V: one volume's bytes):
+    the paired sweeps (sgm_paired, two launches) 2 reads of the cost volume
+    + 2 writes and 1 read of the output = 5 V; the one-direction kernels 4
+    reads of C + the output written once, then read + written three times =
+    11 V."""
+    return (5 if sgm.paired else 11) * V
 
 
 def main(argv=None):
@@ -117,8 +130,10 @@ def main(argv=None):
     sgm = SGM(ctx)
     if "sgm" in args.stages:
         t = timed(ctx, lambda: sgm(d_cost, d_l, d_r, D, H, W, out=d_out), args.repeat)
-        moved = 11 * V  # 4 reads of C, out written once, then read + written three times
-        print(f"SGM 4 directions {t * 1e3:8.1f} ms  {moved / t / 1e9:6.2f} GB/s, cpu {CPU['last'] * 1e3:.0f} ms")
+        moved = sgm_traffic(sgm, V)
+        kind = "paired" if sgm.paired else "one-direction"
+        print(f"SGM 4 directions {t * 1e3:8.1f} ms  {moved / t / 1e9:6.2f} GB/s ({kind} kernels, {moved // V} V), "
+              f"cpu {CPU['last'] * 1e3:.0f} ms")
     print(f"(buffer-copy bandwidth {copy_bw:.2f} GB/s)")
 
 

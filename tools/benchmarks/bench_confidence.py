@@ -1,11 +1,14 @@
 """Time the confidence stage on a KITTI-size volume beside the device's copy bandwidth.
 
-    python bench/bench_confidence.py [--repeat 5]
+    python tools/benchmarks/bench_confidence.py [--repeat 5]
 
 The confidence reads the final volume once (D x H x W float32) and writes one
 float per pixel, so its floor is one read of the volume at the device's copy
-rate (a copy counts read + write; one read is half of a copy's traffic).
-The volume is census's of KITTI 2015 000000 (D = 228) from the shared data.
+rate, in bench's convention (mccnn_cl.benchmark.traffic_floor): the bytes a
+stage moves, reads + writes, over the copy rate, which counts a copy's read
+and its write; one read of V bytes costs V / rate, half a copy's time.
+The volume is census's of KITTI 2015 000000 (D = 228) from the shared data
+($MCCNN_DATA, default ../shared/data beside the repository).
 """
 
 import argparse
@@ -14,7 +17,7 @@ import time
 
 import numpy as np
 
-from mccnn_cl.benchmark import copy_bandwidth
+from mccnn_cl.benchmark import copy_baseline, traffic_floor
 from mccnn_cl.opencl.context import ClContext
 from mccnn_cl.evaluation.datasets import discover
 from mccnn_cl.imageops import to_gray
@@ -22,6 +25,12 @@ from mccnn_cl.costs.census import CensusCost
 from mccnn_cl.stages.confidence import Confidence
 
 DATA = os.environ.get("MCCNN_DATA", os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "data"))
+
+
+def read_floor(volume_bytes, copy_bw) -> float:
+    """Seconds of one read of the volume at the copy rate (bench's convention:
+    ``copy_bw`` counts read + write, a read of V bytes moves V)."""
+    return traffic_floor(volume_bytes, copy_bw)
 
 
 def main():
@@ -45,12 +54,15 @@ def main():
         conf(d_vol, labels, D, H, W, cost.floor, out=out)
         ctx.finish()
         best = min(best, time.perf_counter() - t0)
-    bw = copy_bandwidth(ctx)
-    floor_s = D * H * W * 4 / (bw / 2)
-    print(f"device: {ctx.describe()}")
-    print(f"volume {D} x {H} x {W} float32 ({D * H * W * 4 / 2**20:.0f} MiB); copy {bw / 1e9:.1f} GB/s")
-    print(f"confidence: {best * 1e3:.0f} ms (best of {args.repeat}); one read of the volume at copy rate "
-          f"{floor_s * 1e3:.0f} ms; ratio {best / floor_s:.2f}x")
+    base = copy_baseline(ctx)
+    bw = base["rate"]
+    floor_s = read_floor(D * H * W * 4, bw)
+    print(f"device: {ctx.describe()}; {os.cpu_count()} cores, load average (1 min) {os.getloadavg()[0]:.2f}")
+    print(f"volume {D} x {H} x {W} float32 ({D * H * W * 4 / 2**20:.0f} MiB); copy {bw / 1e9:.1f} GB/s "
+          f"(read + write counted, {base['nbytes'] / 2**20:.0f} MiB, best of {base['repeat']}, {base['timer']})")
+    print(f"confidence: {best * 1e3:.0f} ms (best of {args.repeat}); floor, one read of the volume (V bytes) "
+          f"at that rate (bench's convention: bytes read + written / copy rate) {floor_s * 1e3:.0f} ms; "
+          f"ratio {best / floor_s:.2f}x")
 
 
 if __name__ == "__main__":

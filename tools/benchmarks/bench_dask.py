@@ -1,10 +1,11 @@
 """Pairs per second of the Dask path against the one-process batch, and one
-huge image's row tiles on 1 and 2 workers, A/B in one run.
+huge image's row tiles on 1 and 2 workers, A/B in one run (KITTI 2015 frames
+from $MCCNN_DATA, default ../shared/data beside the repository).
 
-    python bench/bench_dask.py                       # 8 KITTI 2015 pairs, kitti-fst, D = 228
-    python bench/bench_dask.py --cost census --pairs 6 --rounds 2
-    python bench/bench_dask.py --huge-only
-    python bench/bench_dask.py --overhead-only      # fixed cost per pair: 40 tiny pairs
+    python tools/benchmarks/bench_dask.py                       # 8 KITTI 2015 pairs, kitti-fst, D = 228
+    python tools/benchmarks/bench_dask.py --cost census --pairs 6 --rounds 2
+    python tools/benchmarks/bench_dask.py --huge-only
+    python tools/benchmarks/bench_dask.py --overhead-only      # fixed cost per pair: 40 tiny pairs
 
 Pairs: the one-process batch (one StereoMatcher, as ``mccnn-cl match -l -r``)
 beside :func:`mccnn_cl.distributed.match_pairs` on a LocalCluster of 1 and of
@@ -32,7 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared/data/kitti2015/training"
+REPO = Path(__file__).resolve().parents[2]  # the repository root (this file: tools/benchmarks/)
+#: the shared data: $MCCNN_DATA, default ../shared/data beside the repository root
+DATA = Path(os.environ.get("MCCNN_DATA", REPO.parent / "shared" / "data"))
+SHARED = DATA / "kitti2015" / "training"
 FRAMES = ("000000", "000001", "e00001", "e00002", "e00003", "e00004", "e00006", "e00007", "e00008", "e00010")
 
 

@@ -1,20 +1,27 @@
 """Benchmark of the JMLR networks' costs (fst, acrt) and of the fst stereo method.
 
-    python bench/bench_fst.py [--arch fst|acrt] [--disp 228] [--device SPEC] [--weights FILE]
+    python tools/benchmarks/bench_fst.py [--arch fst|acrt] [--disp 228] [--device SPEC] [--weights FILE]
 
 On the KITTI 2015 pair 000000 (1242 x 375, gray) of the shared data, after
 a warm-up, best of ``--reps`` runs, each timed after ``ctx.finish()``:
 
 * features: the conv stack of both images (fst: and the L2 normalisation;
-  acrt: and the L4 split), against numpy's float32 GEMM (OpenBLAS) on the
-  same arithmetic: per layer the im2col product (pixels x k*k*cin) @
-  (k*k*cin x maps), both images (the im2col copies are made beforehand and
-  not timed, so numpy gets the bare BLAS rate);
+  acrt: and the L4 split), against numpy's float32 GEMM (OpenBLAS, on the
+  host CPU) on the same arithmetic: per layer the im2col product (pixels x
+  k*k*cin) @ (k*k*cin x maps), both images, the shapes printed (the im2col
+  copies and the products' outputs are made beforehand and not timed, so
+  numpy gets the bare BLAS rate);
 * fst volume: the cosine-volume kernel alone on features already on the
-  device, against the device's copy bandwidth on a buffer of the volume's
-  size (clEnqueueCopyBuffer: reads and writes it; clEnqueueFillBuffer:
-  writes it);
-* acrt head: its FLOP rate against numpy GEMM on one hidden layer's shape;
+  device.  It writes the volume and reads only the features, so its floor
+  is a write-only pass over a buffer of the volume's size: a fill
+  (clEnqueueFillBuffer), printed as the floor.  A copy (clEnqueueCopyBuffer,
+  read + write) is printed beside it in bench's one convention: GB/s count
+  the bytes read + written (a copy moves 2 x its size), and the volume's
+  write at that rate (its V bytes over the copy's rate) is the copy-rate
+  floor.  Copy and fill are timed by OpenCL profiling events
+  (mccnn_cl.benchmark.device_seconds), not through the polling wait;
+* acrt head: its FLOP rate against numpy GEMM on one hidden layer's shape
+  (named in the output);
 * the whole stereo method (``StereoMatcher(weights=...)`` with the
   network's own settings, default the authors' KITTI ones), steady state
   (volumes kept between calls), with the per-stage split of one timed call;
@@ -40,6 +47,7 @@ import time
 import numpy as np
 
 from bench_network import cpu_name
+from mccnn_cl.benchmark import device_seconds
 
 
 def best(fn, reps):
@@ -53,36 +61,69 @@ def best(fn, reps):
 
 def interleaved(fns, reps):
     """Best time of each function, the functions run in turn in every round
-    (so that drifts of this shared machine's speed hit them alike)."""
+    (so that drifts of this shared machine's speed hit them alike).  A
+    function that returns a number has timed itself (seconds: e.g. by
+    OpenCL profiling events); that number is taken instead of the wall time."""
     times = {name: [] for name in fns}
     for _ in range(reps):
         for name, fn in fns.items():
             t0 = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - t0)
+            got = fn()
+            wall = time.perf_counter() - t0
+            times[name].append(float(got) if isinstance(got, (int, float)) else wall)
     return {name: min(t) for name, t in times.items()}
 
 
-def gemm_job(w, H, W, reps, extra=None):
-    """numpy's GEMMs with the conv stack's shapes (both images), plus
-    ``extra`` (rows, k, n) products; returns (a function running them, FLOP)."""
-    rng = np.random.default_rng(0)
+def gemm_shapes(w, H, W, extra=None):
+    """(rows, k, n) of numpy's GEMMs with the conv stack's im2col shapes (one
+    image), plus ``extra`` products."""
     shapes = []
     h, wd = H, W
     for Wc, _ in w.conv:
         cout, cin, k, _ = Wc.shape
         h, wd = h - k + 1, wd - k + 1
         shapes.append((h * wd, k * k * cin, cout))
-    shapes += extra or []
-    mats = [(rng.random((m, k), np.float32), rng.random((k, n), np.float32)) for m, k, n in shapes]
+    return shapes + list(extra or [])
+
+
+def shapes_text(shapes) -> str:
+    """'(m x k) @ (k x n)' per distinct shape, with its count."""
+    out, seen = [], {}
+    for s in shapes:
+        seen[s] = seen.get(s, 0) + 1
+    for (m, k, n), c in seen.items():
+        out.append(f"({m} x {k}) @ ({k} x {n})" + (f" x{c}" if c > 1 else ""))
+    return ", ".join(out)
+
+
+def gemm_job(w, H, W, reps, extra=None):
+    """numpy's GEMMs with the conv stack's shapes (both images), plus
+    ``extra`` (rows, k, n) products, each into an output kept between runs;
+    returns (a function running them, FLOP, the shapes of one image)."""
+    rng = np.random.default_rng(0)
+    shapes = gemm_shapes(w, H, W, extra)
+    mats = [(rng.random((m, k), np.float32), rng.random((k, n), np.float32), np.empty((m, n), np.float32))
+            for m, k, n in shapes]
     flop = 2 * sum(2 * m * k * n for m, k, n in shapes)
 
     def run():
         for _ in range(2):  # both images
-            for a, b in mats:
-                a @ b
+            for a, b, c in mats:
+                np.matmul(a, b, out=c)
     run()
-    return run, flop
+    return run, flop, shapes
+
+
+def volume_vs_floors(nbytes, t_vol, t_copy, t_fill) -> dict:
+    """The volume kernel against its floors, in bench's one convention (GB/s
+    count bytes read + written): it writes ``nbytes`` (the features it reads
+    are small), so its floor is a write-only pass, the fill's time; the copy
+    moves 2 x nbytes, and the volume's write at the copy's rate takes
+    nbytes / that rate (half the copy's time)."""
+    copy_rate = 2.0 * nbytes / t_copy
+    return {"vol_rate": nbytes / t_vol, "copy_rate": copy_rate, "fill_rate": nbytes / t_fill,
+            "floor_fill": t_fill, "floor_copy": nbytes / copy_rate,
+            "ratio_fill": t_vol / t_fill, "ratio_copy": t_vol / (nbytes / copy_rate)}
 
 
 def gpu_shaped(ctx, cost, w, Ln, Rn, h, wd, D, reps):
@@ -191,11 +232,13 @@ def main(argv=None):
         extra = [(h * wd, w.feature_maps, w.fc[0][0].shape[0])]
     for buf in feats():
         buf.release()
-    np_run, np_flop = gemm_job(w, H, W, args.reps, extra)
+    np_run, np_flop, np_shapes = gemm_job(w, H, W, args.reps, extra)
     t = interleaved({"features": lambda: [b.release() for b in feats()], "numpy": np_run}, args.reps)
     t_feat, t_np = t["features"], t["numpy"]
-    print(f"features: {t_feat * 1e3:.0f} ms ({fl['features'] / t_feat / 1e9:.1f} GFLOP/s); numpy GEMM on the "
-          f"same shapes {t_np * 1e3:.0f} ms ({np_flop / t_np / 1e9:.1f} GFLOP/s): ratio {t_feat / t_np:.2f}x")
+    print(f"features: {t_feat * 1e3:.0f} ms ({fl['features'] / t_feat / 1e9:.1f} GFLOP/s); host CPU numpy "
+          f"float32 GEMM on the same im2col shapes, both images [{shapes_text(np_shapes)}], outputs kept: "
+          f"{t_np * 1e3:.0f} ms ({np_flop / t_np / 1e9:.1f} GFLOP/s): ratio {t_feat / t_np:.2f}x "
+          f"(best of {args.reps}, interleaved)")
 
     if args.arch == "fst":
         nbytes = D * h * wd * 4
@@ -204,27 +247,41 @@ def main(argv=None):
         ctx.fill(d_src, 0.0, nbytes)
         ctx.fill(d_vol, 0.0, nbytes)
         d_l, d_r = feats()
-        i32 = np.int32
 
         def vol():
             cost.launch_volume(d_l, d_r, d_vol, h, wd, 0, D, h)
             ctx.finish()
 
+        # copy and fill: short device operations, timed by profiling events (no polling wait in them)
+        timers = set()
+
         def copy():
-            ctx.cl.enqueue_copy(ctx.queue, d_vol, d_src, byte_count=nbytes)
-            ctx.finish()
+            sec, how = device_seconds(ctx, lambda q: ctx.cl.enqueue_copy(q, d_vol, d_src, byte_count=nbytes),
+                                      repeat=1, warmup=False)
+            timers.add(how)
+            return sec
 
         def fill():
-            ctx.fill(d_vol, 1.0, nbytes)
-            ctx.finish()
+            pattern = np.array([1.0], np.float32)
+            sec, how = device_seconds(ctx, lambda q: ctx.cl.enqueue_fill_buffer(q, d_vol, pattern, 0, nbytes),
+                                      repeat=1, warmup=False)
+            timers.add(how)
+            return sec
         vol()
+        copy()
+        fill()
         t = interleaved({"vol": vol, "copy": copy, "fill": fill}, args.reps)
-        t_vol, t_copy, t_fill = t["vol"], t["copy"], t["fill"]
-        print(f"cosine volume: {t_vol * 1e3:.0f} ms ({nbytes / t_vol / 1e9:.2f} GB/s written, "
-              f"{fl['volume'] / t_vol / 1e9:.1f} GFLOP/s); copy of {nbytes / 1e6:.0f} MB {t_copy * 1e3:.0f} ms "
-              f"({nbytes / t_copy / 1e9:.2f} GB/s), fill {t_fill * 1e3:.0f} ms: volume / copy "
-              f"{t_vol / t_copy:.2f}x, volume / fill {t_vol / t_fill:.2f}x; its arithmetic at numpy's GEMM "
-              f"rate above: {fl['volume'] / (np_flop / t_np) * 1e3:.0f} ms")
+        r = volume_vs_floors(nbytes, t["vol"], t["copy"], t["fill"])
+        print(f"cosine volume: {t['vol'] * 1e3:.0f} ms ({r['vol_rate'] / 1e9:.2f} GB/s written, "
+              f"{fl['volume'] / t['vol'] / 1e9:.1f} GFLOP/s), best of {args.reps}; its floor, write-only: a fill "
+              f"of the {nbytes / 1e6:.0f} MB volume {r['floor_fill'] * 1e3:.1f} ms ({r['fill_rate'] / 1e9:.2f} GB/s "
+              f"written): volume / fill {r['ratio_fill']:.2f}x")
+        print(f"  beside it, bench's convention (GB/s count bytes read + written): copy of {nbytes / 1e6:.0f} MB "
+              f"{t['copy'] * 1e3:.1f} ms ({r['copy_rate'] / 1e9:.2f} GB/s read + write); the volume's write at "
+              f"that rate {r['floor_copy'] * 1e3:.1f} ms: volume / that {r['ratio_copy']:.2f}x (copy and fill "
+              f"timed by {', '.join(sorted(timers))})")
+        print(f"  its arithmetic at the host CPU numpy GEMM rate above (the conv stack's im2col shapes): "
+              f"{fl['volume'] / (np_flop / t_np) * 1e3:.0f} ms")
         for b in (d_vol, d_src, d_l, d_r):
             b.release()
         t_cost = best(lambda: (cost(left, right, D).release(), ctx.finish()), args.reps)
@@ -238,10 +295,13 @@ def main(argv=None):
         hk = w.fc[1][0].shape[1] if len(w.fc) > 2 else w.fc[0][0].shape[0]
         a = np.random.default_rng(0).random((hrows, hk), np.float32)
         b = np.random.default_rng(1).random((hk, hk), np.float32)
-        t_g = best(lambda: a @ b, args.reps)
+        c = np.empty((hrows, hk), np.float32)
+        np.matmul(a, b, out=c)  # warm-up; the output kept
+        t_g = best(lambda: np.matmul(a, b, out=c), args.reps)
         g_rate = 2 * hrows * hk * hk / t_g / 1e9
-        print(f"acrt cost {t_cost:.2f} s: head ~{head:.2f} s ({fl['head'] / head / 1e9:.1f} GFLOP/s; numpy GEMM "
-              f"{hrows}x{hk} @ {hk}x{hk}: {g_rate:.1f} GFLOP/s, head/GEMM rate {fl['head'] / head / 1e9 / g_rate:.2f}x)")
+        print(f"acrt cost {t_cost:.2f} s: head ~{head:.2f} s ({fl['head'] / head / 1e9:.1f} GFLOP/s; host CPU numpy "
+              f"float32 GEMM ({hrows} x {hk}) @ ({hk} x {hk}), best of {args.reps}: {g_rate:.1f} GFLOP/s, "
+              f"head/GEMM rate {fl['head'] / head / 1e9 / g_rate:.2f}x)")
 
     if args.no_pipeline:
         return

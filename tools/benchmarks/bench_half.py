@@ -1,7 +1,7 @@
 """Half-precision volume storage vs float32: accuracy, agreement, time, device memory.
 
-    .venv/bin/python bench/bench_half.py                      # census cost, 4 pairs, ~1 min
-    .venv/bin/python bench/bench_half.py --cost cnn --pairs Cones   # the network (slow on a CPU)
+    .venv/bin/python tools/benchmarks/bench_half.py                      # census cost, 4 pairs, ~1 min
+    .venv/bin/python tools/benchmarks/bench_half.py --cost cnn --pairs Cones   # the network (slow on a CPU)
 
 For each pair (KITTI: D = 228, 3-px error; Middlebury: its ndisp, bad-2.0),
 runs ``StereoMatcher(volume_dtype=...)`` with float32 and float16 storage

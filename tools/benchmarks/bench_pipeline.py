@@ -2,8 +2,8 @@
 the paper's runtime table (CNN / SGM / CBCA / everything else), beside OpenCV
 StereoSGBM on the same pair.
 
-    python -m bench.bench_pipeline            # or: python bench/bench_pipeline.py
-    python bench/bench_pipeline.py --cnn-disp 4 --repeat 2 --device cpu
+    python tools/benchmarks/bench_pipeline.py
+    python tools/benchmarks/bench_pipeline.py --cnn-disp 4 --repeat 2 --device cpu
 
 The pair is KITTI 2015 training 000000 (image_2 / image_3, 1242 x 375),
 cropped to 1240 columns and padded to 376 rows (last row repeated): the

@@ -3,16 +3,16 @@
 Full-size measurement (run it on an idle machine; about 5 minutes on 2 idle
 cores, of which ~4 min is the network):
 
-    .venv/bin/python bench/bench_scaling.py --json scaling.json --plot docs/img/scaling.png
+    .venv/bin/python tools/benchmarks/bench_scaling.py --json scaling.json --plot docs/img/scaling.png
 
 Quick check (tiny sizes, a few seconds; what tests/test_bench_scaling.py runs):
 
-    .venv/bin/python bench/bench_scaling.py --quick --json /tmp/scaling.json
+    .venv/bin/python tools/benchmarks/bench_scaling.py --quick --json /tmp/scaling.json
 
 The pair is KITTI 2015 training 000000 (image_2 / image_3; data directory
 ``../shared/data`` or ``$MCCNN_DATA``), gray, cropped to its top rows
 and left columns as each size needs (padded by repeating the last row up to
-376 rows, as bench/bench_pipeline.py does).  Four series, three points each:
+376 rows, as tools/benchmarks/bench_pipeline.py does).  Four series, three points each:
 
 * stereo method, area: ``StereoMatcher(cost="census", max_disparity=228)`` on
   1240 x 94, 1240 x 188, 1240 x 376;

@@ -1,8 +1,8 @@
 """Sparsification curves of the confidence (StereoMatcher.compute(..., confidence=True)).
 
-    .venv/bin/python bench/sparsification.py                 # ~2 min on 2 CPU cores
-    .venv/bin/python bench/sparsification.py --plot docs/img/sparsification.png --json out.json
-    .venv/bin/python bench/sparsification.py --render DIR SCENE_DIR ...   # confidence pictures of unlabeled pairs
+    .venv/bin/python tools/benchmarks/sparsification.py                 # ~2 min on 2 CPU cores
+    .venv/bin/python tools/benchmarks/sparsification.py --plot docs/img/sparsification.png --json out.json
+    .venv/bin/python tools/benchmarks/sparsification.py --render DIR SCENE_DIR ...   # confidence pictures of unlabeled pairs
 
 Runs on the project's held-out pairs: KITTI 2015 000000 with the census cost
 (D = 228, 3-px error) and Middlebury Cones (quarter size, ndisp, bad-2.0)

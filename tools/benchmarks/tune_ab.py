@@ -25,7 +25,8 @@ import numpy as np
 
 from mccnn_cl import StereoMatcher
 from mccnn_cl.opencl import tune
-from mccnn_cl.benchmark import copy_bandwidth, group_timings, numpy_gemm_rate
+from mccnn_cl.benchmark import (copy_bandwidth, floors as bench_floors, group_timings, host_gemm_applies,
+                                numpy_gemm_rate, volume_bytes)
 from mccnn_cl.opencl.context import ClContext
 from mccnn_cl.opencl.device import RULES
 
@@ -33,15 +34,10 @@ REPO = Path(__file__).resolve().parents[2]  # the repository root
 
 
 def floors(m, shape, vol, copy_bw, gemm):
-    """Per group: the floor in seconds (bench.rate_table's definitions)."""
-    p = m.params
-    nref = 2 if p.right_reference == "aggregated" else 1
-    rounds = int(p.cbca_iterations > 0) + nref * int(p.cbca_iterations_after > 0)
-    out = {"CBCA": rounds * 2 * vol / copy_bw, "SGM": nref * 2 * vol / copy_bw,
-           "rest": ((2 * vol if nref == 2 else 0) + 2 * vol) / copy_bw}
-    if m.cost_name == "cnn":
-        out["cost"] = m.cost.flops(shape[0], shape[1], m.max_disparity)["total"] / gemm
-    return out
+    """Per group: the floor in seconds (mccnn_cl.benchmark.floors, bench's definitions: the network's
+    FLOP at the host CPU's numpy GEMM rate, only where the device is that CPU; the volume traffic,
+    reads + writes, at the copy rate)."""
+    return bench_floors(m, shape, vol, copy_bw, gemm if host_gemm_applies(m.ctx) else None)
 
 
 def main():
@@ -61,7 +57,9 @@ def main():
     print(f"device: {ctx.describe()}")
     print(f"stored choices: {stored or 'none (run mccnn-cl tune)'}")
     copy_bw, gemm = copy_bandwidth(ctx), numpy_gemm_rate()
-    print(f"in-run baselines: copy {copy_bw / 1e9:.1f} GB/s, numpy GEMM {gemm / 1e9:.0f} GFLOP/s")
+    print(f"in-run baselines (each best of 3): device copy {copy_bw / 1e9:.1f} GB/s (read + write counted), "
+          f"host CPU numpy GEMM {gemm / 1e9:.0f} GFLOP/s; load average (1 min) {os.getloadavg()[0]:.2f}, "
+          f"{os.cpu_count()} cores")
     for entry in args.costs.split(","):
         cost, _, weights = entry.partition(":")  # "cnn" (the default network), "cnn:kitti-fst", "census"
         extra = {"weights": weights} if weights else {}
@@ -88,8 +86,7 @@ def main():
                     best[mode][name] = min(best[mode].get(name, 9e9), sec)
             # volumes of one matcher are freed before the other runs (memory)
         m = matchers["on"]
-        h, w = L.shape[0] - 2 * m.margin, L.shape[1] - 2 * m.margin
-        vol = D * h * w * 4
+        vol = volume_bytes(m, L.shape, D)
         fl = floors(m, L.shape, vol, copy_bw, gemm)
         fl["total"] = sum(fl.values())
         print(f"\n{entry}: best of {args.repeat}, KITTI 2015 000000 (1242x375), D {D}")
