@@ -55,9 +55,10 @@ class CostReuse:
 
         orig = matcher._matching_cost
 
-        def cost(I_L, I_R, D, to_host=None, out=None, stats=None, scratch=None):
+        def cost(I_L, I_R, D, to_host=None, out=None, stats=None, scratch=None, rows=None):
+            # rows: the network's band height under a memory limit (the same volume whatever it is)
             if to_host is not None or out is None or stats is not None:
-                return orig(I_L, I_R, D, to_host=to_host, out=out, stats=stats, scratch=scratch)
+                return orig(I_L, I_R, D, to_host=to_host, out=out, stats=stats, scratch=scratch, rows=rows)
             key = (weights, int(D), hashlib.sha1(np.ascontiguousarray(I_L).tobytes()).hexdigest(),
                    hashlib.sha1(np.ascontiguousarray(I_R).tobytes()).hexdigest())
             host = self.volumes.get(key)
@@ -65,7 +66,7 @@ class CostReuse:
                 ctx.cl.enqueue_copy(ctx.queue, out, host)
                 rec_flag["reused"] = True
                 return out
-            res = orig(I_L, I_R, D, out=out, scratch=scratch)
+            res = orig(I_L, I_R, D, out=out, scratch=scratch, rows=rows)
             host = np.empty(res.size, np.uint8)
             ctx.wait()
             ctx.cl.enqueue_copy(ctx.queue, host, res)
