@@ -101,6 +101,24 @@ CASE_KERNELS = {
              "subpixel_refine"},
 }
 
+#: Build forms each case must have fetched whatever the device's rules pick (checked in the
+#: worker): (kernel, {define: value, ...}), matched by a fetch of that kernel with at least
+#: those defines.  The cpu rules column's forms, which Oclgrind (the gpu column) never takes
+#: by default, and the tuner's sgm_wg_cols widths: the cases force them explicitly.
+CASE_FORMS = {
+    "network": [("network_conv", {"RN": 16}), ("network_head", {"RN": 16, "ROWS_FASTEST": 1}),
+                ("network_conv", {"RN": 8}), ("network_head", {"RN": 8, "ROWS_FASTEST": 1})],
+    "acrt": [("network_head", {"RN": 16, "NOUT": 1})],
+    "cbca": [("cbca_fused_multi_short", {"CBCA_SELECT_ADD": 0}), ("cbca_fused_multi_short", {"CBCA_SELECT_ADD": 1})],
+    "sgm": [("sgm_rows", {"SGM_WHOLE_TILES": 0}), ("sgm_paired", {"VOL_HALF": 1, "SGM_VW": 8})],
+    "sgm_wg": [("sgm_wg_cols", {"SGM_WG_CW": 16}), ("sgm_wg_cols", {"SGM_WG_CW": 32})],
+    "disparity": [("disparity_wta_left", {"WTA_CHUNKS": 8, "VOL_HALF": 0}),
+                  ("disparity_wta_left", {"WTA_CHUNKS": 8, "VOL_HALF": 1}),
+                  ("disparity_right_volume", {"MIRROR_LINES": 1, "VOL_HALF": 0}),
+                  ("disparity_right_volume", {"MIRROR_LINES": 1, "VOL_HALF": 1})],
+    "half": [("sgm_rows", {"VOL_HALF": 1}), ("sgm_columns", {"VOL_HALF": 1})],
+}
+
 
 def run_isolated(impl: str, case: str, timeout: float = 600) -> dict:
     """Run one case in a subprocess that sees only ``impl``.

@@ -14,7 +14,10 @@ install hint (``scripts/test.sh`` installs it).
 The same worker runs the cases on any implementation
 (``python tests/test_oclgrind.py --impl rusticl --all``); test_portability.py
 uses that for Rusticl, through ``helpers.run_isolated``; the kernels each
-case must fetch are ``helpers.CASE_KERNELS`` (shared with test_portability.py).
+case must fetch are ``helpers.CASE_KERNELS`` (shared with test_portability.py),
+and ``helpers.CASE_FORMS`` the build options some must fetch them with (the
+cpu rules column's forms, forced whatever the device's rules pick), so that
+every case fetches the same kernels and forms on any implementation.
 
 Inputs are tiny (Oclgrind interprets every work-item, ~1000x slower than
 PoCL): images of 12 x 20 (cropped domain 4 x 12) and 13 x 21, D = 5, plus one
@@ -32,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from helpers import CASE_KERNELS, run_isolated
+from helpers import CASE_FORMS, CASE_KERNELS, run_isolated
 
 HERE = Path(__file__).resolve().parent
 POISON = np.float32(-1.2345e30)  # same value as conftest.POISON (not imported: worker runs standalone)
@@ -88,6 +91,12 @@ class Checks:
                 ok = bool(nan_ok and np.all(diff <= lim))
         self.results.append({"name": name, "ok": ok, "shape": list(got.shape), "err": err})
 
+    def differs(self, name, a, b):
+        """Records a failure when ``a`` equals ``b``: an input that must reach a
+        path (a range that changes the reference's answer) and no longer does."""
+        self.results.append({"name": name, "ok": not np.array_equal(np.asarray(a), np.asarray(b), equal_nan=True),
+                             "shape": list(np.shape(a)), "err": None})
+
     @property
     def failures(self):
         return [r for r in self.results if not r["ok"]]
@@ -105,6 +114,8 @@ def case_network(ctx, rng, chk):
     from mccnn_cl.weights import Weights
 
     w = Weights.random(conv_layers=[[4, 3], [4, 3], [4, 3], [4, 3]], fc_layers=[8, 8, 8, 2], seed=3)
+    # 20 maps and hidden units: with RN 16 a whole and a partial group of channels, with RN 8 two and a partial
+    w20 = Weights.random(conv_layers=[[4, 3], [4, 3], [4, 3], [20, 3]], fc_layers=[20, 20, 20, 2], seed=6)
     # the device's default tiles, then small explicit ones: several tiles per
     # disparity with a partly empty last one, both work-item orders
     # the CPU-shaped conv kernel and fused head whatever the device's default (case network_wg has the others)
@@ -114,11 +125,17 @@ def case_network(ctx, rng, chk):
             NetworkCost(ctx, w, tiles={"TM": 4, "RM": 1, "RN": 2, "ROWS_FASTEST": 0, "CONV_RM": 3}, **cpu),
             # 256 row groups x 8 column groups > Oclgrind's 1024 work-items:
             # fewer work-items than (row, column) groups, each walking several
-            NetworkCost(ctx, w, tiles={"TM": 256, "RM": 1, "RN": 1, "ROWS_FASTEST": 0, "CONV_RM": 1}, **cpu)]
-    sizes = ((12, 20, 5), (11, 13, 7), (12, 17, 5), (12, 15, 4))  # 2nd: D >= W (cropped W = 5)
+            NetworkCost(ctx, w, tiles={"TM": 256, "RM": 1, "RN": 1, "ROWS_FASTEST": 0, "CONV_RM": 1}, **cpu),
+            # the cpu rules column's tiles whatever the device (Oclgrind's gpu column has RN 4):
+            # RN 16 (float vector width 16; the conv stack's RN too), RN 8 (width 8) with RM 4
+            NetworkCost(ctx, w20, tiles={"TM": 64, "RM": 8, "RN": 16, "ROWS_FASTEST": 1, "CONV_RM": 4}, **cpu),
+            NetworkCost(ctx, w20, tiles={"TM": 64, "RM": 4, "RN": 8, "ROWS_FASTEST": 1, "CONV_RM": 4}, **cpu)]
+    sizes = ((12, 20, 5), (11, 13, 7), (12, 17, 5), (12, 15, 4),  # 2nd: D >= W (cropped W = 5)
+             (12, 19, 5), (11, 16, 6))
     import mccnn_cl.costs.network as network_module
 
-    for i, (net, (h, wd, D)) in enumerate(zip(nets, sizes)):
+    for i, (net, (h, wd, D)) in enumerate(zip(nets, sizes, strict=True)):
+        w = net.weights
         left, right = _images(rng, h, wd)
         H, W = h - 2 * w.margin, wd - 2 * w.margin
         out = _poisoned(ctx, D * H * W * 4)
@@ -132,7 +149,7 @@ def case_network(ctx, rng, chk):
         got = ctx.from_device(out, (D, H, W))
         # float32 kernel vs float64 reference through 7 layers of 4-8 units:
         # rounding differences are ~1e-6 on costs in [0, 1]
-        chk.close(f"C_CNN {h}x{wd} D={D} tiles {net.tm}/{net.rm}/{net.rn} nwi {net.nwi}", got, ref.cost_volume(w, left, right, D), atol=2e-5, rtol=1e-4)
+        chk.close(f"C_CNN {h}x{wd} D={D} tiles {net.tm}/{net.rm}/{net.rn} hidden {net.hp} nwi {net.nwi}", got, ref.cost_volume(w, left, right, D), atol=2e-5, rtol=1e-4)
 
 
 def case_fst(ctx, rng, chk):
@@ -174,7 +191,9 @@ def case_acrt(ctx, rng, chk):
 
     w = Weights.random(conv_layers=[[4, 3], [4, 3]], fc_layers=[8, 8, 1], architecture="mccnn-acrt", seed=5)
     for tiles, (h, wd, D) in ((None, (9, 17, 5)), ({"TM": 4, "RM": 2, "RN": 4, "ROWS_FASTEST": 0, "CONV_RM": 3},
-                                                    (8, 11, 9))):
+                                                    (8, 11, 9)),
+                              # the cpu rules column's tile whatever the device: RN 16 (hidden width padded to 16)
+                              ({"TM": 64, "RM": 8, "RN": 16, "ROWS_FASTEST": 1, "CONV_RM": 4}, (9, 14, 5))):
         left, right = _images(rng, h, wd)
         H, W = h - 2 * w.margin, wd - 2 * w.margin
         out = _poisoned(ctx, D * H * W * 4)
@@ -300,7 +319,10 @@ def case_range(ctx, rng, chk):
 
 
 def case_disparity(ctx, rng, chk):
-    """disparity.cl (WTA left/right, LR check), interpolate.cl, subpixel.cl."""
+    """disparity.cl (WTA left/right, LR check), interpolate.cl, subpixel.cl;
+    the left WTA with 8 chunks per work-item and the mirroring with a
+    work-item per line (the cpu rules column's forms) in float32 and half;
+    and the working frame of a range with M < 0 (right_width < W, first_column > 0)."""
     from mccnn_cl.reference import disparity as ref
     from mccnn_cl.stages.disparity import Interpolate, LeftRightCheck, RightReference, Subpixel, WinnerTakeAll
 
@@ -347,16 +369,77 @@ def case_disparity(ctx, rng, chk):
             chk.close(f"subpixel {mind} {clamp} {H}x{W}", ctx.from_device(d_se, (H, W)),
                       ref.subpixel(C, DL, min_denominator=mind, clamp_step=clamp), atol=1e-5, rtol=1e-5)
 
+    # the cpu rules column's forms whatever the device's (Oclgrind takes the gpu column's: a
+    # 16-pixel chunk per WTA work-item, a work-item per 16-pair block of the mirroring): 8
+    # chunks per work-item (W = 150: a whole 128-pixel span and a partial one) and a work-item
+    # per (d, y) line, there and back, in float32 and half
+    for half in (False, True):
+        wta8, rr_lines = WinnerTakeAll(ctx, half=half, chunks=8), RightReference(ctx, half=half, lines=True)
+        for (D, H, W) in ((5, 4, 13), (3, 2, 150)):
+            C = _volume(rng, D, H, W).astype(np.float16 if half else np.float32)
+            C32 = C.astype(np.float32)
+            d_l = _poisoned(ctx, H * W * 4, np.int32)
+            wta8.left(ctx.to_device(C), D, H, W, out=d_l)
+            chk.close(f"WTA left, 8 chunks per work-item, D={D} {H}x{W} half={half}",
+                      ctx.from_device(d_l, (H, W), np.int32), ref.wta_left(C32))
+            d_v = ctx.to_device(C, writable=True)
+            rr_lines.volume(d_v, D, H, W)
+            chk.close(f"right-reference volume, a work-item per line, D={D} {H}x{W} half={half}",
+                      ctx.from_device(d_v, (D, H, W), C.dtype), ref.right_cost_volume(C32)[:, :, ::-1].astype(C.dtype))
+            rr_lines.volume(d_v, D, H, W)
+            chk.close(f"right-reference volume back, a work-item per line, D={D} {H}x{W} half={half}",
+                      ctx.from_device(d_v, (D, H, W), C.dtype), C)
+
+    # the working frame of a range with M < 0 (pipeline._volume_stages): the left image's real
+    # columns from lo, the right's up to Wr = W - lo; the check takes no candidate whose right
+    # pixel is padding, interpolation walks end at lo, the subpixel fit keeps d where a cell
+    # compares with padding.  Each reference must differ from the full frame's (else the
+    # input no longer reaches the path).
+    for (D, H, W), lo in (((5, 4, 13), 3), ((7, 3, 11), 4)):
+        Wr, n = W - lo, H * W * 4
+        C = _volume(rng, D, H, W)
+        d_C = ctx.to_device(C)
+        DL, DR = ref.wta_left(C).astype(np.int32), ref.wta_right(C).astype(np.int32)
+        d_l = ctx.to_device(DL)
+        d_lab = _poisoned(ctx, n, np.int32)
+        lrc(d_l, ctx.to_device(DR), D, H, W, out=d_lab, right_width=Wr)
+        lab = ref.lr_check(DL, DR, D, right_width=Wr)
+        label = f"D={D} {H}x{W} right_width={Wr} first_column={lo}"
+        chk.close(f"LR check {label}", ctx.from_device(d_lab, (H, W), np.int32), lab)
+        chk.differs(f"LR check {label}: the range changes the labels", lab, ref.lr_check(DL, DR, D))
+        d_lab_ref = ctx.to_device(lab)
+        for directions in ("paper", "code"):
+            d_int = _poisoned(ctx, n, np.int32)
+            itp(d_l, d_lab_ref, H, W, directions=directions, out=d_int, first_column=lo)
+            want = ref.interpolate(DL, lab, directions=directions, stop_at_any=directions == "code", first_column=lo)
+            chk.close(f"interpolate {directions} {label}", ctx.from_device(d_int, (H, W), np.int32), want)
+            chk.differs(f"interpolate {directions} {label}: the range changes the map", want,
+                        ref.interpolate(DL, lab, directions=directions, stop_at_any=directions == "code"))
+        DINT = want  # the code directions' map, as the pipeline's next input
+        d_dint = ctx.to_device(DINT.astype(np.int32))
+        for mind, clamp in ((0.0, False), (1e-5, True)):
+            d_se = _poisoned(ctx, n)
+            sub(d_C, d_dint, D, H, W, min_denominator=mind, clamp_step=clamp, out=d_se, right_width=Wr)
+            want = ref.subpixel(C, DINT, min_denominator=mind, clamp_step=clamp, right_width=Wr)
+            chk.close(f"subpixel {mind} {clamp} {label}", ctx.from_device(d_se, (H, W)), want, atol=1e-5, rtol=1e-5)
+            chk.differs(f"subpixel {mind} {clamp} {label}: the range changes the map", want,
+                        ref.subpixel(C, DINT, min_denominator=mind, clamp_step=clamp))
+
 
 def case_confidence(ctx, rng, chk):
     """confidence.cl: the LR labels of the volume and all-correct labels, a
-    D >= W volume, quantised costs (plateaus), an fst-like floor; float32 and half."""
+    D >= W volume, quantised costs (plateaus), an fst-like floor; float32 and
+    half; the working frame of a range with M < 0 (right_width < W,
+    first_column > 0), whose reference must differ from the full frame's."""
     from mccnn_cl.reference import confidence as ref
     from mccnn_cl.reference import disparity as dref
     from mccnn_cl.stages.confidence import Confidence
 
-    for (D, H, W), levels, floor, half in (((5, 4, 13), None, 0.0, False), ((7, 3, 5), 3, 0.0, False),
-                                           ((6, 3, 11), 4, -1.0, False), ((5, 4, 13), None, 0.0, True)):
+    for (D, H, W), levels, floor, half, lo in (((5, 4, 13), None, 0.0, False, 0), ((7, 3, 5), 3, 0.0, False, 0),
+                                               ((6, 3, 11), 4, -1.0, False, 0), ((5, 4, 13), None, 0.0, True, 0),
+                                               # M < 0: left padding columns 0 .. lo-1, right image W - lo wide
+                                               ((5, 4, 13), None, 0.0, False, 3), ((6, 3, 11), 4, -1.0, True, 2)):
+        Wr = W - lo
         C = _volume(rng, D, H, W)
         if levels:
             C = (np.floor(C * levels) / levels).astype(np.float32)
@@ -364,13 +447,19 @@ def case_confidence(ctx, rng, chk):
             C = C * 2 - 1
         if half:
             C = C.astype(np.float16)
-        lab = dref.lr_check(dref.wta_left(C.astype(np.float32)), dref.wta_right(C.astype(np.float32)), D)
+        lab = dref.lr_check(dref.wta_left(C.astype(np.float32)), dref.wta_right(C.astype(np.float32)), D,
+                            right_width=Wr)
         for name, labels in (("LR labels", lab), ("all correct", np.zeros((H, W), np.int32))):
             out = _poisoned(ctx, H * W * 4)
-            Confidence(ctx, half=half)(ctx.to_device(C), ctx.to_device(labels), D, H, W, floor, out=out)
+            rng_kw = dict(right_width=Wr, first_column=lo) if lo else {}  # lo = 0: the stage's defaults
+            Confidence(ctx, half=half)(ctx.to_device(C), ctx.to_device(labels), D, H, W, floor, out=out, **rng_kw)
+            want = ref.confidence(C, labels, floor, **rng_kw)
+            label = f"confidence D={D} {H}x{W} levels={levels} floor={floor} half={half} {name}"
+            if lo:
+                label += f" right_width={Wr} first_column={lo}"
+                chk.differs(f"{label}: the range changes the map", want, ref.confidence(C, labels, floor))
             # one float32 division, rounded within 2.5 ulp by OpenCL: < 3e-7 on values <= 1
-            chk.close(f"confidence D={D} {H}x{W} levels={levels} floor={floor} half={half} {name}",
-                      ctx.from_device(out, (H, W)), ref.confidence(C, labels, floor), atol=1e-6)
+            chk.close(label, ctx.from_device(out, (H, W)), want, atol=1e-6)
 
 
 def case_refine(ctx, rng, chk):
@@ -425,18 +514,22 @@ def case_cbca(ctx, rng, chk):
     """cbca.cl: multi-iteration fused kernel (several iterations per launch
     and a shorter last launch, out of place and in place), one-iteration fused
     kernel (out of place and in place), rows + columns passes; arms from the
-    CrossArms stage."""
+    CrossArms stage.  The multi kernel in both forms of a masked term
+    (CBCA_SELECT_ADD 0: one masked add, CPUs with AVX-512; 1: the mask on the
+    term, other CPUs), whatever the device's."""
     from mccnn_cl.reference.aggregation import cbca, cross_arms
     from mccnn_cl.stages.cbca import CBCA
     from mccnn_cl.stages.cross import CrossArms, max_arm
 
-    for (D, H, W), eta, bound, fused, multi, it, in_place in (
-            ((5, 4, 13), 4, max_arm(4), False, False, 2, False),
-            ((7, 5, 5), 9, 255, False, False, 2, False),
-            ((4, 3, 40), 4, max_arm(4), True, False, 2, False),
-            ((3, 5, 21), 4, max_arm(4), True, False, 2, True),
-            ((4, 9, 35), 4, max_arm(4), True, True, 5, False),
-            ((19, 6, 21), 9, max_arm(9), True, True, 2, True)):
+    for (D, H, W), eta, bound, fused, multi, it, in_place, select_add in (
+            ((5, 4, 13), 4, max_arm(4), False, False, 2, False, None),
+            ((7, 5, 5), 9, 255, False, False, 2, False, None),
+            ((4, 3, 40), 4, max_arm(4), True, False, 2, False, None),
+            ((3, 5, 21), 4, max_arm(4), True, False, 2, True, None),
+            ((4, 9, 35), 4, max_arm(4), True, True, 5, False, False),
+            ((4, 9, 35), 4, max_arm(4), True, True, 5, False, True),
+            ((19, 6, 21), 9, max_arm(9), True, True, 2, True, False),
+            ((19, 6, 21), 9, max_arm(9), True, True, 2, True, True)):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
         C = _volume(rng, D, H, W)
         d_al = CrossArms(ctx)(ctx.to_device(img_l), H, W, eta=eta)
@@ -448,12 +541,13 @@ def case_cbca(ctx, rng, chk):
         else:
             out = _poisoned(ctx, 4 * D * H * W)
             src = ctx.to_device(C)
-        CBCA(ctx, max_arm=bound, fused=fused, multi=multi)(src, d_al, d_ar, D, H, W, iterations=it, max_arm=bound,
-                                                            out=out)
+        CBCA(ctx, max_arm=bound, fused=fused, multi=multi, select_add=select_add)(
+            src, d_al, d_ar, D, H, W, iterations=it, max_arm=bound, out=out)
         want = cbca(C, cross_arms(img_l, eta=eta), cross_arms(img_r, eta=eta), it)
         # means of <= 81 float32 costs in [0, 1] with compensated sums: the
         # stage's own tests use 1e-5 of the cost range
-        chk.close(f"CBCA D={D} {H}x{W} eta={eta} fused={fused} multi={multi} iterations={it} in_place={in_place}",
+        chk.close(f"CBCA D={D} {H}x{W} eta={eta} fused={fused} multi={multi} iterations={it} in_place={in_place}"
+                  f"{'' if select_add is None else f' select_add={select_add}'}",
                   ctx.from_device(out, (D, H, W)), want, atol=1e-5)
 
 
@@ -510,31 +604,48 @@ def case_sgm(ctx, rng, chk):
     columns per sgm_columns work-item, a partial strip; both row directions
     in one launch) with the first sweep in bands of rows (the vertical path's
     state carried between launches); the column kernel with and without its
-    specialised row loops; with D >= 16 the row kernel's whole-tile path;
-    the paired sweeps; both on 8-wide vectors."""
+    specialised row loops; with D >= 16 the row kernel's whole-tile path
+    and the general path alone (SGM_WHOLE_TILES=0); the paired sweeps, in
+    float32 and half; both on 8-wide vectors."""
     from mccnn_cl.reference.aggregation import sgm
     from mccnn_cl.stages.sgm import SGM
 
-    for (D, H, W), kw, cfg in (((5, 4, 13), {}, {}),
-                               ((7, 5, 5), {"variant": "code", "outside_large": False}, {}),
-                               ((5, 1, 19), {}, {"specialize": False}),
-                               ((6, 5, 21), {}, {"cols": 128, "band": 2, "fused_rows": True}),
-                               # D >= 16 and 16-column chunks: sgm_rows' whole-tile path (default off Rusticl)
-                               ((20, 3, 40), {}, {"fused_rows": True}),
-                               # the paired sweeps (default on CPUs with <= 2 compute units): odd H,
-                               # whole tiles and partial ones, a partial last chunk
-                               ((20, 5, 37), {}, {"paired": True}),
-                               ((7, 4, 9), {"variant": "code", "outside_large": False}, {"paired": True}),
-                               # 8-wide vectors (SGM_VW 8, the rule where a CPU's vectors hold 8 floats)
-                               ((20, 5, 37), {}, {"paired": True, "width": 8}),
-                               ((20, 3, 21), {}, {"paired": False, "width": 8, "cols": 32, "band": 2})):
+    for (D, H, W), kw, cfg, half in (((5, 4, 13), {}, {}, False),
+                                     ((7, 5, 5), {"variant": "code", "outside_large": False}, {}, False),
+                                     ((5, 1, 19), {}, {"specialize": False}, False),
+                                     ((6, 5, 21), {}, {"cols": 128, "band": 2, "fused_rows": True}, False),
+                                     # D >= 16 and 16-column chunks: sgm_rows' whole-tile path (default off Rusticl)
+                                     ((20, 3, 40), {}, {"fused_rows": True, "paired": False}, False),
+                                     # ... and without it (SGM_WHOLE_TILES=0: the general path for every tile)
+                                     ((20, 3, 40), {}, {"fused_rows": True, "paired": False, "whole_tiles": False},
+                                      False),
+                                     # the paired sweeps (default on CPUs with <= 2 compute units): odd H,
+                                     # whole tiles and partial ones, a partial last chunk
+                                     ((20, 5, 37), {}, {"paired": True}, False),
+                                     ((7, 4, 9), {"variant": "code", "outside_large": False}, {"paired": True}, False),
+                                     # 8-wide vectors (SGM_VW 8, the rule where a CPU's vectors hold 8 floats)
+                                     ((20, 5, 37), {}, {"paired": True, "width": 8}, False),
+                                     ((20, 3, 21), {}, {"paired": False, "width": 8, "cols": 32, "band": 2}, False),
+                                     # half storage in the paired sweeps (a CPU's half volume: 8-wide
+                                     # vectors, whole tiles)
+                                     ((20, 5, 37), {}, {"paired": True, "width": 8}, True)):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
         C = _volume(rng, D, H, W)
-        out = _poisoned(ctx, 4 * D * H * W)
-        SGM(ctx, **cfg)(ctx.to_device(C), ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=out, **kw)
-        # as tests/test_sgm.py: 2e-5 of (cost range + Pi2); float32 path sums re-based every step
-        chk.close(f"SGM D={D} {H}x{W} {kw} {cfg}", ctx.from_device(out, (D, H, W)),
-                  sgm(C, img_l, img_r, **kw), atol=2e-5 * (1.0 + 32.0))
+        if half:
+            C = C.astype(np.float16)
+            out = ctx.empty(2 * D * H * W, "test output")
+            ctx.fill(out, -65504.0, 2 * D * H * W, np.float16)
+        else:
+            out = _poisoned(ctx, 4 * D * H * W)
+        SGM(ctx, half=half, **cfg)(ctx.to_device(C), ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=out,
+                                   **kw)
+        got = ctx.from_device(out, (D, H, W), np.float16 if half else np.float32).astype(np.float32)
+        # as tests/test_sgm.py: 2e-5 of (cost range + Pi2); float32 path sums re-based every step;
+        # half (the reference on the half input): tests/test_half.py's half_sgm_bound, at most
+        # 4 roundings to half (2^-11 relative each) of the result, + float32 arithmetic
+        tol = dict(atol=2 ** -23, rtol=4 * 2 ** -11 + 2 ** -20) if half else dict(atol=2e-5 * (1.0 + 32.0))
+        chk.close(f"SGM D={D} {H}x{W} {kw} {cfg} half={half}", got, sgm(C.astype(np.float32), img_l, img_r, **kw),
+                  **tol)
 
 
 def case_sgm_wg(ctx, rng, chk):
@@ -543,7 +654,7 @@ def case_sgm_wg(ctx, rng, chk):
     work-items (levels several per work-item, fewer levels than work-items,
     a group size that is not a power of two) so that Oclgrind's race and
     barrier checks see the local memory shared; float32 and half; and the
-    vertical paths with 8 columns per work-group (sgm_wg_cols)."""
+    vertical paths with 8, 16 and 32 columns per work-group (sgm_wg_cols)."""
     from mccnn_cl.reference.aggregation import sgm
     from mccnn_cl.stages.sgm_wg import SGMWorkGroup
 
@@ -552,7 +663,11 @@ def case_sgm_wg(ctx, rng, chk):
                                          ((11, 3, 14), {}, 5, False, 0),
                                          ((6, 4, 9), {}, 4, True, 0),
                                          ((9, 5, 11), {}, 4, False, 8),   # sgm_wg_cols: 2 groups of 8 x 9
-                                         ((6, 4, 9), {}, 4, True, 8)):
+                                         ((6, 4, 9), {}, 4, True, 8),
+                                         # the tuner's other widths: 16 (2 groups, the 2nd partial)
+                                         # and 32 columns per group (a whole group and a partial one)
+                                         ((9, 4, 21), {}, 4, False, 16),
+                                         ((5, 3, 35), {}, 8, True, 32)):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
         C = _volume(rng, D, H, W)
         if half:
@@ -594,12 +709,16 @@ def case_half(ctx, rng, chk):
               full.astype(np.float16))
     left, right = _images(rng, 14, 24)
     ref = StereoMatcher(cost="census", max_disparity=D, device=ctx).compute(left, right, return_intermediates=True)
-    # the device's SGM stage (make_sgm), then each SGM stage explicitly, whatever the device
+    # the device's SGM stage (make_sgm), then each SGM stage explicitly, whatever the device:
+    # SGM's one-direction kernels (sgm_rows, sgm_columns; paired=False: a CPU with <= 2 compute
+    # units would pick the paired sweeps, case sgm's) and the work-group stage
     for (fused, multi), sgm_stage in (((True, True), None), ((True, False), SGM), ((False, False), SGMWorkGroup)):
         m = StereoMatcher(cost="census", max_disparity=D, device=ctx, volume_dtype="float16")
         m.cbca.fused, m.cbca.multi = fused, multi
         m.cbca.workgroup = False  # the CPU paths (Oclgrind's default, "workgroup", is case cbca_wg's)
-        if sgm_stage is not None:
+        if sgm_stage is SGM:
+            m.sgm = SGM(ctx, half=True, paired=False)
+        elif sgm_stage is not None:
             m.sgm = sgm_stage(ctx, half=True)
         label = f"fused={fused}, multi={multi}, {type(m.sgm).__name__}"
         got = m.compute(left, right, return_intermediates=True)
@@ -665,10 +784,12 @@ def run_case(name: str, expect_platform: str | None) -> dict:
         return {"case": name, "ok": False, "error": f"runs on {plat!r}, expected {expect_platform!r}"}
     chk = Checks()
     fetched = set()
+    forms = []
     plain_kernel = ctx.kernel
 
-    def kernel(filename, kname, **defines):  # records which kernels the stages fetch
+    def kernel(filename, kname, **defines):  # records which kernels the stages fetch, and their build options
         fetched.add(kname)
+        forms.append((kname, defines))
         return plain_kernel(filename, kname, **defines)
 
     ctx.kernel = kernel
@@ -678,6 +799,10 @@ def run_case(name: str, expect_platform: str | None) -> dict:
     missing = sorted(CASE_KERNELS.get(name, set()) - fetched)
     if missing:
         chk.results.append({"name": f"kernels not fetched: {missing}", "ok": False, "shape": [], "err": None})
+    absent = [f"{k} {want}" for k, want in CASE_FORMS.get(name, ())
+              if not any(fk == k and all(k2 in fd and fd[k2] == v for k2, v in want.items()) for fk, fd in forms)]
+    if absent:
+        chk.results.append({"name": f"kernel forms not fetched: {absent}", "ok": False, "shape": [], "err": None})
     return {"case": name, "ok": not chk.failures, "device": ctx.describe(),
             "seconds": round(time.perf_counter() - t0, 2), "checks": chk.results,
             "kernels": sorted(fetched)}
@@ -763,6 +888,9 @@ if pytest is not None:
         used_text = "\n".join(p.read_text(encoding="utf-8") for p in sorted((repo / "mccnn_cl").rglob("*.py")))
         used = {k for k in defined if re.search(rf"[\"']{k}[\"']", used_text)}
         assert set(CASE_KERNELS) == set(CASES), "helpers.CASE_KERNELS and CASES name different cases"
+        assert set(CASE_FORMS) <= set(CASES), "helpers.CASE_FORMS names a case not in CASES"
+        assert all(k in CASE_KERNELS[c] for c in CASE_FORMS for k, _ in CASE_FORMS[c]), \
+            "a kernel of helpers.CASE_FORMS is not in its case's CASE_KERNELS"
         covered = set().union(*(CASE_KERNELS[c] for c in CASES))
         assert used, "no kernel names found in mccnn_cl/"
         missing = sorted(f"{k} ({defined[k]})" for k in used - covered)
