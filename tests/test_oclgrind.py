@@ -67,6 +67,16 @@ def _poisoned(ctx, nbytes, dtype=np.float32):
     return buf
 
 
+def _volume_and_output(ctx, C, half):
+    """(C, a poisoned output volume of its shape): float32, or with ``half`` C as
+    float16 and the output poisoned with half's most negative finite value."""
+    if not half:
+        return C, _poisoned(ctx, 4 * C.size)
+    out = ctx.empty(2 * C.size, "test output")
+    ctx.fill(out, -65504.0, 2 * C.size, np.float16)
+    return C.astype(np.float16), out
+
+
 class Checks:
     """Collects comparisons; ``failures`` lists the ones that failed."""
 
@@ -630,13 +640,7 @@ def case_sgm(ctx, rng, chk):
                                      # vectors, whole tiles)
                                      ((20, 5, 37), {}, {"paired": True, "width": 8}, True)):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
-        C = _volume(rng, D, H, W)
-        if half:
-            C = C.astype(np.float16)
-            out = ctx.empty(2 * D * H * W, "test output")
-            ctx.fill(out, -65504.0, 2 * D * H * W, np.float16)
-        else:
-            out = _poisoned(ctx, 4 * D * H * W)
+        C, out = _volume_and_output(ctx, _volume(rng, D, H, W), half)
         SGM(ctx, half=half, **cfg)(ctx.to_device(C), ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=out,
                                    **kw)
         got = ctx.from_device(out, (D, H, W), np.float16 if half else np.float32).astype(np.float32)
@@ -669,13 +673,7 @@ def case_sgm_wg(ctx, rng, chk):
                                          ((9, 4, 21), {}, 4, False, 16),
                                          ((5, 3, 35), {}, 8, True, 32)):
         img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
-        C = _volume(rng, D, H, W)
-        if half:
-            C = C.astype(np.float16)
-            out = ctx.empty(2 * D * H * W, "test output")
-            ctx.fill(out, -65504.0, 2 * D * H * W, np.float16)
-        else:
-            out = _poisoned(ctx, 4 * D * H * W)
+        C, out = _volume_and_output(ctx, _volume(rng, D, H, W), half)
         SGMWorkGroup(ctx, half=half, local_size=L, cols=cols)(ctx.to_device(C), ctx.to_device(img_l),
                                                               ctx.to_device(img_r), D, H, W, out=out, **kw)
         got = ctx.from_device(out, (D, H, W), np.float16 if half else np.float32).astype(np.float32)
