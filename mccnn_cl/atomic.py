@@ -131,18 +131,20 @@ def lock_holder(path) -> str:
 
 class exclusive_lock:
     """Context manager: hold an exclusive ``flock`` on the file ``path`` (created
-    if missing) while open, without waiting.  When another process holds it,
+    if missing) while open.  When another process holds it: without ``on_wait``,
     raises :class:`~mccnn_cl.errors.InputError` with ``busy`` formatted with
     ``holder`` (the line that process wrote into the file: ``pid N on HOST,
-    since TIME``) and ``path``.  Re-entrant within one process (a nested use of
+    since TIME``) and ``path``; with ``on_wait``, calls ``on_wait(holder)`` and
+    waits for the lock.  Re-entrant within one process (a nested use of
     the same path is free; the lock goes with the outermost).  The kernel
     releases the lock when its holder exits, killed or not; the file stays
     (deleting it would let a third process lock a new file while a second
     holds the old one)."""
 
-    def __init__(self, path, busy: str = "{path} is locked by another process ({holder})"):
+    def __init__(self, path, busy: str = "{path} is locked by another process ({holder})", on_wait=None):
         self.path = os.fspath(path)
         self.busy = busy
+        self.on_wait = on_wait
         self._key = None
 
     def __enter__(self):
@@ -162,9 +164,16 @@ class exclusive_lock:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            os.close(fd)
-            raise InputError(self.busy.format(holder=lock_holder(self.path) or "holder unknown",
-                                              path=self.path)) from None
+            if self.on_wait is None:
+                os.close(fd)
+                raise InputError(self.busy.format(holder=lock_holder(self.path) or "holder unknown",
+                                                  path=self.path)) from None
+            self.on_wait(lock_holder(self.path))
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            except BaseException:  # Ctrl-C while waiting
+                os.close(fd)
+                raise
         except OSError as exc:  # a file system without locks: say so rather than run unprotected
             os.close(fd)
             raise InputError(f"cannot lock {self.path}: {exc.strerror or exc}") from exc

@@ -7,7 +7,6 @@ it atomically (stale temporary files of killed writers deleted), and the lock
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
@@ -16,6 +15,7 @@ import tempfile
 import time
 import warnings
 
+from ..atomic import exclusive_lock
 from .binaries import TMP_PREFIX, cache_root, clean_stale, device_identity
 
 log = logging.getLogger(__name__)
@@ -62,36 +62,16 @@ def lock_path() -> str:
     return os.path.join(folder(), LOCK_NAME)
 
 
-@contextlib.contextmanager
 def tuning_lock(on_wait=None):
-    """Hold an exclusive ``flock`` on :func:`lock_path` (one per cache folder) while
-    open, so that two tuning runs never measure under each other's load nor
-    overwrite each other's results.  When another process holds it, calls
-    ``on_wait(holder)`` (``holder``: the line that process wrote into the file,
-    its pid and start time, or "") and waits for it.  The kernel releases the lock
-    when its holder exits, killed or not; the file itself stays (deleting it would
-    let a third process lock a new file while the second holds the old one)."""
-    import fcntl
-
+    """Context manager: an exclusive lock on :func:`lock_path` (one per cache
+    folder, :class:`mccnn_cl.atomic.exclusive_lock`) while open, so that two
+    tuning runs never measure under each other's load nor overwrite each other's
+    results.  When another process holds it, calls ``on_wait(holder)``
+    (``holder``: the line that process wrote into the file, its pid and start
+    time, or "") and waits for it.  The kernel releases the lock when its holder
+    exits, killed or not; the file itself stays."""
     os.makedirs(folder(), exist_ok=True)
-    fd = os.open(lock_path(), os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            if on_wait is not None:
-                try:
-                    holder = os.pread(fd, 200, 0).decode("utf-8", "replace").strip()
-                except OSError:
-                    holder = ""
-                on_wait(holder)
-            fcntl.flock(fd, fcntl.LOCK_EX)
-        with contextlib.suppress(OSError):
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"pid {os.getpid()}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode(), 0)
-        yield lock_path()
-    finally:
-        os.close(fd)  # releases the lock
+    return exclusive_lock(lock_path(), on_wait=on_wait or (lambda holder: None))
 
 
 _WARNED: set = set()
