@@ -362,8 +362,7 @@ class StereoMatcher:
         """Free the stages' kept scratch: the cost's, CBCA's and SGM's."""
         self.cost.release_buffers()
         self.cbca.release_buffers()
-        if hasattr(self.sgm, "release_buffers"):  # SGM's path state (stages/sgm.py)
-            self.sgm.release_buffers()
+        self.sgm.release_buffers()  # SGM's path state (both SGM stages have the method)
         self._last_call = None
 
     # -- input checks ------------------------------------------------------
