@@ -42,6 +42,12 @@
  * level (+ ~1.4 KB), sgm_columns 128 bytes per level, sgm_paired about 80.
  * Output modes: 0 writes C_r (NaN in invalid cells), 1 adds C_r, 2 adds C_r
  * and divides by 4.
+ * The loops that move a transposed tile between r[] and the private block
+ * are unrolled: as loops, PoCL's LLVM kept r[] on the stack, and the
+ * transposes' vector loads each spanned two of the loop's half-width stores,
+ * which a CPU cannot forward (a stall per load; sgm_paired 141-154 ->
+ * 125-129 ms on a KITTI-sized volume with AVX-512 code, 155 -> 139 ms with
+ * AVX2 code, the same bits; BENCHMARKS.md).
  */
 #include "common.h"
 #include "sgm_recurrence.h"
@@ -649,6 +655,7 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
                 const int d0 = g * VW;
                 load_tile(r, cost, y, x0, d0, n, dmaxc, H, W);
                 transposeV(r);
+                __attribute__((opencl_unroll_hint)) /* unrolled: r[] stays in registers (header) */
                 for (int k = 0; k < VW; ++k)
                     vstoreV(r[k], 0, blk + k * MAX_DISP + d0);
             }
@@ -663,6 +670,7 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
                       plane, dmaxn, 1, 0);
             for (int g = 0; g < ntiles; ++g) { /* write the chunk back, rows d of 16 x */
                 const int d0 = g * VW;
+                __attribute__((opencl_unroll_hint)) /* unrolled: r[] stays in registers (header) */
                 for (int k = 0; k < VW; ++k)
                     r[k] = vloadV(0, blk + k * MAX_DISP + d0);
                 transposeV(r);
@@ -815,6 +823,7 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
                         }
                     }
                     transposeV(r);
+                    __attribute__((opencl_unroll_hint)) /* unrolled: r[] stays in registers (header) */
                     for (int k = 0; k < VW; ++k)
                         vstoreV(r[k], 0, blk + (gx * VW + k) * MAX_DISP + d0);
                 }
@@ -836,6 +845,7 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
                 const int dmaxg = min(D - 1, xg + ng - 1);
                 for (int g = 0; g <= dmaxg / VW; ++g) {
                     const int d0 = g * VW;
+                    __attribute__((opencl_unroll_hint)) /* unrolled: r[] stays in registers (header) */
                     for (int k = 0; k < VW; ++k)
                         r[k] = vloadV(0, blk + (gx * VW + k) * MAX_DISP + d0);
                     transposeV(r);
