@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
+from mccnn_cl.atomic import PREFIX
 from mccnn_cl.errors import InputError
 from mccnn_cl.io import (read_image, read_kitti_disparity, read_pfm, write_image,
                          write_kitti_disparity, write_pfm)
@@ -20,7 +21,7 @@ def test_pfm_round_trip_gray_and_colour(tmp_path):
     back = read_pfm(tmp_path / "c.pfm")
     assert back.shape == (5, 7, 3) and back.dtype == np.float32
     np.testing.assert_array_equal(back, c)
-    assert not list(tmp_path.glob(".tmp-*")), "temporary files left behind"
+    assert not list(tmp_path.glob(PREFIX + "*")), "temporary files left behind"
 
 
 def test_pfm_rows_bottom_to_top_and_big_endian(tmp_path):
