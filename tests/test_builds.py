@@ -8,6 +8,7 @@ import pytest
 import mccnn_cl.opencl.context as clmod
 import mccnn_cl.opencl.device as device
 from mccnn_cl import StereoMatcher
+from mccnn_cl.atomic import PREFIX
 from mccnn_cl.opencl.context import launch_sizes
 from mccnn_cl.stages.sgm import MAX_LEVELS, _max_disp
 
@@ -120,7 +121,7 @@ def test_stored_binaries(ctx, monkeypatch, tmp_path, caplog):
     saver.save_binaries = True
     saver.program("cross.cl")
     files = [os.path.join(d, f) for d, _, fs in os.walk(tmp_path / "binaries") for f in fs]
-    assert len(files) == 1 and not os.path.basename(files[0]).startswith(".tmp")
+    assert len(files) == 1 and not os.path.basename(files[0]).startswith(PREFIX)
     loader = ClContext(ctx.device)
     np.testing.assert_array_equal(_arms(loader, img), expected)
     assert (loader.builds, loader.binary_loads) == (0, 1)
@@ -176,37 +177,110 @@ def test_saved_programs_are_recorded(ctx, monkeypatch, tmp_path):
 
 def test_stale_temporary_binaries_are_deleted(monkeypatch, tmp_path):
     """A process killed (kill -9) inside binaries.store, after its temporary file and
-    before the rename, leaves that file under a unique name (so they pile up, a
-    program binary each); a later store deletes those older than STALE_SECONDS, in
-    its own folder and (once per process) in every folder of the cache, and keeps a
-    younger one (another process's write in progress)."""
+    before the rename, leaves that file (mccnn_cl.atomic's pid-named name); the next
+    store deletes those of writers no longer running, young or not (before: only
+    those over ten minutes old, so each kill within ten minutes left one more, a
+    program binary each), in its own folder and (once per process) in every folder
+    of the cache, and keeps one of a running process (a write in progress)."""
     import os
     import signal
     import subprocess
     import sys
-    import time
 
     from mccnn_cl.opencl import binaries
 
     monkeypatch.setenv("MCCNN_CACHE_DIR", str(tmp_path))
     killed = ("import os, signal, sys; from mccnn_cl.opencl import binaries; "
               "os.fsync = lambda fd: os.kill(os.getpid(), signal.SIGKILL); binaries.store(sys.argv[1], b'x' * 4096)")
-    for k in ("ab" + "0" * 62, "ab" + "1" * 62, "cd" + "0" * 62):
-        p = subprocess.run([sys.executable, "-c", killed, k], env=dict(os.environ, MCCNN_CACHE_DIR=str(tmp_path)))
-        assert p.returncode == -signal.SIGKILL
     root = tmp_path / "binaries"
 
-    def temps(sub):
-        return sorted(f for f in os.listdir(root / sub) if f.startswith(".tmp"))
+    def kill_a_writer(k):
+        p = subprocess.Popen([sys.executable, "-c", killed, k], env=dict(os.environ, MCCNN_CACHE_DIR=str(tmp_path)))
+        assert p.wait() == -signal.SIGKILL
+        return p.pid
 
-    assert len(temps("ab")) == 2 and len(temps("cd")) == 1  # one more per kill
-    old = time.time() - 3600  # an hour: over STALE_SECONDS (checked below)
-    for sub in ("ab", "cd"):
-        for f in temps(sub):
-            os.utime(root / sub / f, (old, old))
-    (root / "ab" / ".tmp-in-progress").write_bytes(b"x")
-    monkeypatch.setattr(binaries, "_SWEPT", set(), raising=False)  # as in a new process
-    binaries.store("ab" + "2" * 62, b"payload")
-    assert temps("ab") == [".tmp-in-progress"] and temps("cd") == []
-    assert binaries.load("ab" + "2" * 62) == b"payload"
-    assert 60 <= binaries.STALE_SECONDS < 3600
+    def temps(sub):
+        return sorted(f for f in os.listdir(root / sub) if f.startswith(PREFIX))
+
+    first = kill_a_writer("ab" + "0" * 62)
+    assert [f.split("-")[2] for f in temps("ab")] == [str(first)]  # the dead writer's file, named by its pid
+    second = kill_a_writer("ab" + "1" * 62)
+    assert [f.split("-")[2] for f in temps("ab")] == [str(second)]  # the first one's deleted: none pile up
+    kill_a_writer("cd" + "0" * 62)
+    assert temps("ab") == [] and len(temps("cd")) == 1  # a new process sweeps every folder of the cache
+    assert os.listdir(root / "ab") == []  # nothing under a final name either
+    alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    try:
+        in_progress = f"{PREFIX}{alive.pid}-in-progress.bin"
+        (root / "cd" / in_progress).write_bytes(b"x")
+        monkeypatch.setattr(binaries, "_SWEPT", set(), raising=False)  # as in a new process
+        assert binaries.store("cd" + "2" * 62, b"payload")
+        assert temps("cd") == [in_progress]
+    finally:
+        alive.kill()
+        alive.wait()
+    assert binaries.load("cd" + "2" * 62) == b"payload"
+
+
+def test_binaries_are_written_through_atomic_write(monkeypatch, tmp_path):
+    """binaries.store writes through mccnn_cl.atomic.atomic_write (the package's one
+    way of writing a file whole or not at all), and a failed write leaves neither
+    a file under the final name nor a temporary one."""
+    import errno
+    import os
+
+    import mccnn_cl.atomic as atomic
+    from mccnn_cl.opencl import binaries
+
+    monkeypatch.setenv("MCCNN_CACHE_DIR", str(tmp_path))
+    written, real = [], atomic.atomic_write
+
+    def spy(path, write_fn):
+        written.append(os.fspath(path))
+        return real(path, write_fn)
+
+    monkeypatch.setattr(atomic, "atomic_write", spy)
+    k = "ef" + "0" * 62
+    assert binaries.store(k, b"payload") and written == [binaries.path(k)]
+    assert binaries.load(k) == b"payload"
+
+    def disk_full(tmp, data):
+        with open(tmp, "wb") as f:
+            f.write(data[:10])  # a part written, then the disk is full
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(binaries, "_write", disk_full)
+    k2 = "ef" + "1" * 62
+    assert not binaries.store(k2, b"payload")
+    assert sorted(os.listdir(tmp_path / "binaries" / "ef")) == [os.path.basename(binaries.path(k))]
+
+
+def _store_many(root, payload_byte, n):
+    import os
+
+    os.environ["MCCNN_CACHE_DIR"] = root
+    from mccnn_cl.opencl import binaries
+
+    for _ in range(n):
+        assert binaries.store("aa" + "0" * 62, bytes([payload_byte]) * (1 << 20))
+
+
+def test_two_processes_storing_one_binary_at_once(tmp_path):
+    """Two processes storing the same binary at once (two first runs on one machine)
+    never tear it: the file left is one writer's, whole, and no temporary file stays."""
+    import multiprocessing
+    import os
+
+    from mccnn_cl.opencl import binaries
+
+    mp = multiprocessing.get_context("spawn")
+    procs = [mp.Process(target=_store_many, args=(str(tmp_path), b, 15)) for b in (1, 2)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join()
+        assert p.exitcode == 0
+    data = open(tmp_path / "binaries" / "aa" / ("aa" + "0" * 62 + ".bin"), "rb").read()
+    payload = binaries._unpack(data)
+    assert payload in (b"\x01" * (1 << 20), b"\x02" * (1 << 20))
+    assert os.listdir(tmp_path / "binaries" / "aa") == ["aa" + "0" * 62 + ".bin"]

@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from mccnn_cl.atomic import PREFIX
 from mccnn_cl.opencl import tune, tune_cache
 from mccnn_cl.opencl.context import ClContext
 
@@ -31,7 +32,7 @@ def test_store_and_load(cache):
     path = tune.store(dev, {"sgm_cols": 64, "launch_local": [16, 4, 4]}, {})
     assert path.startswith(str(cache)) and os.path.exists(path)
     assert tune.load(dev) == {"sgm_cols": 64, "launch_local": [16, 4, 4]}
-    assert [f for f in os.listdir(os.path.dirname(path)) if f.startswith(".tmp")] == []
+    assert [f for f in os.listdir(os.path.dirname(path)) if f.startswith(PREFIX)] == []
 
 
 def test_off_disables(cache, monkeypatch):
@@ -100,7 +101,7 @@ def test_two_processes_at_once(cache):
         assert p.exitcode == 0
     final = json.load(open(tune.cache_path(fake_device())))
     assert final["choices"]["sgm_cols"] in (32, 64)
-    assert [f for f in os.listdir(os.path.dirname(tune.cache_path(fake_device()))) if f.startswith(".tmp")] == []
+    assert [f for f in os.listdir(os.path.dirname(tune.cache_path(fake_device()))) if f.startswith(PREFIX)] == []
 
 
 def test_wrong_candidate_never_chosen(ctx):
@@ -418,7 +419,7 @@ def test_tune_refuses_an_unwritable_cache_before_measuring(cache, monkeypatch, c
     assert "--no-binaries" in err
     assert calls == []  # nothing measured
     assert main(["tune", "--no-binaries", "--size", "8x64x16"]) == 0 and calls == [(8, 64, 16)]
-    assert [f for f in os.listdir(cache / "tune") if f.startswith(".tmp")] == []  # the probe file deleted
+    assert [f for f in os.listdir(cache / "tune") if f.startswith(PREFIX)] == []  # the probe file deleted
 
 
 def test_tune_reports_binaries_stored_and_not(cache, monkeypatch, capsys):
@@ -449,12 +450,11 @@ def test_tune_reports_binaries_stored_and_not(cache, monkeypatch, capsys):
 
     real_write, writes = binaries._write, []
 
-    def disk_full_on_second(fd, data):
+    def disk_full_on_second(tmp, data):
         writes.append(1)
         if len(writes) == 2:
-            os.close(fd)
             raise OSError(errno.ENOSPC, "No space left on device")
-        real_write(fd, data)
+        real_write(tmp, data)
 
     monkeypatch.setattr(binaries, "_write", disk_full_on_second)
     assert main(["tune", "--size", "8x64x16"]) == 1
@@ -462,7 +462,7 @@ def test_tune_reports_binaries_stored_and_not(cache, monkeypatch, capsys):
     assert "kernel binary 1 stored" in cap.out and "kernel binary 2 NOT stored" in cap.out
     assert "stored under" not in cap.out
     assert "warning: only 1 of 2 kernel binaries" in cap.err and "No space left on device" in cap.err
-    left = [f for _, _, fs in os.walk(cache / "binaries") for f in fs if f.startswith(".tmp")]
+    left = [f for _, _, fs in os.walk(cache / "binaries") for f in fs if f.startswith(PREFIX)]
     assert left == []
 
 
@@ -635,30 +635,47 @@ def test_tune_binaries_progress_reaches_a_pipe(cache):
 
 def test_stale_temporary_tuning_files_are_deleted(cache):
     """A writer killed (kill -9) between its temporary file and the rename leaves the
-    file (a unique name: they would pile up); the next store deletes those older than
-    binaries.STALE_SECONDS and keeps a younger one (another writer's, in progress)."""
+    file (mccnn_cl.atomic's pid-named name: they would pile up); the next store
+    deletes those of writers no longer running, young or not (before: only those
+    over ten minutes old), and keeps one of a running process (a write in progress)."""
     import signal
     import subprocess
     import sys
-    import time as _time
-
-    from mccnn_cl.opencl import binaries
 
     killed = ("import os, signal, types; from mccnn_cl.opencl import tune_cache; "
               "os.replace = lambda *a: os.kill(os.getpid(), signal.SIGKILL); "
               "dev = types.SimpleNamespace(platform=types.SimpleNamespace(name='Plat', version='OpenCL 3.0 Plat 9'), "
               "name='Dev', driver_version='1.0'); tune_cache.store(dev, {'sgm_cols': 64}, {})")
-    for _ in range(2):
-        p = subprocess.run([sys.executable, "-c", killed], env=dict(os.environ, MCCNN_CACHE_DIR=str(cache)))
-        assert p.returncode == -signal.SIGKILL
     folder = cache / "tune"
-    dead = sorted(f for f in os.listdir(folder) if f.startswith(".tmp"))
-    assert len(dead) == 2  # unique names: each kill leaves one more
-    old = _time.time() - 3600  # an hour: over STALE_SECONDS (checked below)
-    for f in dead:
-        os.utime(folder / f, (old, old))
-    (folder / ".tmp-in-progress.json").write_text("{")
-    path = tune.store(fake_device(), {"sgm_cols": 32}, {})
-    assert sorted(f for f in os.listdir(folder) if f.startswith(".tmp")) == [".tmp-in-progress.json"]
+    for _ in range(2):
+        p = subprocess.Popen([sys.executable, "-c", killed], env=dict(os.environ, MCCNN_CACHE_DIR=str(cache)))
+        assert p.wait() == -signal.SIGKILL
+        dead = sorted(f for f in os.listdir(folder) if f.startswith(PREFIX))
+        assert len(dead) == 1 and dead[0].startswith(f"{PREFIX}{p.pid}-") and dead[0].endswith(".json"), dead
+        # (the second kill's store deleted the first one's file: they do not pile up)
+    alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    try:
+        in_progress = f"{PREFIX}{alive.pid}-in-progress.json"
+        (folder / in_progress).write_text("{")
+        path = tune.store(fake_device(), {"sgm_cols": 32}, {})
+        assert sorted(f for f in os.listdir(folder) if f.startswith(PREFIX)) == [in_progress]
+    finally:
+        alive.kill()
+        alive.wait()
     assert tune.load(fake_device()) == {"sgm_cols": 32} and os.path.dirname(path) == str(folder)
-    assert 60 <= binaries.STALE_SECONDS < 3600
+
+
+def test_tuning_file_is_written_through_atomic_write(cache, monkeypatch):
+    """tune_cache.store writes through mccnn_cl.atomic.atomic_write (the package's one
+    way of writing a file whole or not at all)."""
+    import mccnn_cl.atomic as atomic
+
+    written, real = [], atomic.atomic_write
+
+    def spy(path, write_fn):
+        written.append(os.fspath(path))
+        return real(path, write_fn)
+
+    monkeypatch.setattr(atomic, "atomic_write", spy)
+    path = tune.store(fake_device(), {"sgm_cols": 32}, {})
+    assert written == [path] and tune.load(fake_device()) == {"sgm_cols": 32}

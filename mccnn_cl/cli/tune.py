@@ -64,6 +64,7 @@ def _cache_hint() -> str:
 def check_cache_writable(binaries_too: bool) -> None:
     """InputError naming the folder when the tuning cache (or, ``binaries_too``, the
     binary cache) cannot be written: found before minutes of measuring, not after."""
+    from ..atomic import check_writable
     from ..errors import InputError
     from ..opencl import binaries, tune_cache
 
@@ -73,9 +74,11 @@ def check_cache_writable(binaries_too: bool) -> None:
                         ", or pass --no-binaries"))
     for what, folder, alt in folders:
         try:
-            binaries.check_writable(folder)
-        except OSError as exc:
-            why = exc.strerror or str(exc)
+            os.makedirs(folder, exist_ok=True)
+            check_writable(folder)  # a file created for real (os.access says yes to root on a read-only mount)
+        except (OSError, InputError) as exc:
+            cause = exc if isinstance(exc, OSError) else exc.__cause__
+            why = getattr(cause, "strerror", None) or str(cause or exc)
             raise InputError(f"cannot write the {what} folder {folder} ({why}); {_cache_hint()}{alt}") from exc
 
 

@@ -11,8 +11,9 @@ it for a run of the default method after tuning), and loaded whenever present.
 A binary's file name is a hash of everything its build depends on: the
 package version, the platform (name, version), the device (name, driver
 version), the build options, the kernel source and every header of the
-kernel directory.  Files are written to a temporary name, flushed to disk
-and renamed (two processes may write the same binary; readers never see
+kernel directory.  Files are written through :func:`mccnn_cl.atomic.atomic_write`
+(a temporary file of a unique, pid-named name in the same folder, flushed to
+disk, then renamed: two processes may write the same binary; readers never see
 half a file).  Each file holds a header (magic, payload length, SHA-256 of
 the payload) that :func:`load` checks: a file cut short or changed (a copy
 or sync of the cache folder, a power loss, a disk error) is deleted and the
@@ -24,9 +25,10 @@ runtime refuses is deleted too.
 :func:`store` returns whether the file was written, and tells every
 :func:`recording` in progress (``mccnn-cl tune`` counts and reports the
 binaries stored with it).  A writer killed between its temporary file and the
-rename (``kill -9``, a power loss) leaves that file behind under a unique name;
-:func:`store` deletes such files older than :data:`STALE_SECONDS` (its own
-folder on every call, every folder of the cache once per process).
+rename (``kill -9``, a power loss) leaves that file behind; :func:`store`
+deletes the temporary files of writers no longer running
+(:func:`mccnn_cl.atomic.remove_stale`: its own folder on every call, every
+folder of the cache once per process).
 """
 
 from __future__ import annotations
@@ -35,8 +37,8 @@ import contextlib
 import hashlib
 import logging
 import os
-import tempfile
-import time
+
+from .. import atomic
 
 log = logging.getLogger(__name__)
 
@@ -126,41 +128,11 @@ def load(k: str):
     return payload
 
 
-#: Prefix of the temporary files the caches write before renaming them.
-TMP_PREFIX = ".tmp-"
-#: A temporary file unchanged for this long is a dead writer's (a store takes seconds).
-STALE_SECONDS = 600.0
-
-
-def clean_stale(folder: str, max_age: float = STALE_SECONDS) -> int:
-    """Delete the temporary files (:data:`TMP_PREFIX`) in ``folder`` that were last
-    modified over ``max_age`` seconds ago: left by a writer killed before its rename.
-    A younger one may be another process's write in progress and is kept.  Returns
-    how many were deleted; errors are ignored (another process may delete them too)."""
-    now, gone = time.time(), 0
-    try:
-        entries = list(os.scandir(folder))
-    except OSError:
-        return 0
-    for e in entries:
-        if not e.name.startswith(TMP_PREFIX):
-            continue
-        try:
-            if e.is_file(follow_symlinks=False) and now - e.stat(follow_symlinks=False).st_mtime > max_age:
-                os.unlink(e.path)
-                gone += 1
-        except OSError:
-            pass
-    if gone:
-        log.info("deleted %d stale temporary file(s) in %s (writers killed before their rename)", gone, folder)
-    return gone
-
-
 _SWEPT: set = set()
 
 
 def _sweep_once(root: str) -> None:
-    """:func:`clean_stale` on every folder of the binary cache ``root``, once per process."""
+    """:func:`mccnn_cl.atomic.remove_stale` on every folder of the binary cache ``root``, once per process."""
     if root in _SWEPT:
         return
     _SWEPT.add(root)
@@ -168,21 +140,9 @@ def _sweep_once(root: str) -> None:
         subs = [e.path for e in os.scandir(root) if e.is_dir(follow_symlinks=False)]
     except OSError:
         return
-    for sub in subs:
-        clean_stale(sub)
-
-
-def check_writable(folder: str) -> None:
-    """Create ``folder`` if needed and write (then delete) a temporary file in it:
-    raises OSError when that fails (``os.access`` says yes to root on a read-only
-    mount or a folder made immutable)."""
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=TMP_PREFIX + "probe-")
-    try:
-        os.write(fd, b"x")
-    finally:
-        os.close(fd)
-        os.unlink(tmp)
+    gone = sum(len(atomic.remove_stale(sub)) for sub in subs)
+    if gone:
+        log.info("deleted %d stale temporary file(s) under %s (writers killed before their rename)", gone, root)
 
 
 class Recording:
@@ -222,32 +182,28 @@ def recording(on_store=None):
         _RECORDINGS.remove(rec)
 
 
-def _write(fd: int, data: bytes) -> None:
-    with os.fdopen(fd, "wb") as f:
+def _write(tmp: str, data: bytes) -> None:
+    with open(tmp, "wb") as f:
         f.write(data)
         f.flush()
         os.fsync(f.fileno())
 
 
 def store(k: str, binary: bytes) -> bool:
-    """Write atomically (temporary file, then rename); True when written.  Errors are
-    logged (a warning), never raised; stale temporary files are deleted first."""
+    """Write atomically (:func:`mccnn_cl.atomic.atomic_write`); True when written.
+    Errors are logged (a warning), never raised; the temporary files of dead
+    writers are deleted first."""
+    from ..errors import InputError
+
     p = path(k)
+    data = _pack(bytes(binary))
     error = None
     try:
         folder = os.path.dirname(p)
         os.makedirs(folder, exist_ok=True)
         _sweep_once(os.path.dirname(folder))
-        clean_stale(folder)
-        fd, tmp = tempfile.mkstemp(dir=folder, prefix=TMP_PREFIX)
-        try:
-            _write(fd, _pack(bytes(binary)))
-            os.replace(tmp, p)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-            raise
-    except OSError as exc:
+        atomic.atomic_write(p, lambda tmp: _write(tmp, data))  # also removes its folder's stale files
+    except (OSError, InputError) as exc:
         error = exc
         log.warning("could not store a kernel binary in %s: %s", p, exc)
     for rec in list(_RECORDINGS):

@@ -1,6 +1,7 @@
 """The tuner's per-device cache (``<cache>/tune/<hash>.json``): where it lies,
 reading it (a corrupt or foreign file is ignored with one warning) and writing
-it atomically (stale temporary files of killed writers deleted), and the lock
+it atomically (:func:`mccnn_cl.atomic.atomic_write`: stale temporary files of
+killed writers deleted), and the lock
 ``mccnn-cl tune`` holds while it measures (:func:`tuning_lock`).
 :class:`~mccnn_cl.opencl.context.ClContext` reads a device's choices from here;
 :mod:`mccnn_cl.opencl.tune` measures and stores them."""
@@ -11,12 +12,12 @@ import hashlib
 import json
 import logging
 import os
-import tempfile
 import time
 import warnings
 
+from .. import atomic
 from ..atomic import exclusive_lock
-from .binaries import TMP_PREFIX, cache_root, clean_stale, device_identity
+from .binaries import cache_root, device_identity
 
 log = logging.getLogger(__name__)
 
@@ -118,20 +119,17 @@ def load(device) -> dict:
 
 
 def store(device, choices: dict, measured: dict, size=SIZE) -> str:
-    """Write the choices (measured at ``size``) atomically (temporary file in
-    the same folder, then rename); stale temporary files are deleted first."""
+    """Write the choices (measured at ``size``) atomically
+    (:func:`mccnn_cl.atomic.atomic_write`: a temporary file in the same folder,
+    then a rename); the temporary files of dead writers are deleted first."""
     path = cache_path(device)
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    clean_stale(os.path.dirname(path))
     data = {"identity": identity(device), "choices": choices, "measured": measured,
             "size": list(size), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
-    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), prefix=TMP_PREFIX, suffix=".json")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
+
+    def write(tmp):
+        with open(tmp, "w", encoding="utf-8") as f:
             json.dump(data, f, indent=1, sort_keys=True)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+
+    atomic.atomic_write(path, write)
     return path
