@@ -354,7 +354,7 @@ class StereoMatcher:
         with self._lock:
             self._pool.clear()
             self._release_scratch()
-            self.bilateral._taps.clear()  # the Gaussian tap tables (bytes; made again by the next call)
+            self.bilateral.release_buffers()  # the Gaussian tap tables (made again by the next call)
             if self._coarse is not None:  # the automatic range's census matcher
                 self._coarse.release_buffers()
 

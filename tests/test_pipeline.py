@@ -274,6 +274,38 @@ def test_release_buffers_frees_every_kept_buffer(ctx, cost):
     assert _held(m, base) == _held(fresh, fresh_base) > 0
 
 
+def _device_buffers(obj):
+    """The device buffers an object holds in its attributes (directly, or in a
+    dict, list or tuple attribute)."""
+    import pyopencl as cl
+
+    found = []
+    for value in vars(obj).values():
+        items = value.values() if isinstance(value, dict) else value if isinstance(value, (list, tuple)) else [value]
+        found += [v for v in items if isinstance(v, cl.MemoryObjectHolder)]
+    return found
+
+
+def test_release_buffers_frees_the_bilateral_stage(ctx, monkeypatch):
+    """The matcher's release_buffers frees the bilateral filter's tap tables through
+    the stage's own release_buffers (before: the matcher cleared the stage's private
+    dict), leaving the stage no device buffer; the next call makes them again and
+    gives the same map."""
+    from mccnn_cl.opencl.context import ClContext
+    from mccnn_cl.stages.refine import BilateralFilter
+
+    left, right = (a[:96, :128] for a in cones())
+    m = StereoMatcher(cost="census", max_disparity=24, device=ClContext(ctx.device))
+    calls, real = [], BilateralFilter.release_buffers
+    monkeypatch.setattr(BilateralFilter, "release_buffers", lambda self: (calls.append(self), real(self))[1])
+    want = m.compute(left, right)
+    assert _device_buffers(m.bilateral)  # the tap table, kept for the next call
+    m.release_buffers()
+    assert calls == [m.bilateral] and _device_buffers(m.bilateral) == []
+    np.testing.assert_array_equal(m.compute(left, right), want)
+    assert _device_buffers(m.bilateral)
+
+
 def test_colour_network_refused_at_construction(ctx):
     """StereoMatcher converts every pair to gray: a 3-channel network is a
     WeightsError when the matcher is made, not an InputError at the first call."""

@@ -141,7 +141,15 @@ class BilateralFilter:
     def __init__(self, ctx):
         self.ctx = ctx
         self.kernel = ctx.kernel("refine.cl", "refine_bilateral", MEDIAN_SIZE=5)
-        self._taps = {}
+        self._taps = {}  # (sigma, radius) -> the Gaussian tap table on the device
+
+    def release_buffers(self) -> None:
+        """Free the tap tables kept between calls (a few KB each; the next call
+        makes its table again).  Work already queued on them still runs (OpenCL
+        keeps a released buffer until its commands complete)."""
+        for buf in self._taps.values():
+            buf.release()
+        self._taps.clear()
 
     def __call__(self, d_disp, d_guide, H, W, sigma, tau, radius=None, out=None):
         radius = bilateral_radius(sigma) if radius is None else int(radius)
