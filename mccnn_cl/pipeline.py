@@ -213,7 +213,8 @@ class StereoMatcher:
         Show a tqdm bar while the cost volume is computed.
     memory_limit : None or int
         Bytes of device memory the matcher may hold at once: its weights,
-        what it keeps between calls and a call's buffers (default: 3/4 of the
+        what it keeps between calls and a call's buffers, with
+        ``max_disparity="auto"`` the coarse passes' too (default: 3/4 of the
         device's global memory).  The network's bands are made thinner to fit
         it; when the whole image's cost volumes still do not fit it, or one
         volume exceeds the device's max allocation, the volume stages run on
@@ -387,15 +388,30 @@ class StereoMatcher:
 
     def choose_range(self, left, right) -> dict:
         """The automatic disparity range of a pair (``max_disparity="auto"``):
-        ``{"range": (min, max), ...}`` (:func:`mccnn_cl.disprange.choose_range`)."""
+        ``{"range": (min, max), ...}`` (:func:`mccnn_cl.disprange.choose_range`).
+
+        Memory: the coarse passes and the full-size match are phases of their
+        own, each within ``memory_limit`` beside the matcher's weights: what
+        this matcher kept from its last call is freed before the passes (a call
+        of another range frees it anyway), what the passes kept after them."""
         I_L, I_R = to_gray(left, "left"), to_gray(right, "right")
         check_pair(I_L, I_R, 1, 2 * self.margin + 1)
-        return choose_range(self, I_L, I_R)
+        with self._lock:
+            self.release_buffers()
+            try:
+                return choose_range(self, I_L, I_R)
+            finally:
+                if self._coarse is not None:
+                    self._coarse.release_buffers()
 
     def _coarse_matcher(self):
+        """The census matcher of the coarse passes: its calls may use ``memory_limit``
+        less this matcher's weights (held beside them); its own constructor's
+        buffers count in this matcher's plans (:meth:`memory_plan`)."""
+        limit = max(1, self.memory_limit - self.fixed_bytes)
         if self._coarse is None:
-            self._coarse = StereoMatcher(cost="census", max_disparity=2, device=self.ctx,
-                                         memory_limit=self.memory_limit)
+            self._coarse = StereoMatcher(cost="census", max_disparity=2, device=self.ctx, memory_limit=limit)
+        self._coarse.memory_limit = limit  # memory_limit may have changed since
         return self._coarse
 
     # -- the method ----------------------------------------------------------
@@ -693,8 +709,11 @@ class StereoMatcher:
         cost = self.cost
         banded = not cost.local  # the networks: in bands of volume rows (sized here)
         most = cost.band_rows(H, W) if banded else None
-        # what the calls may use: the limit less the constructor's buffers (the weights), held throughout
+        # what the calls may use: the limit less the constructor's buffers (the weights) and those of
+        # the automatic range's census matcher once made (its kept ones are freed before a call: choose_range)
         limit, own, max_alloc = self.memory_limit, self.fixed_bytes, self.ctx.max_alloc
+        if self._coarse is not None:
+            own += self._coarse.fixed_bytes
         budget = limit - own
 
         def whole(rows):  # SGM's output volume is lent to the cost, which carves scratch from it

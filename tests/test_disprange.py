@@ -287,6 +287,40 @@ def test_auto_range_covers_demo_ground_truth(ctx, repo):
     assert abs(_bad3(res.disparity, gt) - _bad3(fixed, gt)) <= 1.0
 
 
+def test_auto_range_calls_stay_within_memory_limit(ctx, repo, monkeypatch):
+    """max_disparity="auto" within memory_limit on every call: the coarse passes'
+    census matcher kept its volumes and scratch through the full-size match (1.35 x
+    the limit on the first call of the Cones pair), and a second call's passes ran
+    beside the first call's kept volumes (1.29 x once the first was fixed); the
+    plan did not count either.  Measured on a context of its own, the peak taken
+    over the whole call (compute resets it before the full-size match), against a
+    limit that the full-size match alone just fits; the map is the unlimited one's."""
+    import gc
+
+    from mccnn_cl.opencl.context import ClContext
+
+    left, right = _demo(repo)
+    free = StereoMatcher(cost="census", max_disparity="auto", device=ClContext(ctx.device))
+    want = free.compute(left, right, timings=True)
+    lo, hi = want.disparity_range
+    plan = free.memory_plan(left.shape, hi - lo + 1, lo)
+    limit = plan.peak_bytes + free.fixed_bytes + free._coarse.fixed_bytes
+    m = StereoMatcher(cost="census", max_disparity="auto", device=ClContext(ctx.device), memory_limit=limit)
+    memory = m.ctx.memory
+    reset = memory.reset_peak
+    monkeypatch.setattr(memory, "reset_peak", lambda: None)  # the peak of the whole call, coarse passes included
+    for call in (1, 2):
+        gc.collect()
+        reset()
+        got = m.compute(left, right, timings=True)
+        assert got.disparity_range == (lo, hi) and not got.plan.tiled
+        assert memory.peak <= limit, f"call {call}: {memory.peak / limit:.3f} x memory_limit"
+        np.testing.assert_array_equal(got.disparity, want.disparity)
+    # the coarse matcher's constructor buffers count in the plan; its calls may use the limit less the weights
+    assert m.memory_plan(left.shape, hi - lo + 1, lo).peak_bytes <= limit - m.fixed_bytes - m._coarse.fixed_bytes
+    assert m._coarse.memory_limit == limit - m.fixed_bytes
+
+
 def test_auto_finds_negative_range(ctx, shared_data):
     """The shifted KITTI crop (disparities moved down by 40, many negative)."""
     left, right = kitti_crop(shared_data, 150, 380, 110, 360)
