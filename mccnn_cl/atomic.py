@@ -1,27 +1,75 @@
 """Atomic file writes: a temporary file in the destination's folder, then ``os.replace``.
 
 An interrupted write never leaves a half-written file under the final name.
-The temporary files carry a recognisable name, ``.mccnn-tmp-<pid>-<random><ext>``
-(hidden, in the destination's folder so the rename stays on one file system).
-A process killed while writing (SIGKILL, power loss) cannot remove its own:
-the next write into that folder removes every such file whose process is no
-longer running on this machine (:func:`remove_stale`), so a crash leaves at
-most one stray file until the folder is written to again.  Files of running
-processes (another mccnn-cl writing there now) are left alone.
+The temporary files carry a recognisable name,
+``.mccnn-tmp-<host>.<pid>-<random><ext>`` (hidden, in the destination's folder
+so the rename stays on one file system; ``<host>`` is this machine's name
+reduced to letters, digits and dashes, :func:`host_tag`).  A process killed
+while writing (SIGKILL, power loss) cannot remove its own: the next write into
+that folder removes them (:func:`remove_stale`), so a crash leaves at most one
+stray file until the folder is written to again.  Whether a writer is dead is
+known only for this machine's: its file goes at once when its pid no longer
+runs, a running one's (another mccnn-cl writing there now) is left alone.  A
+folder may be shared between machines (an NFS home directory holds
+``~/.cache/mccnn_cl``), and a pid says nothing of another machine's
+processes: another host's file, or a name this version cannot read (an older
+version's ``.mccnn-tmp-<pid>-…``), is removed only once unchanged for
+:data:`STALE_SECONDS`.
 """
 
 from __future__ import annotations
 
 import errno
+import hashlib
 import os
 import re
+import socket
+import stat
 import tempfile
+import time
 
 from .errors import InputError
 
-#: Prefix of every temporary file (followed by the writer's pid and a dash).
+#: Prefix of every temporary file (followed by :func:`temp_prefix`'s host and pid).
 PREFIX = ".mccnn-tmp-"
-_NAME = re.compile(re.escape(PREFIX) + r"(\d+)-")
+#: A temporary file of another host (or one whose name cannot be read) unchanged
+#: this long is a dead writer's: a write takes seconds to minutes, and the margin
+#: covers clocks of the machines sharing a folder that disagree.
+STALE_SECONDS = 3600.0
+#: The longest :func:`host_tag`.
+HOST_TAG_MAX = 40
+_NAME = re.compile(re.escape(PREFIX) + r"([A-Za-z0-9-]{1,%d})\.(\d+)-" % HOST_TAG_MAX)
+
+
+def host_tag(name=None) -> str:
+    """``name`` (default: this machine's, ``socket.gethostname()``) as it stands in a
+    temporary file's name: every character but ASCII letters, digits and dashes
+    made a dash, at most :data:`HOST_TAG_MAX` characters (a longer one keeps its
+    start and a hash of the whole, so that two long names stay apart)."""
+    if name is None:
+        try:
+            name = socket.gethostname()
+        except OSError:
+            name = ""
+    tag = re.sub(r"[^A-Za-z0-9-]", "-", name) or "unknown"
+    if len(tag) > HOST_TAG_MAX:
+        digest = hashlib.sha256(name.encode("utf-8", "surrogateescape")).hexdigest()[:8]
+        tag = f"{tag[:HOST_TAG_MAX - 9]}-{digest}"
+    return tag
+
+
+def temp_prefix(pid=None, host=None) -> str:
+    """The start of the temporary files' names of process ``pid`` (default: this one)
+    on host ``host`` (default: this one; given as :func:`host_tag` makes it):
+    ``.mccnn-tmp-<host>.<pid>-``, a random part and the extension follow."""
+    return f"{PREFIX}{host_tag() if host is None else host}.{os.getpid() if pid is None else pid}-"
+
+
+def parse_temp_name(name: str):
+    """``(host, pid)`` of a temporary file's name (:func:`temp_prefix`), None when
+    ``name`` is not one or cannot be read (an older version's ``.mccnn-tmp-<pid>-…``)."""
+    m = _NAME.match(name)
+    return None if m is None else (m.group(1), int(m.group(2)))
 
 
 def _alive(pid: int) -> bool:
@@ -38,32 +86,59 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def remove_stale(directory) -> list:
-    """Remove the temporary files in ``directory`` left by processes that are no
-    longer running; returns their paths.  Errors (a file already gone, no
-    permission) are ignored: a stray file never stops a write."""
+def remove_files(directory, max_age) -> list:
+    """Remove the regular files of ``directory`` (links and folders are kept) for
+    which ``max_age(name)`` says so: None keeps the file, 0 removes it, a number of
+    seconds removes it once unchanged (its mtime) for longer than that.  Returns
+    their paths.  Errors (a file already gone, no permission) are ignored: a stray
+    file never stops a write."""
     removed = []
     try:
         names = os.listdir(directory)
     except OSError:
         return removed
+    now = time.time()
     for name in names:
-        m = _NAME.match(name)
-        if m is None or _alive(int(m.group(1))):
+        limit = max_age(name)
+        if limit is None:
             continue
         path = os.path.join(directory, name)
         try:
-            if os.path.isfile(path) and not os.path.islink(path):
-                os.unlink(path)
-                removed.append(path)
+            st = os.lstat(path)
+            if not stat.S_ISREG(st.st_mode) or (limit > 0 and now - st.st_mtime <= limit):
+                continue
+            os.unlink(path)
+            removed.append(path)
         except OSError:
             pass
     return removed
 
 
+def _stale_after(name: str, here: str):
+    """:func:`remove_files`'s verdict on ``name`` for :func:`remove_stale` (``here``: this host's tag)."""
+    if not name.startswith(PREFIX):
+        return None
+    parsed = parse_temp_name(name)
+    if parsed is None or parsed[0] != here:
+        return STALE_SECONDS  # another host's writer, or another version's name: its pid means nothing here
+    return None if _alive(parsed[1]) else 0
+
+
+def remove_stale(directory) -> list:
+    """Remove the temporary files in ``directory`` left by writers that are no
+    longer running; returns their paths.  This host's are removed when their pid
+    no longer runs; another host's, and names that cannot be read
+    (:func:`parse_temp_name`), only when unchanged for :data:`STALE_SECONDS` (a
+    pid is no news of another machine: the file may be a write in progress
+    there).  Errors (a file already gone, no permission) are ignored: a stray
+    file never stops a write."""
+    here = host_tag()
+    return remove_files(directory, lambda name: _stale_after(name, here))
+
+
 def _mkstemp(directory, suffix=""):
     try:
-        return tempfile.mkstemp(prefix=f"{PREFIX}{os.getpid()}-", suffix=suffix, dir=directory)
+        return tempfile.mkstemp(prefix=temp_prefix(), suffix=suffix, dir=directory)
     except OSError as exc:
         reason = exc.strerror or type(exc).__name__
         if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
@@ -149,8 +224,6 @@ class exclusive_lock:
 
     def __enter__(self):
         import fcntl
-        import socket
-        import time
 
         key = os.path.realpath(self.path)
         if key in _HELD:

@@ -639,9 +639,9 @@ def _probe_folder(folder, nbytes=65536):
     None: asked after a write that failed without saying why (cv2 only
     returns False).  ``nbytes``: at least what the failed file needed (the
     write's own temporary file is gone by now, so a small probe could fit)."""
-    from .atomic import PREFIX
+    from .atomic import temp_prefix
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f"{PREFIX}{os.getpid()}-", dir=folder)
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(), dir=folder)  # atomic's name: removed if we are killed
     except OSError as exc:
         return exc if exc.errno in STORAGE_ERRNOS else None
     try:

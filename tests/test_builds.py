@@ -8,7 +8,7 @@ import pytest
 import mccnn_cl.opencl.context as clmod
 import mccnn_cl.opencl.device as device
 from mccnn_cl import StereoMatcher
-from mccnn_cl.atomic import PREFIX
+from mccnn_cl.atomic import PREFIX, parse_temp_name, temp_prefix
 from mccnn_cl.opencl.context import launch_sizes
 from mccnn_cl.stages.sgm import MAX_LEVELS, _max_disp
 
@@ -203,15 +203,15 @@ def test_stale_temporary_binaries_are_deleted(monkeypatch, tmp_path):
         return sorted(f for f in os.listdir(root / sub) if f.startswith(PREFIX))
 
     first = kill_a_writer("ab" + "0" * 62)
-    assert [f.split("-")[2] for f in temps("ab")] == [str(first)]  # the dead writer's file, named by its pid
+    assert [parse_temp_name(f)[1] for f in temps("ab")] == [first]  # the dead writer's file, named by its pid
     second = kill_a_writer("ab" + "1" * 62)
-    assert [f.split("-")[2] for f in temps("ab")] == [str(second)]  # the first one's deleted: none pile up
+    assert [parse_temp_name(f)[1] for f in temps("ab")] == [second]  # the first one's deleted: none pile up
     kill_a_writer("cd" + "0" * 62)
     assert temps("ab") == [] and len(temps("cd")) == 1  # a new process sweeps every folder of the cache
     assert os.listdir(root / "ab") == []  # nothing under a final name either
     alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
     try:
-        in_progress = f"{PREFIX}{alive.pid}-in-progress.bin"
+        in_progress = f"{temp_prefix(alive.pid)}in-progress.bin"
         (root / "cd" / in_progress).write_bytes(b"x")
         monkeypatch.setattr(binaries, "_SWEPT", set(), raising=False)  # as in a new process
         assert binaries.store("cd" + "2" * 62, b"payload")

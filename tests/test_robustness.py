@@ -314,7 +314,7 @@ def test_calib_with_only_ndisp_gives_the_range(tmp_path):
 # -- 14: temporary files of a killed writer ------------------------------------------------
 
 def test_stale_temporary_files_are_removed_at_the_next_write(tmp_path):
-    from mccnn_cl.atomic import PREFIX
+    from mccnn_cl.atomic import PREFIX, temp_prefix
     from mccnn_cl.depth import write_ply
     # a writer killed mid-write (SIGKILL: nothing of it runs afterwards)
     child = ("import numpy as np, os, signal\n"
@@ -325,7 +325,7 @@ def test_stale_temporary_files_are_removed_at_the_next_write(tmp_path):
     assert p.returncode == -9
     stale = [f for f in os.listdir(tmp_path) if f.startswith(PREFIX)]
     assert len(stale) == 1 and not (tmp_path / "cloud.ply").exists()
-    mine = tmp_path / f"{PREFIX}{os.getpid()}-inflight.ply"  # a running writer's file stays
+    mine = tmp_path / f"{temp_prefix()}inflight.ply"  # a running writer's file stays
     mine.write_bytes(b"x")
     write_ply(tmp_path / "other.ply", np.zeros((3, 3), np.float32))
     left = sorted(os.listdir(tmp_path))

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mccnn_cl.atomic import PREFIX
+from mccnn_cl.atomic import PREFIX, temp_prefix
 from mccnn_cl.opencl import tune, tune_cache
 from mccnn_cl.opencl.context import ClContext
 
@@ -651,11 +651,11 @@ def test_stale_temporary_tuning_files_are_deleted(cache):
         p = subprocess.Popen([sys.executable, "-c", killed], env=dict(os.environ, MCCNN_CACHE_DIR=str(cache)))
         assert p.wait() == -signal.SIGKILL
         dead = sorted(f for f in os.listdir(folder) if f.startswith(PREFIX))
-        assert len(dead) == 1 and dead[0].startswith(f"{PREFIX}{p.pid}-") and dead[0].endswith(".json"), dead
+        assert len(dead) == 1 and dead[0].startswith(temp_prefix(p.pid)) and dead[0].endswith(".json"), dead
         # (the second kill's store deleted the first one's file: they do not pile up)
     alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
     try:
-        in_progress = f"{PREFIX}{alive.pid}-in-progress.json"
+        in_progress = f"{temp_prefix(alive.pid)}in-progress.json"
         (folder / in_progress).write_text("{")
         path = tune.store(fake_device(), {"sgm_cols": 32}, {})
         assert sorted(f for f in os.listdir(folder) if f.startswith(PREFIX)) == [in_progress]
