@@ -255,6 +255,36 @@ def test_binaries_are_written_through_atomic_write(monkeypatch, tmp_path):
     assert sorted(os.listdir(tmp_path / "binaries" / "ef")) == [os.path.basename(binaries.path(k))]
 
 
+def test_earlier_versions_temporary_binaries_are_deleted_when_old(monkeypatch, tmp_path):
+    """The caches' earlier writer (tempfile.mkstemp(prefix=".tmp-"), before mccnn_cl.atomic)
+    left a ``.tmp-*`` file when killed before its rename; nothing deleted those any more
+    (before: kept for ever).  The first store of a process deletes those unchanged for
+    over ten minutes (that writer's own rule) in every folder of the cache and the
+    cache's own folder (the writable check's probe files); a younger one may be an older
+    version's write in progress (another process, another host) and stays."""
+    import os
+    import time
+
+    from mccnn_cl.opencl import binaries
+
+    monkeypatch.setenv("MCCNN_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(binaries, "_SWEPT", set(), raising=False)  # as in a new process
+    root = tmp_path / "binaries"
+    old, young = time.time() - 15 * 60, time.time() - 2 * 60
+    files = {root / "ab" / ".tmp-k2j4h5g1": old, root / "ab" / ".tmp-young": young,
+             root / "cd" / ".tmp-x9a8b7c6": old, root / ".tmp-probe-q1w2e3r4": old,
+             root / "cd" / "not-a-tmp-file": old}
+    for f, t in files.items():
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_bytes(b"partial")
+        os.utime(f, (t, t))
+    assert binaries.store("ab" + "3" * 62, b"payload")
+    left = sorted(os.path.relpath(os.path.join(d, f), root) for d, _, fs in os.walk(root) for f in fs)
+    assert left == sorted([os.path.relpath(binaries.path("ab" + "3" * 62), root), os.path.join("ab", ".tmp-young"),
+                           os.path.join("cd", "not-a-tmp-file")]), left
+    assert binaries.load("ab" + "3" * 62) == b"payload"
+
+
 def _store_many(root, payload_byte, n):
     import os
 

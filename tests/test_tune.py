@@ -679,3 +679,22 @@ def test_tuning_file_is_written_through_atomic_write(cache, monkeypatch):
     monkeypatch.setattr(atomic, "atomic_write", spy)
     path = tune.store(fake_device(), {"sgm_cols": 32}, {})
     assert written == [path] and tune.load(fake_device()) == {"sgm_cols": 32}
+
+
+def test_earlier_versions_temporary_tuning_files_are_deleted_when_old(cache):
+    """The earlier writer of the tuning file (tempfile.mkstemp(prefix=".tmp-"), before
+    mccnn_cl.atomic) left a ``.tmp-*`` file when killed before its rename; nothing deleted
+    those any more (before: kept for ever).  A store deletes those of the tuning folder
+    unchanged for over ten minutes (that writer's own rule), and keeps a younger one
+    (an older version's write in progress, another process or host)."""
+    import time
+
+    folder = cache / "tune"
+    folder.mkdir()
+    old, young = time.time() - 15 * 60, time.time() - 2 * 60
+    for name, t in ((".tmp-abc123.json", old), (".tmp-probe-xyz", old), (".tmp-young.json", young)):
+        (folder / name).write_text("{")
+        os.utime(folder / name, (t, t))
+    path = tune.store(fake_device(), {"sgm_cols": 32}, {})
+    assert sorted(os.listdir(folder)) == sorted([".tmp-young.json", os.path.basename(path)])
+    assert tune.load(fake_device()) == {"sgm_cols": 32}

@@ -12,14 +12,14 @@ A binary's file name is a hash of everything its build depends on: the
 package version, the platform (name, version), the device (name, driver
 version), the build options, the kernel source and every header of the
 kernel directory.  Files are written through :func:`mccnn_cl.atomic.atomic_write`
-(a temporary file of a unique, pid-named name in the same folder, flushed to
-disk, then renamed: two processes may write the same binary; readers never see
-half a file).  Each file holds a header (magic, payload length, SHA-256 of
-the payload) that :func:`load` checks: a file cut short or changed (a copy
-or sync of the cache folder, a power loss, a disk error) is deleted and the
-program built from source, never handed to the runtime (PoCL crashed the
-process on a truncated binary, and again in every later run).  A binary the
-runtime refuses is deleted too.
+(a temporary file of a unique name, with the writer's host and pid, in the
+same folder, flushed to disk, then renamed: two processes may write the same
+binary; readers never see half a file).  Each file holds a header (magic,
+payload length, SHA-256 of the payload) that :func:`load` checks: a file cut
+short or changed (a copy or sync of the cache folder, a power loss, a disk
+error) is deleted and the program built from source, never handed to the
+runtime (PoCL crashed the process on a truncated binary, and again in every
+later run).  A binary the runtime refuses is deleted too.
 ``MCCNN_BINARY_CACHE=off`` disables the cache; ``MCCNN_CACHE_DIR`` moves it.
 
 :func:`store` returns whether the file was written, and tells every
@@ -28,7 +28,8 @@ binaries stored with it).  A writer killed between its temporary file and the
 rename (``kill -9``, a power loss) leaves that file behind; :func:`store`
 deletes the temporary files of writers no longer running
 (:func:`mccnn_cl.atomic.remove_stale`: its own folder on every call, every
-folder of the cache once per process).
+folder of the cache once per process), and once per process those the
+caches' earlier writer left (:func:`remove_legacy`).
 """
 
 from __future__ import annotations
@@ -128,11 +129,30 @@ def load(k: str):
     return payload
 
 
+#: Prefix of the temporary files the caches wrote before :mod:`mccnn_cl.atomic`
+#: (``tempfile.mkstemp(prefix=".tmp-")``, ``.tmp-probe-`` for the writable check).
+LEGACY_PREFIX = ".tmp-"
+#: Such a file unchanged this long is a dead writer's (that writer's own rule: a
+#: store takes seconds; a younger one may be an older version's write in progress).
+LEGACY_STALE_SECONDS = 600.0
+
+
+def remove_legacy(folder: str) -> list:
+    """Delete the caches' earlier temporary files (:data:`LEGACY_PREFIX`) in ``folder``
+    unchanged for over :data:`LEGACY_STALE_SECONDS`: left by writers of earlier
+    versions killed before their rename, which nothing else deletes now.  Only for
+    the cache folders (elsewhere a ``.tmp-`` file is not the package's).  Returns their
+    paths; errors are ignored."""
+    return atomic.remove_files(folder, lambda name: LEGACY_STALE_SECONDS if name.startswith(LEGACY_PREFIX) else None)
+
+
 _SWEPT: set = set()
 
 
 def _sweep_once(root: str) -> None:
-    """:func:`mccnn_cl.atomic.remove_stale` on every folder of the binary cache ``root``, once per process."""
+    """:func:`mccnn_cl.atomic.remove_stale` and :func:`remove_legacy` in the binary cache
+    ``root`` and every folder of it, once per process (``root`` itself: the writable
+    check's probe files)."""
     if root in _SWEPT:
         return
     _SWEPT.add(root)
@@ -140,7 +160,7 @@ def _sweep_once(root: str) -> None:
         subs = [e.path for e in os.scandir(root) if e.is_dir(follow_symlinks=False)]
     except OSError:
         return
-    gone = sum(len(atomic.remove_stale(sub)) for sub in subs)
+    gone = sum(len(atomic.remove_stale(d)) + len(remove_legacy(d)) for d in [root, *subs])
     if gone:
         log.info("deleted %d stale temporary file(s) under %s (writers killed before their rename)", gone, root)
 

@@ -1,7 +1,8 @@
 """The tuner's per-device cache (``<cache>/tune/<hash>.json``): where it lies,
 reading it (a corrupt or foreign file is ignored with one warning) and writing
 it atomically (:func:`mccnn_cl.atomic.atomic_write`: stale temporary files of
-killed writers deleted), and the lock
+killed writers deleted, the earlier writer's ``.tmp-*`` too:
+:func:`mccnn_cl.opencl.binaries.remove_legacy`), and the lock
 ``mccnn-cl tune`` holds while it measures (:func:`tuning_lock`).
 :class:`~mccnn_cl.opencl.context.ClContext` reads a device's choices from here;
 :mod:`mccnn_cl.opencl.tune` measures and stores them."""
@@ -17,7 +18,7 @@ import warnings
 
 from .. import atomic
 from ..atomic import exclusive_lock
-from .binaries import cache_root, device_identity
+from .binaries import cache_root, device_identity, remove_legacy
 
 log = logging.getLogger(__name__)
 
@@ -121,9 +122,12 @@ def load(device) -> dict:
 def store(device, choices: dict, measured: dict, size=SIZE) -> str:
     """Write the choices (measured at ``size``) atomically
     (:func:`mccnn_cl.atomic.atomic_write`: a temporary file in the same folder,
-    then a rename); the temporary files of dead writers are deleted first."""
+    then a rename); the temporary files of dead writers are deleted first, the
+    earlier writer's ``.tmp-*`` too (:func:`~mccnn_cl.opencl.binaries.remove_legacy`)."""
     path = cache_path(device)
     os.makedirs(os.path.dirname(path), exist_ok=True)
+    if remove_legacy(os.path.dirname(path)):
+        log.info("deleted stale temporary file(s) of an earlier version in %s", os.path.dirname(path))
     data = {"identity": identity(device), "choices": choices, "measured": measured,
             "size": list(size), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
 
