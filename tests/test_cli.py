@@ -223,6 +223,20 @@ def test_devices_lists_something():
     assert any(line.startswith(" * ") for line in so.splitlines())
 
 
+@pytest.mark.parametrize("command", [["models"], ["devices"]])
+def test_reader_gone_ends_quietly(command):
+    """`mccnn-cl models | head -1`: a reader that stops early ends the command quietly with the
+    status of a Unix tool killed by SIGPIPE (141, mccnn_cl.cli.BROKEN_PIPE_STATUS), no error line.
+    The pipe's read end is closed before the command writes (a reader that stopped at once), so its
+    writes meet a broken pipe whatever the timing."""
+    p = subprocess.Popen([sys.executable, "-m", "mccnn_cl", *command], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE)
+    p.stdout.close()  # the reader is gone
+    _, err = p.communicate(timeout=180)
+    assert err.decode() == "", err.decode()  # no "mccnn-cl: error: BrokenPipeError", no "Exception ignored"
+    assert p.returncode == 141
+
+
 @pytest.mark.slow
 def test_evaluate_tsukuba_beside_sgbm(shared_data, tmp_path):
     rc, so, se = run("evaluate", shared_data / "middlebury", "--pairs", "Tsukuba", "--cost", "census",

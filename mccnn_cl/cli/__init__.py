@@ -12,7 +12,9 @@ This module only parses and dispatches (:data:`COMMANDS`): ``match``,
 :mod:`mccnn_cl.cli.convert`; input checks are in :mod:`mccnn_cl.validate`.
 
 Exit status: 0 success, 2 bad usage or input (:class:`~mccnn_cl.errors.InputError`
-and argparse's errors), 1 runtime failure (OpenCL, anything unexpected).
+and argparse's errors), 1 runtime failure (OpenCL, anything unexpected), 130
+interrupted, 141 stdout's reader went away (``mccnn-cl models | head -1``: the
+command stops quietly, as a Unix tool killed by SIGPIPE, 128 + 13; :func:`_stdout_gone`).
 Errors are one line on stderr; ``--verbose`` adds the traceback.
 """
 
@@ -21,6 +23,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 import traceback
 import warnings
@@ -90,7 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="mccnn-cl",
         description="MC-CNN stereo matching (Zbontar & LeCun 2015) with OpenCL inference.",
-        epilog="Exit status: 0 ok, 2 bad usage or input, 1 runtime failure. See docs/cli.md.")
+        epilog="Exit status: 0 ok, 2 bad usage or input, 1 runtime failure, 130 interrupted, "
+               "141 output pipe closed by its reader. See docs/cli.md.")
     p.add_argument("--version", action="version", version=f"mccnn-cl {__version__}")
     p.add_argument("-v", "--verbose", action="store_true", default=False,
                    help="log progress and show tracebacks on errors")
@@ -233,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(argv)  # --help, --version: argparse prints, ignoring a reader gone, and exits 0
     verbose = bool(getattr(args, "verbose", False))
     if verbose:
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -247,7 +251,11 @@ def main(argv=None) -> int:
         warnings.filterwarnings("ignore", message="Non-empty compiler output encountered")
     _one_line_warnings()
     try:
-        return int(_implementation(args)(args) or 0)
+        code = int(_implementation(args)(args) or 0)
+        sys.stdout.flush()  # what is still buffered: a reader gone by now is a broken pipe too
+        return code
+    except BrokenPipeError:
+        return _stdout_gone()
     except KeyboardInterrupt:
         print("mccnn-cl: interrupted", file=sys.stderr)
         return 130
@@ -257,6 +265,24 @@ def main(argv=None) -> int:
         return _fail(exc, 1, verbose)
     except Exception as exc:  # noqa: BLE001 - the command line reports everything in one line
         return _fail(exc, 1, verbose, with_type=True)
+
+
+#: exit status when stdout's reader went away: the shell's for a process killed by SIGPIPE (128 + 13)
+BROKEN_PIPE_STATUS = 141
+
+
+def _stdout_gone() -> int:
+    """stdout is a pipe whose reader stopped (``mccnn-cl models | head -1``): end quietly, as a
+    Unix tool does.  stdout is pointed at /dev/null so that the interpreter's last flush of what is
+    still buffered does not fail a second time ("Exception ignored ... BrokenPipeError"); the status
+    is :data:`BROKEN_PIPE_STATUS`, what a shell reports for a tool killed by SIGPIPE."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (AttributeError, OSError, ValueError):  # no real file behind sys.stdout (captured in-process)
+        pass
+    return BROKEN_PIPE_STATUS
 
 
 def _one_line_warnings():
