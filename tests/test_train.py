@@ -790,3 +790,42 @@ def test_resume_of_a_checkpoint_without_parts(tsukuba, venus, tmp_path):
     assert any("pairs unknown" in s for s in said if s.startswith("warning")), said
     assert [(p["trained_on"], p["steps"]) for p in res["provenance"]["parts"]] == [
         (None, [0, 6]), (["middlebury/Tsukuba"], [6, 12])]
+
+
+# -- --device: a device this machine lacks is one line, before any work ---------------------------
+
+def _train_args(shared_data, out, device):
+    return ["--data", str(shared_data / "middlebury"), "--include", "middlebury/Tsukuba", "--epochs", "1",
+            "--out", str(out), "--no-progress", "--device", device]
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on a machine without CUDA")
+def test_cuda_device_without_cuda_is_one_line(shared_data, tmp_path):
+    """``--device cuda`` without CUDA: `error: --device cuda: CUDA is not available ...; available: cpu`,
+    exit status 2 (as the other input errors), no traceback, no run folder made."""
+    import subprocess
+    import sys
+    out = tmp_path / "run"
+    p = subprocess.run([sys.executable, "-m", "mccnn_cl.train.train", *_train_args(shared_data, out, "cuda")],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1, p.stderr  # no traceback
+    assert lines[0].startswith("error: --device cuda: CUDA is not available") and "available: cpu" in lines[0]
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("device, words", [("cuda:0", "CUDA is not available"),
+                                           ("mps", "training runs on cpu or cuda"),
+                                           ("gpu", "not a torch device")])
+@pytest.mark.parametrize("world", ["1", "2"])  # 2: as launched by torchrun, before the process group
+def test_unusable_device_is_one_line(shared_data, tmp_path, capsys, monkeypatch, device, words, world):
+    if device.startswith("cuda") and torch.cuda.is_available():
+        pytest.skip("checks a machine without CUDA")
+    monkeypatch.setenv("WORLD_SIZE", world)
+    monkeypatch.setenv("LOCAL_RANK", "0")
+    out = tmp_path / "run"
+    assert main(_train_args(shared_data, out, device)) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: --device {device}: {words}") and err.endswith("available: cpu"), err
+    assert len(err.splitlines()) == 1 and not out.exists()

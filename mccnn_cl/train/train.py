@@ -246,6 +246,39 @@ def select_pairs(data_roots, holdout=(), include=("*",), dataset=None):
 DIST_TIMEOUT = timedelta(minutes=60)
 
 
+def available_devices() -> str:
+    """The torch devices training can use here, for messages: ``cpu``, and ``cuda`` (with its
+    indices) only where ``torch.cuda.is_available()``."""
+    if not torch.cuda.is_available():
+        return "cpu"
+    n = torch.cuda.device_count()
+    return f"cpu, cuda (cuda:0{f'..cuda:{n - 1}' if n > 1 else ''})"
+
+
+def check_device(spec=None, world: int = 1) -> torch.device:
+    """The torch device ``--device`` names (None: CUDA when available, else the CPU), checked
+    before any work: a name torch does not know, a device type training does not run on, CUDA
+    on a machine (or torch build) without it, or a CUDA index past the devices is an
+    :class:`InputError` naming ``spec`` and what is available.  Under torchrun (``world`` > 1)
+    the index is replaced by ``LOCAL_RANK`` (:func:`init_distributed`), checked there."""
+    if spec is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(spec)
+    except (RuntimeError, ValueError, TypeError):
+        raise InputError(f"--device {spec}: not a torch device; available: {available_devices()}") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            why = "this torch build has no CUDA" if torch.version.cuda is None else "no CUDA device is usable"
+            raise InputError(f"--device {spec}: CUDA is not available ({why}, torch {torch.__version__}); "
+                             f"available: {available_devices()}")
+        if world <= 1 and device.index is not None and device.index >= torch.cuda.device_count():
+            raise InputError(f"--device {spec}: no such CUDA device; available: {available_devices()}")
+    elif device.type != "cpu":
+        raise InputError(f"--device {spec}: training runs on cpu or cuda; available: {available_devices()}")
+    return device
+
+
 def init_distributed(device=None):
     """Join the process group when launched by torchrun (``WORLD_SIZE`` > 1).
 
@@ -253,19 +286,31 @@ def init_distributed(device=None):
     ``cuda:LOCAL_RANK``, whatever index ``device`` names; default CUDA when
     available, else the CPU) and whether this call created the process group
     (the caller then destroys it).  Backend: NCCL on CUDA, gloo on the CPU.
-    Without torchrun (or with one process) nothing is initialised.
+    Without torchrun (or with one process) nothing is initialised.  A device
+    this machine lacks, a ``LOCAL_RANK`` past its CUDA devices, or a backend
+    this torch build lacks is an :class:`InputError` before anything starts
+    (:func:`check_device`).
     """
-    device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    device = check_device(device, world)
+    if world <= 1:
         return device, False
     if not dist.is_available():
         raise InputError("WORLD_SIZE > 1 but this torch build has no torch.distributed")
     if device.type == "cuda":
-        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        rank, n = int(os.environ.get("LOCAL_RANK", "0")), torch.cuda.device_count()
+        if rank >= n:
+            raise InputError(f"LOCAL_RANK {rank}: this machine has {n} CUDA device(s) (cuda:0..cuda:{n - 1}); "
+                             f"start at most {n} processes per node (torchrun --nproc_per_node={n})")
+        device = torch.device("cuda", rank)
         torch.cuda.set_device(device)
+    backend = "nccl" if device.type == "cuda" else "gloo"
+    if not getattr(dist, f"is_{backend}_available")():
+        raise InputError(f"--device {device.type}: distributed training on {device.type} needs the {backend} "
+                         "backend, which this torch build lacks")
     if dist.is_initialized():
         return device, False
-    dist.init_process_group("nccl" if device.type == "cuda" else "gloo", timeout=DIST_TIMEOUT)
+    dist.init_process_group(backend, timeout=DIST_TIMEOUT)
     return device, True
 
 
@@ -1181,8 +1226,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=int, default=d.seed)
     g.add_argument("--threads", type=int, default=None, help="torch CPU threads (per process under torchrun)")
     g.add_argument("--device", default=None,
-                   help="torch device (default: cuda if available, else cpu; under torchrun cuda means "
-                        "cuda:LOCAL_RANK)")
+                   help="torch device: cpu, or cuda[:N] where torch.cuda.is_available() (default: cuda if "
+                        "available, else cpu; under torchrun cuda means cuda:LOCAL_RANK); another is refused")
     g.add_argument("--val-examples", type=int, default=d.val_examples)
     g.add_argument("--val-pixels", type=int, default=d.val_pixels)
     g.add_argument("--val-ndisp", type=int, default=None,
@@ -1237,7 +1282,11 @@ def main(argv=None) -> int:
             torch.set_num_interop_threads(1)
         except RuntimeError:
             pass
-    device, created = init_distributed(args.device)  # torchrun: join the group, cuda:LOCAL_RANK
+    try:
+        device, created = init_distributed(args.device)  # torchrun: join the group, cuda:LOCAL_RANK
+    except InputError as exc:  # a device or backend this machine lacks: one line, before any work
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     try:
         with _term_stops():
             return _main(args, argv, device, t0)
