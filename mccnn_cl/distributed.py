@@ -56,11 +56,17 @@ def matcher_config(cost="cnn", weights=None, device=None, memory_limit=None, vol
     """A picklable description of the matcher every worker builds (and keeps):
     ``weights`` a shipped name or a path (made absolute), ``memory_limit``
     bytes.  Keys of the per-worker matcher cache."""
-    if isinstance(weights, str) and os.path.exists(weights):
-        weights = os.path.abspath(weights)
-    return {"cost": cost, "weights": weights, "device": device,
+    return {"cost": cost, "weights": _absolute(weights), "device": device,
             "memory_limit": None if memory_limit is None else int(memory_limit),
             "volume_dtype": volume_dtype, "min_disparity": int(min_disparity), "hyper": dict(hyperparameters)}
+
+
+def _absolute(weights):
+    """``weights`` made absolute when it names a file here (a path, not a shipped model's name): a
+    worker takes a relative path in its own working folder (:func:`for_workers`)."""
+    if isinstance(weights, str) and os.path.exists(weights):
+        return os.path.abspath(weights)
+    return weights
 
 
 def _key(config, max_disp):
@@ -258,13 +264,25 @@ def n_workers(client) -> int:
     return len(client.scheduler_info()["workers"])
 
 
+def for_workers(job) -> Job:
+    """``job`` as its tasks are sent: every path (images, disparity map, side files) made absolute
+    here, in the client's working folder.  A worker resolves a relative path in its own working
+    folder (another one on an existing cluster), where ``left.png`` names no file or another one."""
+    return Job(job.name, os.path.abspath(job.left), os.path.abspath(job.right), os.path.abspath(job.out),
+               [os.path.abspath(p) for p in job.sides])
+
+
 def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_tiles=None, progress=False):
     """Match ``jobs`` (:class:`mccnn_cl.batch.Job`) on ``client``'s workers;
     yields ``(job, PairResult)`` or ``(job, exception)`` as pairs complete.
 
-    ``split_tiles``: run the row tiles of a pair whose plan is tiled as tasks of
-    their own (module docstring); None: when there are fewer pairs than workers.
-    Closing the generator early (or an interrupt) cancels the pairs not done."""
+    Relative paths of the jobs (and of ``config``'s weights file,
+    :func:`matcher_config`) mean files of this process's working folder: the
+    workers are sent them absolute (:func:`for_workers`); the jobs yielded are
+    those given.  ``split_tiles``: run the row tiles of a pair whose plan is
+    tiled as tasks of their own (module docstring); None: when there are fewer
+    pairs than workers.  Closing the generator early (or an interrupt) cancels
+    the pairs not done."""
     from distributed import as_completed
 
     from .io import read_image
@@ -276,16 +294,18 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
         split_tiles = False  # a range not starting at 0 runs whole pairs (StereoMatcher.compute's frame)
     if split_tiles is None:
         split_tiles = len(jobs) < workers
+    config = {**config, "weights": _absolute(config.get("weights"))}
     client.run(warm, config, max_disp)  # every worker builds its matcher now, in parallel
     owner, futures, tile_futures = {}, [], []
     failed_early = []
-    for job in jobs:
+    for given in jobs:
+        job = for_workers(given)
         if split_tiles:
             try:
                 shape = read_image(job.left).shape[:2]
                 plans = client.run(plan_task, config, shape, max_disp)
             except Exception as exc:  # noqa: BLE001 - this pair fails, before any of its work
-                failed_early.append((job, exc))
+                failed_early.append((given, exc))
                 continue
             plan = max(plans.values(), key=lambda p: len(p["tiles"]))
             if plan["tiled"] and len(plan["tiles"]) > 1:
@@ -296,11 +316,11 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
                 tile_futures += parts
                 fut = client.submit(finish_task, config, job, max_disp, plan["tiles"], parts, want_confidence,
                                     pure=False)
-                owner[fut.key] = job
+                owner[fut.key] = given
                 futures.append(fut)
                 continue
         fut = client.submit(pair_task, config, job, max_disp, want_confidence, pure=False)
-        owner[fut.key] = job
+        owner[fut.key] = given
         futures.append(fut)
     for job, exc in failed_early:
         yield job, exc

@@ -442,6 +442,43 @@ def test_outputs_never_overwrite_inputs(kitti, cluster, tmp_path, capsys, mode):
     assert (files(root / "l"), files(root / "r")) == before
 
 
+def test_relative_paths_with_workers_in_another_folder(kitti, reference, cluster, tmp_path, monkeypatch, capsys):
+    """--scheduler with relative paths: the workers of an existing cluster run in a working folder of
+    their own, and the client sends them the paths made absolute in its folder
+    (dd.for_workers), so a batch and one pair given relative paths are matched (before, every pair
+    failed: the workers looked for l/NAME.png in their folder), byte for byte as in one process."""
+    client_dir = _copy_pairs(kitti, tmp_path / "client")
+    elsewhere = tmp_path / "worker"
+    elsewhere.mkdir()
+    before = cluster.run(os.getcwd)
+    cluster.run(os.chdir, str(elsewhere))
+    try:
+        assert set(cluster.run(os.getcwd).values()) == {str(elsewhere)}
+        monkeypatch.chdir(client_dir)
+        rc = main(["match", "-l", "l/*.png", "-r", "r/*.png", "--output-dir", "out",
+                   "--scheduler", cluster.scheduler.address, *COMMON])
+        cap = capsys.readouterr()
+        assert rc == 0, cap.out + cap.err
+        assert "done 2, skipped 0 (outputs complete), failed 0" in cap.out
+        for f in FRAMES[:2]:
+            assert (client_dir / "out" / f"{f}.pfm").read_bytes() == (reference / f"{f}_10.pfm").read_bytes()
+        f = FRAMES[0]
+        rc = main(["match", f"l/{f}.png", f"r/{f}.png", "-o", "one.pfm", "--scheduler", cluster.scheduler.address,
+                   *COMMON])
+        cap = capsys.readouterr()
+        assert rc == 0, cap.out + cap.err
+        assert (client_dir / "one.pfm").read_bytes() == (reference / f"{f}_10.pfm").read_bytes()
+        assert os.listdir(elsewhere) == []  # the workers read by absolute path and write nothing
+    finally:
+        for address, cwd in before.items():
+            cluster.run(os.chdir, cwd, workers=[address])
+    job = Job("a", "l/a.png", "r/a.png", "out/a.pfm", ["out/a_color.png"])
+    sent = dd.for_workers(job)
+    assert (sent.left, sent.right, sent.out, sent.sides) == (
+        str(client_dir / "l/a.png"), str(client_dir / "r/a.png"), str(client_dir / "out/a.pfm"),
+        [str(client_dir / "out/a_color.png")])
+
+
 def test_png_range_refused_before_any_work(kitti, cluster, tmp_path, capsys):
     """A .png batch (and one .png pair on a cluster) with a stated range a KITTI PNG cannot hold is
     refused before any work, as for one pair in one process; --disp-range auto is not (per pair)."""
