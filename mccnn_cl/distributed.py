@@ -264,6 +264,15 @@ def n_workers(client) -> int:
     return len(client.scheduler_info()["workers"])
 
 
+def check_split_tiles(split_tiles, min_disparity, max_disp) -> None:
+    """Split tiles (``--split-tiles``) need a range from 0: InputError with a minimum disparity
+    or an automatic range (``max_disp`` "auto").  ``mccnn-cl match`` asks before anything else of
+    the cluster path (:func:`run`), so that no cluster starts (nor output folder is made) for it."""
+    if split_tiles and (min_disparity or max_disp == "auto"):
+        raise InputError("row tiles over several workers search disparities from 0: "
+                         "--split-tiles cannot be combined with --min-disp or --disp-range auto")
+
+
 def for_workers(job) -> Job:
     """``job`` as its tasks are sent: every path (images, disparity map, side files) made absolute
     here, in the client's working folder.  A worker resolves a relative path in its own working
@@ -286,11 +295,9 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
     from distributed import as_completed
 
     from .io import read_image
+    check_split_tiles(split_tiles, config.get("min_disparity"), max_disp)
     workers = max(1, n_workers(client))
     if config.get("min_disparity") or max_disp == "auto":
-        if split_tiles:
-            raise InputError("row tiles over several workers search disparities from 0: "
-                             "--split-tiles cannot be combined with --min-disp or --disp-range auto")
         split_tiles = False  # a range not starting at 0 runs whole pairs (StereoMatcher.compute's frame)
     if split_tiles is None:
         split_tiles = len(jobs) < workers
@@ -380,11 +387,13 @@ def _single_job(args, calib=None):
 def run(args, single: bool) -> int:
     """``mccnn-cl match`` with ``--workers N`` (a LocalCluster) or ``--scheduler ADDRESS``."""
     from .batch import prepare
-    from .cli.common import _hyperparameters, _load_weights, _read_calibration, _say
+    from .cli.common import _hyperparameters, _load_weights, _range_request, _read_calibration, _say
     if args.workers is not None and args.scheduler is not None:
         raise InputError("give --workers N (a cluster on this machine) or --scheduler ADDRESS, not both")
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
+    request = _range_request(args)  # the options alone: before any file is read or a cluster starts
+    check_split_tiles(args.split_tiles, *((0, "auto") if request == "auto" else request))
     settings = None
     if single:
         if getattr(args, "resume", False):

@@ -479,6 +479,34 @@ def test_relative_paths_with_workers_in_another_folder(kitti, reference, cluster
         [str(client_dir / "out/a_color.png")])
 
 
+@pytest.mark.parametrize("rng", [["--disp-range", "auto"], ["--min-disp", "4", "--max-disp", "16"],
+                                 ["--disp-range", "4:19"]])
+@pytest.mark.parametrize("where", ["--workers", "--scheduler"])
+def test_split_tiles_with_a_range_not_from_0_refused_before_a_cluster(kitti, tmp_path, monkeypatch, capsys, rng,
+                                                                        where):
+    """--split-tiles needs a range from 0: with --disp-range auto or a minimum disparity it is
+    refused from the options alone, before any cluster starts, any client connects or the output
+    folder is made (before, a LocalCluster started first and the refusal came from its client)."""
+    import distributed
+    started = []
+
+    def no_cluster(*args, **kwargs):
+        started.append((args, kwargs))
+        raise AssertionError("a cluster was started")
+    monkeypatch.setattr(dd, "local_cluster", no_cluster)
+    monkeypatch.setattr(distributed, "Client", no_cluster)
+    extra = ["--workers", "2"] if where == "--workers" else ["--scheduler", "tcp://127.0.0.1:1"]
+    out = tmp_path / "out"
+    for what in (["-l", str(kitti / "image_2/*.png"), "-r", str(kitti / "image_3/*.png"), "--output-dir", str(out)],
+                 [str(kitti / f"image_2/{FRAMES[0]}_10.png"), str(kitti / f"image_3/{FRAMES[0]}_10.png"),
+                  "-o", str(out / "one.pfm")]):
+        rc = main(["match", *what, "--cost", "census", *rng, *extra, "--split-tiles"])
+        err = capsys.readouterr().err
+        assert rc == 2, err
+        assert "--split-tiles cannot be combined with --min-disp or --disp-range auto" in err
+        assert started == [] and not out.exists()
+
+
 def test_png_range_refused_before_any_work(kitti, cluster, tmp_path, capsys):
     """A .png batch (and one .png pair on a cluster) with a stated range a KITTI PNG cannot hold is
     refused before any work, as for one pair in one process; --disp-range auto is not (per pair)."""
