@@ -507,6 +507,21 @@ def test_split_tiles_with_a_range_not_from_0_refused_before_a_cluster(kitti, tmp
         assert started == [] and not out.exists()
 
 
+def test_split_tiles_without_a_cluster_is_refused(kitti, tmp_path, capsys):
+    """--split-tiles only means something on Dask workers: without --workers or --scheduler it is
+    refused in one line before any work (it used to be ignored silently)."""
+    out = tmp_path / "out"
+    for what in (["-l", str(kitti / "image_2/*.png"), "-r", str(kitti / "image_3/*.png"), "--output-dir", str(out)],
+                 [str(kitti / f"image_2/{FRAMES[0]}_10.png"), str(kitti / f"image_3/{FRAMES[0]}_10.png"),
+                  "-o", str(out / "one.pfm")]):
+        rc = main(["match", *what, "--cost", "census", "--max-disp", "32", "--split-tiles"])
+        err = capsys.readouterr().err
+        assert rc == 2, err
+        assert "--split-tiles spreads a pair's tiles over Dask workers" in err
+        assert len(err.strip().splitlines()) == 1, err
+        assert not out.exists()
+
+
 def test_png_range_refused_before_any_work(kitti, cluster, tmp_path, capsys):
     """A .png batch (and one .png pair on a cluster) with a stated range a KITTI PNG cannot hold is
     refused before any work, as for one pair in one process; --disp-range auto is not (per pair)."""

@@ -72,6 +72,9 @@ def cmd_match(args):
         raise InputError("give either LEFT RIGHT -o OUT, or -l LEFT_GLOB -r RIGHT_GLOB (or --pairs-dir DIR) "
                          "--output-dir DIR")
     distributed = getattr(args, "workers", None) is not None or getattr(args, "scheduler", None) is not None
+    if getattr(args, "split_tiles", False) and not distributed:  # it would be ignored: say so
+        raise InputError("--split-tiles spreads a pair's tiles over Dask workers: give it with --workers N "
+                         "or --scheduler ADDRESS")
     if batch and not distributed:
         from ..batch import run_batch
         return run_batch(args)
