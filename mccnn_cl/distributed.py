@@ -264,11 +264,18 @@ def n_workers(client) -> int:
     return len(client.scheduler_info()["workers"])
 
 
+def _from_0(min_disparity, max_disp) -> bool:
+    """Whether the range is searched from disparity 0 (no minimum, not automatic): the frame of
+    row tiles over several workers."""
+    return not min_disparity and max_disp != "auto"
+
+
 def check_split_tiles(split_tiles, min_disparity, max_disp) -> None:
-    """Split tiles (``--split-tiles``) need a range from 0: InputError with a minimum disparity
-    or an automatic range (``max_disp`` "auto").  ``mccnn-cl match`` asks before anything else of
-    the cluster path (:func:`run`), so that no cluster starts (nor output folder is made) for it."""
-    if split_tiles and (min_disparity or max_disp == "auto"):
+    """Split tiles (``--split-tiles``) need a range from 0 (:func:`_from_0`): InputError with a
+    minimum disparity or an automatic range (``max_disp`` "auto").  ``mccnn-cl match`` asks before
+    anything else of the cluster path (:func:`run`), so that no cluster starts (nor output folder
+    is made) for it."""
+    if split_tiles and not _from_0(min_disparity, max_disp):
         raise InputError("row tiles over several workers search disparities from 0: "
                          "--split-tiles cannot be combined with --min-disp or --disp-range auto")
 
@@ -297,7 +304,7 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
     from .io import read_image
     check_split_tiles(split_tiles, config.get("min_disparity"), max_disp)
     workers = max(1, n_workers(client))
-    if config.get("min_disparity") or max_disp == "auto":
+    if not _from_0(config.get("min_disparity"), max_disp):
         split_tiles = False  # a range not starting at 0 runs whole pairs (StereoMatcher.compute's frame)
     if split_tiles is None:
         split_tiles = len(jobs) < workers
