@@ -17,7 +17,6 @@ import time
 import warnings
 
 from .. import atomic
-from ..atomic import exclusive_lock
 from .binaries import cache_root, device_identity, remove_legacy
 
 log = logging.getLogger(__name__)
@@ -73,7 +72,7 @@ def tuning_lock(on_wait=None):
     time, or "") and waits for it.  The kernel releases the lock when its holder
     exits, killed or not; the file itself stays."""
     os.makedirs(folder(), exist_ok=True)
-    return exclusive_lock(lock_path(), on_wait=on_wait or (lambda holder: None))
+    return atomic.exclusive_lock(lock_path(), on_wait=on_wait or (lambda holder: None))
 
 
 _WARNED: set = set()
