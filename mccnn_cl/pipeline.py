@@ -141,7 +141,8 @@ class StereoResult:
     ``timings``: stage -> seconds (queue finished after every stage), keyed by
     the output names above plus ``cross`` (arms), and with
     ``right_reference="aggregated"`` ``right_volume`` (the shifted, mirrored
-    C_CBCA: the right reference's first aggregation), ``cross_R``,
+    C_CBCA: the right reference's first aggregation; only where SGM cannot
+    read C_CBCA mirrored itself, i.e. not with the paired sweeps), ``cross_R``,
     ``C_R_SGM``, ``C_R`` (the later stages for the right reference).
     ``margin``: m, the offset of the cropped domain in the image.
     ``disparity_range``: ``(min, max)``, the disparities searched (inclusive;
@@ -579,11 +580,15 @@ class StereoMatcher:
         if p.right_reference == "aggregated":
             # The right reference's first CBCA is this one, shifted: its support
             # regions are the left ones moved by -d (docs/method.md, 5.).  Its
-            # volume is C_CBCA mirrored in place, run to D_R first and mirrored
-            # back, so that two volumes are alive at once, not three.
-            C_R = rec("right_volume", self.right_ref.volume(C_CBCA, D, H, W))
-            D_R = rec("D_R", self._right_reference(C_R, J_L, J_R, rec), crop, np.int32)
-            rec("right_volume", self.right_ref.volume(C_R, D, H, W))  # C_CBCA again
+            # volume is C_CBCA mirrored: read so by SGM's paired sweeps, else
+            # mirrored in place, run to D_R first and mirrored back, so that two
+            # volumes are alive at once, not three.
+            if self.sgm.reads_mirrored:
+                D_R = rec("D_R", self._right_reference(C_CBCA, J_L, J_R, rec, mirrored=True), crop, np.int32)
+            else:
+                C_R = rec("right_volume", self.right_ref.volume(C_CBCA, D, H, W))
+                D_R = rec("D_R", self._right_reference(C_R, J_L, J_R, rec), crop, np.int32)
+                rec("right_volume", self.right_ref.volume(C_R, D, H, W))  # C_CBCA again
         C_SGM = rec("C_SGM", self.sgm(C_CBCA, d_J_L, d_J_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                       p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
                                       p.sgm_outside_large, out=self._take_volume(D, H, W)), vol, self.vdtype)
@@ -632,13 +637,14 @@ class StereoMatcher:
         D_BF = rec("D_BF", self.bilateral(D_median, guide, Hi, Wi, p.blur_sigma, tau, p.blur_radius), img)
         return self.ctx.from_device(D_BF, img)
 
-    def _right_reference(self, C_R, J_L, J_R, rec):
+    def _right_reference(self, C_R, J_L, J_R, rec, mirrored=False):
         """D^R with the right image as the reference (``right_reference="aggregated"``):
         the mirrored right-reference volume after its first CBCA (``C_R``, the
         shifted, mirrored C_CBCA; network not rerun) through SGM, CBCA and the
         left WTA with the mirrored right and left images as (left, right); the
-        map is mirrored back.  ``C_R`` is read, not changed, and stays the
-        caller's."""
+        map is mirrored back.  ``mirrored``: ``C_R`` is C_CBCA itself, which
+        SGM reads mirrored (``SGM(mirror=True)``).  ``C_R`` is read, not
+        changed, and stays the caller's."""
         p, ctx, D = self.params, self.ctx, rec.range[1]
         H, W = J_L.shape
         d_K_L = ctx.to_device(np.ascontiguousarray(J_R[:, ::-1]))  # mirrored right image
@@ -647,7 +653,8 @@ class StereoMatcher:
         arms_L, arms_R = self._arms(d_K_L, d_K_R, H, W, rec, "cross_R")
         C_R_SGM = rec("C_R_SGM", self.sgm(C_R, d_K_L, d_K_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                           p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
-                                          p.sgm_outside_large, out=self._take_volume(D, H, W)))
+                                          p.sgm_outside_large, out=self._take_volume(D, H, W),
+                                          **({"mirror": True} if mirrored else {})))
         C_R = rec("C_R", self._cbca(C_R_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm),
                   (D, H, W), self.vdtype)
         D_R = self.right_ref.mirror(self.wta.left(C_R, D, H, W), H, W)

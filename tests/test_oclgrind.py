@@ -650,6 +650,22 @@ def case_sgm(ctx, rng, chk):
         tol = dict(atol=2 ** -23, rtol=4 * 2 ** -11 + 2 ** -20) if half else dict(atol=2e-5 * (1.0 + 32.0))
         chk.close(f"SGM D={D} {H}x{W} {kw} {cfg} half={half}", got, sgm(C.astype(np.float32), img_l, img_r, **kw),
                   **tol)
+    # the paired sweeps reading C as the right-reference volume C_R' (mirror=True: the pipeline's
+    # right reference where SGM is paired): whole tiles, the diagonal ones (x0 < d) and the partial
+    # last chunk read backwards along C's lines; against the reference on C_R' made in numpy
+    from mccnn_cl.reference.disparity import right_cost_volume
+
+    for (D, H, W), width, half in (((20, 5, 37), 8, False), ((20, 5, 37), 16, False), ((20, 5, 37), 8, True),
+                                   ((9, 3, 8), 8, False)):
+        img_l, img_r = _blocky(rng, H, W), _blocky(rng, H, W)
+        C, out = _volume_and_output(ctx, _volume(rng, D, H, W), half)
+        SGM(ctx, half=half, paired=True, width=width)(ctx.to_device(C), ctx.to_device(img_l), ctx.to_device(img_r),
+                                                      D, H, W, out=out, mirror=True)
+        got = ctx.from_device(out, (D, H, W), np.float16 if half else np.float32).astype(np.float32)
+        mirrored = np.ascontiguousarray(right_cost_volume(C.astype(np.float32))[:, :, ::-1])
+        tol = dict(atol=2 ** -23, rtol=4 * 2 ** -11 + 2 ** -20) if half else dict(atol=2e-5 * (1.0 + 32.0))
+        chk.close(f"SGM mirror=True D={D} {H}x{W} width={width} half={half}", got, sgm(mirrored, img_l, img_r),
+                  **tol)
 
 
 def case_sgm_wg(ctx, rng, chk):

@@ -15,6 +15,7 @@ from mccnn_cl.reference import disparity as ref
 from mccnn_cl.costs.census import CensusCost
 from mccnn_cl.stages.disparity import WinnerTakeAll
 from mccnn_cl.stages.refine import bilateral_radius
+from mccnn_cl.stages.sgm import SGM
 from mccnn_cl.weights import Weights, default_weights_path
 
 BAD = 2.0  # Middlebury "bad 2.0": a pixel is wrong when |d - gt| > 2 px
@@ -56,9 +57,10 @@ def test_census_pipeline_beats_wta_on_tsukuba(ctx, shared_data, census_matcher):
     print("\n" + msg)
     assert e_pipe < 0.6 * e_wta, msg
     assert e_pipe < 8.0, msg
-    # every stage timed, in the order run: the right reference on the cost volume mirrored in
-    # place (right_volume: there and back), then the left one
-    assert list(res.timings) == ["C_CNN", "cross", "C_CBCA", "right_volume", "cross_R", "C_R_SGM", "C_R", "D_R",
+    # every stage timed, in the order run: the right reference (on the cost volume read mirrored by
+    # the paired sweeps, else mirrored in place: right_volume, there and back), then the left one
+    mirror = [] if census_matcher.sgm.reads_mirrored else ["right_volume"]
+    assert list(res.timings) == ["C_CNN", "cross", "C_CBCA", *mirror, "cross_R", "C_R_SGM", "C_R", "D_R",
                                  "C_SGM", "C", "D_L", "labels", "D_INT", "D_SE", "D_E",
                                  "D_median", "D_BF"]
     assert all(t >= 0 for t in res.timings.values())
@@ -96,6 +98,28 @@ def test_intermediates_follow_the_references(ctx, shared_data):
     np.testing.assert_allclose(it["D_BF"], expect, rtol=1e-5, atol=1e-4)
     np.testing.assert_array_equal(res.disparity, it["D_BF"])
     np.testing.assert_array_equal(m.compute(left, right), res.disparity)  # same path, no copies
+
+
+@pytest.mark.parametrize("settings", [dict(cost="census", max_disparity=24),
+                                      dict(cost="census", max_disparity=40, cbca_iterations=2, volume_dtype="float16")])
+def test_right_reference_read_mirrored_equals_the_mirrored_volume(ctx, shared_data, settings, monkeypatch):
+    """The right reference with SGM's paired sweeps reading C_CBCA mirrored
+    gives the bits of the pipeline that mirrors C_CBCA in place (there and
+    back: two volume passes fewer), intermediates included; with CBCA before
+    SGM too and on half volumes."""
+    left, right, _, _, _ = load_pair(shared_data, "Cones")
+    left, right = left[100:161, 150:251], right[100:161, 150:251]
+    m = StereoMatcher(device=ctx, **settings)
+    m.sgm = SGM(ctx, paired=True, half=m.half)
+    read = m.compute(left, right, return_intermediates=True)
+    assert "right_volume" not in read.timings
+    monkeypatch.setattr(SGM, "reads_mirrored", property(lambda self: False))
+    made = m.compute(left, right, return_intermediates=True)
+    assert "right_volume" in made.timings
+    assert set(read.intermediates) == set(made.intermediates)
+    for name, a in made.intermediates.items():
+        np.testing.assert_array_equal(read.intermediates[name], a, err_msg=name)
+    np.testing.assert_array_equal(read.disparity, made.disparity)
 
 
 def test_right_reference_derived(ctx, shared_data):

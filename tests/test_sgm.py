@@ -16,6 +16,7 @@ import pytest
 from conftest import POISON
 from mccnn_cl.errors import InputError
 from mccnn_cl.reference.aggregation import SGM_DIRECTIONS, sgm, sgm_direction
+from mccnn_cl.reference.disparity import right_cost_volume
 from mccnn_cl.stages.sgm import SGM, state_bytes
 from helpers import ad_volume, blocky_image, invalid_mask, kitti_crop, random_volume
 
@@ -204,6 +205,67 @@ def test_paired_sweeps_on_real_images_both_variants(ctx, shared_data):
     a, _ = check(ctx, cost, imgs[0], imgs[1], paired=True)
     b, _ = check(ctx, cost, imgs[0], imgs[1], paired=True, variant="code", outside_large=False, pi1=2.0, pi2=14.0)
     assert np.nanmax(np.abs(a - b)) > 0.01
+
+
+def mirrored(cost):
+    """The right-reference volume C_R'(d, y, x) = C(d, y, W - 1 + d - x), NaN
+    where x < d (what RightReference.volume makes in place)."""
+    return np.ascontiguousarray(right_cost_volume(cost)[:, :, ::-1])
+
+
+@pytest.mark.parametrize("D,H,W", [(16, 37, 53), (40, 9, 70), (21, 10, 150), (37, 5, 45), (20, 7, 12),
+                                   (5, 1, 40), (6, 2, 33), (4, 30, 1), (1, 1, 1), (3, 3, 16), (64, 4, 100),
+                                   (24, 3, 48), (9, 2, 8)])
+def test_paired_sweeps_read_the_volume_mirrored(ctx, D, H, W):
+    """SGM(mirror=True) on C (the paired sweeps read C as the right-reference
+    volume C_R', which the pipeline then never makes) gives the bits of SGM on
+    C_R' made explicitly, which matches the reference: both vector widths,
+    whole tiles or not, half storage.  C's cells x < d are no cells of C_R'
+    and hold +1000 here, so reading one shows.  W not a multiple of 8 or 16
+    (the partial last chunk), D > W, the diagonal tiles (x0 < d), one row, one
+    column."""
+    rng = np.random.default_rng(D * 613 + H * 17 + W)
+    cost = random_volume(rng, D, H, W, scale=3.0)
+    dirty = with_invalid(cost, 1000.0)
+    img_l, img_r = blocky_image(rng, H, W, 3, 0.08), blocky_image(rng, H, W, 3, 0.08)
+    for cfg in (dict(width=8), dict(width=16), dict(width=8, whole_tiles=False)):
+        want, _ = check(ctx, mirrored(cost), img_l, img_r, paired=True, **cfg)
+        got = run_sgm(ctx, dirty, img_l, img_r, paired=True, mirror=True, **cfg)
+        np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32), err_msg=str(cfg))
+    halves = []
+    for c, mirror in ((mirrored(cost), False), (dirty, True)):
+        c16 = c.astype(np.float16)
+        d_out = ctx.empty(c16.nbytes)
+        ctx.fill(d_out, np.float16(-65504.0), c16.nbytes, np.float16)
+        SGM(ctx, half=True, paired=True, width=8)(ctx.to_device(c16), ctx.to_device(img_l), ctx.to_device(img_r),
+                                                  D, H, W, out=d_out, mirror=mirror)
+        halves.append(ctx.from_device(d_out, cost.shape, np.float16))
+    np.testing.assert_array_equal(halves[1].view(np.uint16), halves[0].view(np.uint16))
+    np.testing.assert_array_equal(np.isnan(halves[1]), invalid_mask(D, H, W))
+
+
+@pytest.mark.gpu_check
+def test_mirrored_reads_on_real_images(ctx, shared_data):
+    """The mirrored reads on a real KITTI crop (AD costs): the pipeline's right
+    reference, whose images are the mirrored right and left ones, against the
+    reference on the explicitly mirrored volume."""
+    H, W, D = 23, 90, 40
+    left, right = kitti_crop(shared_data, 150, 600, H, W)
+    cost = ad_volume(left, right, D)
+    k_l, k_r = np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1])
+    want, _ = check(ctx, mirrored(cost), k_l, k_r, paired=True)
+    got = run_sgm(ctx, cost, k_l, k_r, paired=True, mirror=True)
+    np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
+
+
+def test_mirror_needs_the_paired_sweeps(ctx):
+    """Only the paired sweeps read a volume mirrored; the one-direction kernels refuse."""
+    rng = np.random.default_rng(5)
+    cost = random_volume(rng, 4, 3, 10)
+    img = blocky_image(rng, 3, 10, 2, 0.1)
+    assert SGM(ctx, paired=True).reads_mirrored and not SGM(ctx, paired=False).reads_mirrored
+    with pytest.raises(ValueError, match="paired"):
+        run_sgm(ctx, cost, img, img, paired=False, mirror=True)
 
 
 @pytest.mark.parametrize("D,H,W", [(40, 9, 170), (64, 12, 300)])

@@ -433,7 +433,8 @@ static inline __attribute__((always_inline)) void row_chunk(
     const int W, __global const float *il, const float tau_so, const float p1_small, const float p1_one,
     const float p1_both, const float p2_small, const float p2_one, const float p2_both,
     const int *big_r_rev, const int base, const int rt, __global const vol_t *pf_cost,
-    __global const vol_t *pf_out, const size_t plane, const int dmaxn, const int pf_n, const int l2)
+    __global const vol_t *pf_out, const size_t plane, const int dmaxn, const int pf_n, const int l2,
+    const size_t pf_cstep, const int pf_cdmax)
 {
     const intV lane = LANESV;
     const int pf_per = dmaxn / n + 1; /* levels prefetched per pixel */
@@ -441,22 +442,27 @@ static inline __attribute__((always_inline)) void row_chunk(
         const int k = dir > 0 ? kk : n - 1 - kk;
         const int x = x0 + k;
         for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
-            __global const vol_t *pc = pf_cost + d * plane, *po = pf_out + d * plane;
+            __global const vol_t *pc = pf_cost + d * pf_cstep, *po = pf_out + d * plane;
+            const int cst = d <= pf_cdmax; /* the cost's line lies in its row */
             for (int e = 0; e < pf_n; e += LINE_FLOATS) {
                 if (l2) {
-                    SGM_PREFETCH_L2(pc + e);
+                    if (cst)
+                        SGM_PREFETCH_L2(pc + e);
                     SGM_PREFETCH_L2(po + e);
                 } else {
-                    SGM_PREFETCH(pc + e);
+                    if (cst)
+                        SGM_PREFETCH(pc + e);
                     SGM_PREFETCH(po + e);
                 }
             }
             if (pf_n > 1) {
                 if (l2) {
-                    SGM_PREFETCH_L2(pc + pf_n - 1);
+                    if (cst)
+                        SGM_PREFETCH_L2(pc + pf_n - 1);
                     SGM_PREFETCH_L2(po + pf_n - 1);
                 } else {
-                    SGM_PREFETCH(pc + pf_n - 1);
+                    if (cst)
+                        SGM_PREFETCH(pc + pf_n - 1);
                     SGM_PREFETCH(po + pf_n - 1);
                 }
             }
@@ -525,6 +531,63 @@ static inline __attribute__((always_inline)) void load_tile(
         __attribute__((opencl_unroll_hint))
         for (int i = 0; i < VW; ++i)
             r[i] = d0 + i <= dmax ? vol_loadV_partial(cost, VIDX(d0 + i, y, x0, H, W), n, 0.0f) : (floatV)(0.0f);
+    }
+}
+
+/* SGM_OPAQUE(v): where the kernel is compiled straight to x86 (PoCL; see
+ * SGM_PREFETCH), an empty asm statement that hides how v was made from the
+ * optimiser: LLVM turns a reversed 8-float load into four 2-float loads and
+ * four shuffles, not the one load and one permute it then gets.  Elsewhere
+ * nothing. */
+#if defined(SGM_CPU_PREFETCH) && (defined(__x86_64__) || defined(__i386__)) && VW == 8
+#if SGM_CPU_PREFETCH
+#define SGM_OPAQUE(v) __asm__("" : "+x"(v))
+#endif
+#endif
+#ifndef SGM_OPAQUE
+#define SGM_OPAQUE(v) ((void)0)
+#endif
+
+/* load_tile of the right-reference volume C_R' without making it (sgm_paired
+ * with mirror = 1): C_R'(d, y, x) = C(d, y, W - 1 + d - x) for x >= d, the
+ * invalid cells x < d INVALID_COST, as disparity_right_volume would have
+ * written them in place (disparity.cl), so the bits are those of the explicit
+ * mirror.  Lane k of level d reads the line of C backwards: a whole tile is
+ * VW plain loads, one plane + 1 cell apart, each reversed in registers; a
+ * level whose lanes would reach past x = W - 1 (x0 < d, the diagonal) or
+ * before x = 0 goes cell by cell. */
+static inline __attribute__((always_inline)) void load_tile_mirror(
+    floatV *r, __global const vol_t *cost, const int y, const int x0, const int d0, const int n, const int dmax,
+    const int H, const int W)
+{
+    const size_t plane = (size_t)H * (size_t)W;
+    if (SGM_WHOLE_TILES && n == VW && d0 + VW - 1 <= min(dmax, x0)) {
+        __global const vol_t *src = cost + VIDX(d0, y, W - VW + d0 - x0, H, W);
+        __attribute__((opencl_unroll_hint))
+        for (int i = 0; i < VW; ++i) {
+            floatV v = VOL_LOADV(src + i * (plane + 1));
+            SGM_OPAQUE(v);
+            r[i] = shuffle(v, REVERSEV);
+        }
+        return;
+    }
+    const intV lane = LANESV;
+    __attribute__((opencl_unroll_hint))
+    for (int i = 0; i < VW; ++i) {
+        const int d = d0 + i;
+        if (d > dmax) {
+            r[i] = (floatV)(0.0f);
+        } else if (d <= x0 && W - VW + d - x0 >= 0) {
+            floatV v = VOL_LOADV(cost + VIDX(d, y, W - VW + d - x0, H, W));
+            SGM_OPAQUE(v);
+            r[i] = select((floatV)(0.0f), shuffle(v, REVERSEV), lane < (intV)(n));
+        } else {
+            __global const vol_t *line = cost + VIDX(d, y, 0, H, W);
+            float t[VW];
+            for (int k = 0; k < VW; ++k)
+                t[k] = k >= n ? 0.0f : x0 + k < d ? INVALID_COST : VOL_GET(line, W - 1 + d - x0 - k);
+            r[i] = vloadV(0, t);
+        }
     }
 }
 
@@ -667,7 +730,7 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
             const int dmaxn = min(D - 1, x0n + min(VW, W - x0n) - 1);
             row_chunk(blk, &prev, &cur, &m, x0, n, dxp, D, W, il, tau_so, p1_small, p1_one, p1_both, p2_small,
                       p2_one, p2_both, big_r_rev, base, rt, cost + VIDX(0, y, x0n, H, W), out + VIDX(0, y, x0n, H, W),
-                      plane, dmaxn, 1, 0);
+                      plane, dmaxn, 1, 0, plane, dmaxn);
             for (int g = 0; g < ntiles; ++g) { /* write the chunk back, rows d of 16 x */
                 const int d0 = g * VW;
                 __attribute__((opencl_unroll_hint)) /* unrolled: r[] stays in registers (header) */
@@ -709,7 +772,12 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
  * pages of state instead of D + 2); the tiles are transposed into the
  * private block; then the horizontal recurrence runs over the chunk's pixels
  * as in sgm_rows, the block is transposed back, the group's vertical C_r
- * (still in the state) added, and the result written or added. */
+ * (still in the state) added, and the result written or added.
+ *
+ * mirror = 1: the costs are those of the right-reference volume C_R'(d, y, x)
+ * = cost(d, y, W - 1 + d - x) (load_tile_mirror), which the pipeline's right
+ * reference then never makes (RightReference.volume would mirror the volume
+ * in place and back: two volume passes); the same bits as mirror = 0 on C_R'. */
 #ifndef SGM_PAIR_CW
 #define SGM_PAIR_CW 16
 #endif
@@ -738,7 +806,8 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
                          const float pv2_one,
                          const float pv2_both,
                          const float tau_so,          /* gradient threshold (paper 0.0625) */
-                         const int outside_large)     /* 1: pd - r outside the right image = large D2 */
+                         const int outside_large,     /* 1: pd - r outside the right image = large D2 */
+                         const int mirror)            /* 1: read cost as the right-reference volume C_R' */
 {
     const int role = get_global_id(0);
     if (role > 1)
@@ -800,7 +869,10 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
                 floatV newmv = (floatV)(INFINITY);
                 for (int g = 0; g < ntiles; ++g) {
                     const int d0 = g * VW;
-                    load_tile(r, cost, y, xg, d0, ng, dmaxg, H, W);
+                    if (mirror)
+                        load_tile_mirror(r, cost, y, xg, d0, ng, dmaxg, H, W);
+                    else
+                        load_tile(r, cost, y, xg, d0, ng, dmaxg, H, W);
                     const int iend = min(VW, dmaxg + 1 - d0);
                     __attribute__((opencl_unroll_hint))
                     for (int i = 0; i < VW; ++i) { /* a constant trip count keeps r[] in registers */
@@ -836,9 +908,12 @@ __kernel void sgm_paired(__global const vol_t *cost,  /* D x H x W cost volume (
             const int x0n = (dir > 0 ? cin : nchunks - 1 - cin) * PCW;
             const int nn = min(PCW, W - x0n);
             const int dmaxn = min(D - 1, x0n + nn - 1);
+            /* the next chunk's cost lines: in C_R' (mirror) those of C at W - x0n - nn + d, d <= x0n */
             row_chunk(blk, &prev, &cur, &m, x0, n, dir, D, W, il, tau_so, ph1_small, ph1_one, ph1_both, ph2_small,
-                      ph2_one, ph2_both, big_r_rev, base, rt, cost + VIDX(0, y, x0n, H, W), out + VIDX(0, y, x0n, H, W),
-                      plane, dmaxn, nn, 1);
+                      ph2_one, ph2_both, big_r_rev, base, rt,
+                      mirror ? cost + VIDX(0, y, W - x0n - nn, H, W) : cost + VIDX(0, y, x0n, H, W),
+                      out + VIDX(0, y, x0n, H, W), plane, dmaxn, nn, 1, mirror ? plane + 1 : plane,
+                      mirror ? min(dmaxn, x0n) : dmaxn);
             for (int gx = 0; gx * VW < n; ++gx) { /* write back: horizontal + vertical C_r, rows d of 16 x */
                 const int xg = x0 + gx * VW, ng = min(VW, n - gx * VW);
                 __global float *sg = st + (size_t)(xg / VW) * (D + 2) * VW; /* the group's state, [D + 2][16] */

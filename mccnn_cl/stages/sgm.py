@@ -155,6 +155,11 @@ class SGM:
         self._state = None
         self._rstate = None
 
+    @property
+    def reads_mirrored(self) -> bool:
+        """Whether calls take ``mirror=True`` (the paired sweeps do)."""
+        return self.paired
+
     def scratch_bytes(self, D, W, params=None) -> int:
         """Device scratch a call keeps besides the cost and output volumes (for
         the memory planner; ``params``, the Hyperparameters, change nothing
@@ -192,10 +197,18 @@ class SGM:
 
     def __call__(self, d_cost, d_img_left, d_img_right, D, H, W, pi1=1.0, pi2=32.0, tau_so=0.0625,
                  q1=4.0, q2=10.0, v=2.0, variant="paper", p2_times_pi1=False, outside_large=True,
-                 out=None):
+                 out=None, mirror=False):
         """Enqueue the four directions; returns ``out`` (allocated when None,
-        must not be ``d_cost``) holding C_SGM, NaN where invalid."""
+        must not be ``d_cost``) holding C_SGM, NaN where invalid.
+
+        ``mirror=True`` (the paired sweeps only, :attr:`reads_mirrored`): run
+        on the right-reference volume C_R'(d, y, x) = C(d, y, W - 1 + d - x)
+        of ``d_cost`` = C without making it (``RightReference.volume`` would
+        mirror C in place, a volume read and written, and again back); the
+        same bits as SGM of the mirrored volume."""
         D, H, W = check_call(d_cost, D, H, W, out)
+        if mirror and not self.reads_mirrored:
+            raise ValueError("SGM mirror=True needs the paired sweeps (paired=True)")
         if out is None:
             out = self.ctx.empty(volume_bytes(self.half) * D * H * W, "SGM output volume")
         dims = (np.int32(D), np.int32(H), np.int32(W))
@@ -216,7 +229,7 @@ class SGM:
                 launch(self.ctx, "SGM (paired sweeps)", k_pair, (2,), *bufs, state,
                        np.int32(ws), *dims, np.int32(H // 2), np.int32(launch_no), *pen_h[0], *pen_h[1],
                        *pen_v[0], *pen_v[1], np.float32(tau_so), np.int32(bool(outside_large)),
-                       local_size=(1,))
+                       np.int32(bool(mirror)), local_size=(1,))
             return out
         (k_rows, l_rows), (k_cols, l_cols) = self._kernel(D, ("sgm_rows", "sgm_columns"))
         ws = round_up(W, self.cols)

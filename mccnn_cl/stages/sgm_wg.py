@@ -130,6 +130,9 @@ class SGMWorkGroup:
                              f"local memory, more than the {self.ctx.local_mem} of {self.ctx.describe()}")
         return L
 
+    #: calls take no ``mirror=True`` (SGM.reads_mirrored): the pipeline mirrors the volume itself
+    reads_mirrored = False
+
     def __call__(self, d_cost, d_img_left, d_img_right, D, H, W, pi1=1.0, pi2=32.0, tau_so=0.0625,
                  q1=4.0, q2=10.0, v=2.0, variant="paper", p2_times_pi1=False, outside_large=True,
                  out=None):
