@@ -266,6 +266,7 @@ def _coarse_pass(matcher, I_L, I_R, s, window):
     else:
         L, R = I_L, I_R
     coarse = matcher._coarse_matcher()
+    matcher._room_for_pass(coarse, L.shape, window)  # what the matcher kept stays only if the pass fits beside it
     with warnings.catch_warnings():  # a pass over a window that leaves most pixels out looks "swapped":
         warnings.simplefilter("ignore", InputWarning)  # the full-size match says what applies
         res = coarse.compute(L, R, confidence=True, disparity_range=window)

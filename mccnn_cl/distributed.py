@@ -288,6 +288,34 @@ def for_workers(job) -> Job:
                [os.path.abspath(p) for p in job.sides])
 
 
+def _as_given(exc, spellings):
+    """``exc`` with every path of ``spellings`` (``{path sent: path as the user gave it}``) in its
+    message written as the user gave it: a worker (or the client reading a sent path) names the
+    absolute path it was sent (:func:`for_workers`), which the user never typed.  Changed in
+    place, only when the message is the exception's one text argument (``InputError("file not
+    found: ...")``); any other exception is left as it is.  Returns ``exc``."""
+    text = str(exc)
+    new = text
+    for sent in sorted(spellings, key=len, reverse=True):  # longest first: a path may start another
+        new = new.replace(sent, spellings[sent])
+    if new != text and len(exc.args) == 1 and exc.args[0] == text:
+        exc.args = (new,)
+        if str(exc) != new:  # a __str__ of its own: leave it as it was
+            exc.args = (text,)
+    return exc
+
+
+def _spellings(pairs) -> dict:
+    """``{path sent: the user's spelling}`` of ``(sent, given)`` path pairs, where they differ."""
+    return {s: g for s, g in pairs if isinstance(s, str) and isinstance(g, str) and s and s != g}
+
+
+def _paths(sent, given) -> list:
+    """``(path sent, path given)`` of a job's images and outputs (:func:`for_workers`)."""
+    return [(sent.left, given.left), (sent.right, given.right), (sent.out, given.out),
+            *zip(sent.sides, given.sides)]
+
+
 def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_tiles=None, progress=False):
     """Match ``jobs`` (:class:`mccnn_cl.batch.Job`) on ``client``'s workers;
     yields ``(job, PairResult)`` or ``(job, exception)`` as pairs complete.
@@ -295,7 +323,8 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
     Relative paths of the jobs (and of ``config``'s weights file,
     :func:`matcher_config`) mean files of this process's working folder: the
     workers are sent them absolute (:func:`for_workers`); the jobs yielded are
-    those given.  ``split_tiles``: run the row tiles of a pair whose plan is
+    those given, and the failures' messages name their paths as given
+    (:func:`_as_given`).  ``split_tiles``: run the row tiles of a pair whose plan is
     tiled as tasks of their own (module docstring); None: when there are fewer
     pairs than workers.  Closing the generator early (or an interrupt) cancels
     the pairs not done."""
@@ -308,8 +337,14 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
         split_tiles = False  # a range not starting at 0 runs whole pairs (StereoMatcher.compute's frame)
     if split_tiles is None:
         split_tiles = len(jobs) < workers
-    config = {**config, "weights": _absolute(config.get("weights"))}
-    client.run(warm, config, max_disp)  # every worker builds its matcher now, in parallel
+    weights = config.get("weights")
+    config = {**config, "weights": _absolute(weights)}
+    named = [(config["weights"], weights)]  # the weights file as sent and as given
+    try:
+        client.run(warm, config, max_disp)  # every worker builds its matcher now, in parallel
+    except Exception as exc:
+        _as_given(exc, _spellings(named))
+        raise
     owner, futures, tile_futures = {}, [], []
     failed_early = []
     for given in jobs:
@@ -319,7 +354,7 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
                 shape = read_image(job.left).shape[:2]
                 plans = client.run(plan_task, config, shape, max_disp)
             except Exception as exc:  # noqa: BLE001 - this pair fails, before any of its work
-                failed_early.append((given, exc))
+                failed_early.append((given, _as_given(exc, _spellings(_paths(job, given) + named))))
                 continue
             plan = max(plans.values(), key=lambda p: len(p["tiles"]))
             if plan["tiled"] and len(plan["tiles"]) > 1:
@@ -330,11 +365,11 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
                 tile_futures += parts
                 fut = client.submit(finish_task, config, job, max_disp, plan["tiles"], parts, want_confidence,
                                     pure=False)
-                owner[fut.key] = given
+                owner[fut.key] = given, job
                 futures.append(fut)
                 continue
         fut = client.submit(pair_task, config, job, max_disp, want_confidence, pure=False)
-        owner[fut.key] = given
+        owner[fut.key] = given, job
         futures.append(fut)
     for job, exc in failed_early:
         yield job, exc
@@ -350,8 +385,10 @@ def match_pairs(client, jobs, config, max_disp, want_confidence=False, split_til
                 if len(bars) > 1:
                     bars[1].update(1)
                 continue
-            job = owner[fut.key]
+            job, sent = owner[fut.key]
             exc = fut.exception()
+            if exc is not None:  # its message in the user's spelling of the paths
+                exc = _as_given(exc, _spellings(_paths(sent, job) + named))
             outcome = exc if exc is not None else fut.result()
             done.add(fut.key)
             if bars:

@@ -392,18 +392,39 @@ class StereoMatcher:
         ``{"range": (min, max), ...}`` (:func:`mccnn_cl.disprange.choose_range`).
 
         Memory: the coarse passes and the full-size match are phases of their
-        own, each within ``memory_limit`` beside the matcher's weights: what
-        this matcher kept from its last call is freed before the passes (a call
-        of another range frees it anyway), what the passes kept after them."""
+        own, each within ``memory_limit`` beside the matcher's weights.  What
+        this matcher kept from its last call (volumes, scratch) stays through
+        a pass when the pass's planned peak fits ``memory_limit`` beside every
+        buffer the context holds (:meth:`_room_for_pass`), so that the next
+        full-size call of the same size reuses it; else it is freed before the
+        pass.  What the passes kept is freed after them."""
         I_L, I_R = to_gray(left, "left"), to_gray(right, "right")
         check_pair(I_L, I_R, 1, 2 * self.margin + 1)
         with self._lock:
-            self.release_buffers()
             try:
                 return choose_range(self, I_L, I_R)
             finally:
                 if self._coarse is not None:
                     self._coarse.release_buffers()
+
+    def _room_for_pass(self, coarse, shape, window) -> None:
+        """Before a coarse pass of ``coarse`` (:meth:`_coarse_matcher`) on images
+        of ``shape`` over ``window`` ((lo, hi), coarse px): free what this
+        matcher kept unless the pass's planned peak fits ``memory_limit``
+        beside every buffer the context holds now (this matcher's weights and
+        kept buffers, the coarse matcher's weights, and anything else made on
+        the context: counting those too only frees more often).  The coarse
+        matcher's own buffers from an earlier pass are freed first (a pass of
+        another size would free them anyway).  When the pass does not fit at
+        all, everything is freed and the pass's own error follows."""
+        coarse.release_buffers()
+        lo, hi = window
+        try:
+            need = coarse.memory_plan(shape, hi - lo + 1, lo).peak_bytes
+        except InputError:
+            need = None
+        if need is None or self.ctx.memory.live + need > self.memory_limit:
+            self.release_buffers()
 
     def _coarse_matcher(self):
         """The census matcher of the coarse passes: its calls may use ``memory_limit``

@@ -321,6 +321,61 @@ def test_auto_range_calls_stay_within_memory_limit(ctx, repo, monkeypatch):
     assert m._coarse.memory_limit == limit - m.fixed_bytes
 
 
+def test_auto_range_keeps_buffers_when_the_passes_fit(ctx, repo, monkeypatch):
+    """The coarse passes free what the matcher kept from its last call only when
+    a pass would not fit memory_limit beside it (they freed it on every call, and
+    on a CPU the next full-size call paid the first touch of its volumes again).
+    Two calls on the Cones pair at twice its size (both passes run) under each of
+    three limits: a large one (the second call reuses the first's volume
+    buffers, the same objects, and holds no more afterwards); the smallest that keeps them (every pass's plan plus what the
+    context held before it, measured under the large limit: kept, and the peak
+    over the whole call stays within it); and one the full-size match alone just
+    fits (freed before the passes; the peak stays within it)."""
+    import gc
+
+    from mccnn_cl.opencl.context import ClContext
+
+    left, right = (cv2.resize(a, None, fx=2, fy=2, interpolation=cv2.INTER_LINEAR) for a in _demo(repo))
+    big = StereoMatcher(cost="census", max_disparity="auto", device=ClContext(ctx.device), memory_limit=2 ** 34)
+    want = big.compute(left, right)
+    kept = list(big._pool._free)
+    assert kept
+    gc.collect()
+    held = big.ctx.memory.live
+    np.testing.assert_array_equal(big.compute(left, right), want)
+    assert all(any(b is k for b in big._pool._free) for k in kept), "the kept volumes were freed"
+    gc.collect()
+    assert big.ctx.memory.live == held
+
+    passes = []  # (bytes the context held before a pass, the pass's planned peak)
+    room = big._room_for_pass
+
+    def spy(coarse, shape, window):
+        coarse.release_buffers()
+        passes.append((big.ctx.memory.live, coarse.memory_plan(shape, window[1] - window[0] + 1, window[0]).peak_bytes))
+        room(coarse, shape, window)
+
+    monkeypatch.setattr(big, "_room_for_pass", spy)
+    lo, hi = big.choose_range(left, right)["range"]
+    assert len(passes) == 2
+    alone = big.memory_plan(left.shape, hi - lo + 1, lo).peak_bytes + big.fixed_bytes + big._coarse.fixed_bytes
+    fits = max(live + need for live, need in passes)
+    assert fits > alone  # the kept volumes beside a pass take more than the full-size match alone
+    for limit, keeps in ((fits, True), (alone, False)):
+        m = StereoMatcher(cost="census", max_disparity="auto", device=ClContext(ctx.device), memory_limit=limit)
+        memory = m.ctx.memory
+        reset = memory.reset_peak
+        monkeypatch.setattr(memory, "reset_peak", lambda: None)  # the peak of the whole call, coarse passes included
+        for call in (1, 2):
+            before = list(m._pool._free)
+            gc.collect()
+            reset()
+            got = m.compute(left, right)
+            assert memory.peak <= limit, f"limit {limit}, call {call}: {memory.peak / limit:.3f} x memory_limit"
+            np.testing.assert_array_equal(got, want)
+        assert before and all(any(b is k for b in m._pool._free) for k in before) == keeps, (limit, keeps)
+
+
 def test_auto_finds_negative_range(ctx, shared_data):
     """The shifted KITTI crop (disparities moved down by 40, many negative)."""
     left, right = kitti_crop(shared_data, 150, 380, 110, 360)

@@ -479,6 +479,22 @@ def test_relative_paths_with_workers_in_another_folder(kitti, reference, cluster
         [str(client_dir / "out/a_color.png")])
 
 
+@pytest.mark.parametrize("split", [False, True], ids=["pair task", "split tiles"])
+def test_failures_name_paths_as_given(cluster, tmp_path, monkeypatch, split):
+    """A pair given by relative paths whose image is not there: its failure names the path as the
+    user gave it (``file not found: l/a.png``), not the absolute path the worker was sent
+    (dd.for_workers), which the user never typed.  With split tiles the client reads the sent path
+    itself (the image's size, for the plan): the same."""
+    monkeypatch.chdir(tmp_path)
+    job = Job("a", "l/a.png", "r/a.png", "out/a.pfm", ["out/a_color.png"])
+    [(got, exc)] = list(dd.match_pairs(cluster, [job], dd.matcher_config(cost="census"), D, split_tiles=split))
+    assert got is job and isinstance(exc, InputError), exc
+    assert str(exc) == "file not found: l/a.png"
+    # an exception whose message is not its one text argument is left as it is
+    err = OSError(2, "No such file or directory", str(tmp_path / "l/a.png"))
+    assert dd._as_given(err, {str(tmp_path / "l/a.png"): "l/a.png"}).filename == str(tmp_path / "l/a.png")
+
+
 @pytest.mark.parametrize("rng", [["--disp-range", "auto"], ["--min-disp", "4", "--max-disp", "16"],
                                  ["--disp-range", "4:19"]])
 @pytest.mark.parametrize("where", ["--workers", "--scheduler"])

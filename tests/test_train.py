@@ -595,6 +595,26 @@ def test_log_lines_reach_a_redirected_log_at_once(shared_data, tmp_path):
     assert json.loads((out / "run.json").read_text())["eta_s"] == 0
 
 
+def test_reader_gone_ends_a_run_quietly(shared_data, tmp_path):
+    """``python -m mccnn_cl.train.train ... | head -1``: a reader of stdout that stops ends the run
+    as it ends ``mccnn-cl``: exit status 141 (mccnn_cl.cli.BROKEN_PIPE_STATUS), nothing on stderr.
+    The training modules run from entry points of their own, outside ``mccnn-cl``'s handling, and
+    printed a BrokenPipeError traceback (exit 1).  The read end is closed before the run writes, so
+    its first line meets a broken pipe whatever the timing."""
+    import os
+    import subprocess
+    import sys
+    out = tmp_path / "run"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    p = subprocess.Popen([sys.executable, "-m", "mccnn_cl.train.train", *_tiny(shared_data, out)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    p.stdout.close()  # the reader is gone
+    _, err = p.communicate(timeout=300)
+    assert err.decode() == "", err.decode()  # no traceback, no "Exception ignored"
+    assert p.returncode == 141
+    assert not (out / "weights.npz").exists()
+
+
 def test_second_run_on_a_busy_folder_is_refused(shared_data, tmp_path, capsys):
     """While one run trains in a folder (it holds OUT/.lock), a second run there is refused at once,
     naming the first one's pid; the first then finishes untouched."""

@@ -422,6 +422,38 @@ def test_tune_refuses_an_unwritable_cache_before_measuring(cache, monkeypatch, c
     assert [f for f in os.listdir(cache / "tune") if f.startswith(PREFIX)] == []  # the probe file deleted
 
 
+def test_unwritable_cache_says_why_in_the_os_words(cache, monkeypatch):
+    """check_cache_writable's reason in parentheses is the OS's (strerror), whether os.makedirs
+    failed or atomic.check_writable did (an InputError raised from the OSError of its probe
+    file: its own "not writable" is not repeated); an InputError with no cause gives its text."""
+    import errno
+
+    from mccnn_cl import atomic
+    from mccnn_cl.cli.tune import check_cache_writable
+    from mccnn_cl.errors import InputError
+
+    folder = os.path.join(str(cache), "tune")
+    (cache / "tune").write_text("x")  # a file where the folder should be: os.makedirs fails
+    with pytest.raises(InputError) as exc:
+        check_cache_writable(False)
+    assert str(exc.value).startswith(f"cannot write the tuning cache folder {folder} (File exists); "
+                                     "set MCCNN_CACHE_DIR"), exc.value
+    (cache / "tune").unlink()
+
+    def refused(directory):
+        raise InputError(f"cannot write into {directory}: not writable") from PermissionError(
+            errno.EACCES, "Permission denied")
+
+    def no_cause(directory):
+        raise InputError("no probe file")
+
+    for probe, why in ((refused, "Permission denied"), (no_cause, "no probe file")):
+        monkeypatch.setattr(atomic, "check_writable", probe)
+        with pytest.raises(InputError) as exc:
+            check_cache_writable(False)
+        assert str(exc.value).startswith(f"cannot write the tuning cache folder {folder} ({why}); "), exc.value
+
+
 def test_tune_reports_binaries_stored_and_not(cache, monkeypatch, capsys):
     """The binaries' phase says what it does as it goes (a line per step and per binary)
     and how many binaries it stored; when one could not be stored (a disk full here),

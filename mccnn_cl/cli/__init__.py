@@ -14,7 +14,8 @@ This module only parses and dispatches (:data:`COMMANDS`): ``match``,
 Exit status: 0 success, 2 bad usage or input (:class:`~mccnn_cl.errors.InputError`
 and argparse's errors), 1 runtime failure (OpenCL, anything unexpected), 130
 interrupted, 141 stdout's reader went away (``mccnn-cl models | head -1``: the
-command stops quietly, as a Unix tool killed by SIGPIPE, 128 + 13; :func:`_stdout_gone`).
+command stops quietly, as a Unix tool killed by SIGPIPE, 128 + 13; :func:`_stdout_gone`;
+the training modules' own entry points too, :func:`run_entry_point`).
 Errors are one line on stderr; ``--verbose`` adds the traceback.
 """
 
@@ -283,6 +284,20 @@ def _stdout_gone() -> int:
     except (AttributeError, OSError, ValueError):  # no real file behind sys.stdout (captured in-process)
         pass
     return BROKEN_PIPE_STATUS
+
+
+def run_entry_point(main, argv=None):
+    """``main(argv)``'s exit status, for a command with an entry point of its own (``python -m
+    mccnn_cl.train.train`` and the other training modules' ``__main__``): a reader of stdout gone
+    (``| head -1``) ends it as it ends ``mccnn-cl`` (:func:`_stdout_gone`, exit status
+    :data:`BROKEN_PIPE_STATUS`, no traceback).  What is still buffered is flushed here, so that a
+    reader gone by the end counts too.  The command's other errors are its own to report."""
+    try:
+        code = main(argv)
+        sys.stdout.flush()
+        return code
+    except BrokenPipeError:
+        return _stdout_gone()
 
 
 def _one_line_warnings():

@@ -77,9 +77,18 @@ def check_cache_writable(binaries_too: bool) -> None:
             os.makedirs(folder, exist_ok=True)
             check_writable(folder)  # a file created for real (os.access says yes to root on a read-only mount)
         except (OSError, InputError) as exc:
-            cause = exc if isinstance(exc, OSError) else exc.__cause__
-            why = getattr(cause, "strerror", None) or str(cause or exc)
-            raise InputError(f"cannot write the {what} folder {folder} ({why}); {_cache_hint()}{alt}") from exc
+            raise InputError(f"cannot write the {what} folder {folder} ({_why(exc)}); {_cache_hint()}{alt}") from exc
+
+
+def _why(exc) -> str:
+    """Why a cache folder cannot be written, in the OS's words: the OSError's ``strerror``
+    (``exc`` itself, from ``os.makedirs``, or the one check_writable's InputError was raised
+    from), else the exception's text."""
+    from ..errors import InputError
+
+    if isinstance(exc, InputError) and exc.__cause__ is not None:
+        exc = exc.__cause__
+    return getattr(exc, "strerror", None) or str(exc)
 
 
 def _sample_pair():

@@ -475,4 +475,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from ..cli import run_entry_point  # a reader of stdout gone: exit 141, quietly
+
+    raise SystemExit(run_entry_point(main))

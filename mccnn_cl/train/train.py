@@ -1479,4 +1479,6 @@ def _export_run(result, args, argv, world, commit, init, fit, export: Path) -> N
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from ..cli import run_entry_point  # a reader of stdout gone: exit 141, quietly
+
+    raise SystemExit(run_entry_point(main))
