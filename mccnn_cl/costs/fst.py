@@ -17,10 +17,10 @@ Two volume kernels, bit for bit the same costs (each is 0, one fma per map
 in increasing order, negated):
 
 * ``fst_volume_pairs`` (``kernels/fst.cl``, the CPU form): a work-item per
-  32 pixels of a row walking every disparity, its right vectors made by
-  shuffles of aligned loads, on 16-wide vectors or (``FST_VW`` 8: 16 pixels
-  per work-item) on 8-wide ones, for CPUs whose vector registers hold 8
-  floats (rule ``fst_volume_width``: :meth:`DeviceProfile.fst_volume_width`;
+  32 pixels of a row walking every disparity, its shifted right vectors
+  loaded unaligned, on 16-wide vectors, or (``FST_VW`` 8: 16 pixels per
+  work-item) made by shuffles of aligned loads on 8-wide ones, for CPUs whose
+  vector registers hold 8 floats (rule ``fst_volume_width``: :meth:`DeviceProfile.fst_volume_width`;
   ``FstCost(volume_width=8 or 16)`` forces one);
 * ``fst_volume_wg`` (``kernels/fst_wg.cl``, the "workgroup" path; the
   default on the profile's ``gpu`` column, rule ``fst_workgroup``): a

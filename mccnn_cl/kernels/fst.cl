@@ -140,13 +140,19 @@ __kernel void fst_normalise16(
  * pixel vectors xa = x0 and xb = x0 + FST_VW.  The right vectors that xa needs
  * at disparity d are the ones xb needs at d + FST_VW, so each block e of
  * BD = FST_VW / 2 disparities (xa: d = BD e + i, xb: d = BD e + FST_VW + i,
- * i = 0 .. BD - 1, e >= -2) makes its BD shifted vectors once (two aligned
- * loads, constant shuffles; which shuffles depends on the parity of e) for
- * 2 BD FMAs.  FST_VW 16 (the default): 16 float16 accumulators, which fit
- * AVX-512's 32 registers; FST_VW 8, for CPUs whose vectors hold 8 floats
- * (AVX2, where the 16-wide form spills): 8 float8 accumulators.  Both widths
- * compute every cost by the same fma chain over the maps, so the same bits.
- * Global size (ceil(w / (2 FST_VW)), hb). */
+ * i = 0 .. BD - 1, e >= -2) makes its BD shifted vectors once for 2 BD FMAs.
+ * FST_VW 16 (the default): 16 float16 accumulators, which fit AVX-512's 32
+ * registers, the shifted vectors loaded unaligned from the right row; FST_VW
+ * 8, for CPUs whose vectors hold 8 floats (AVX2, where the 16-wide form
+ * spills): 8 float8 accumulators, the shifted vectors made from two aligned
+ * loads by constant shuffles (which shuffles depends on the parity of e).
+ * Each width has the faster form, measured on the KITTI volume (general-fst's
+ * 64 maps, one process, best of 3 in 5 rounds, Zen 4): 16 wide, unaligned
+ * loads 108-118 ms against 122-133 for shuffles with AVX-512 code, 171-176
+ * against 184-198 with AVX2 code (POCL_KERNELLIB_NAME=avx2); 8 wide with AVX2
+ * code, shuffles 151-155 ms against 163-168 for unaligned loads (split
+ * lines).  Both widths and forms compute every cost by the same fma chain
+ * over the maps, so the same bits.  Global size (ceil(w / (2 FST_VW)), hb). */
 #ifndef FST_VW
 #define FST_VW 16
 #endif
@@ -157,10 +163,9 @@ __kernel void fst_normalise16(
 #define FV_LOAD vload16
 #define FV_LANES LANES
 #define FV_STORE vol_store16_partial
-/* the 16 floats from offset s of the 32 in A (16) then B (16): literal indices,
- * so the shuffle is one constant permutation (no unaligned, line-splitting load) */
-#define SHF(s) __builtin_shufflevector(A, B, s, s + 1, s + 2, s + 3, s + 4, s + 5, s + 6, s + 7, \
-                                       s + 8, s + 9, s + 10, s + 11, s + 12, s + 13, s + 14, s + 15)
+/* the 16 floats from offset s of the 32 in A (16) then B (16), as one unaligned
+ * load of the right row (faster than a two-source permutation here: header) */
+#define SHF(s) FV_LOAD(0, R + o + base + (s))
 /* window i of block e starts at right pixel x0 - BD e - i: for even e at B
  * (x0 - BD e a multiple of FST_VW), then one float further left per i */
 #define BLOCK_EVEN FMA2(0, B) FMA2(1, SHF(15)) FMA2(2, SHF(14)) FMA2(3, SHF(13)) \
