@@ -534,12 +534,13 @@ static inline __attribute__((always_inline)) void load_tile(
     }
 }
 
-/* SGM_OPAQUE(v): where the kernel is compiled straight to x86 (PoCL; see
- * SGM_PREFETCH), an empty asm statement that hides how v was made from the
- * optimiser: LLVM turns a reversed 8-float load into four 2-float loads and
- * four shuffles, not the one load and one permute it then gets.  Elsewhere
- * nothing. */
-#if defined(SGM_CPU_PREFETCH) && (defined(__x86_64__) || defined(__i386__)) && VW == 8
+/* SGM_OPAQUE(v): where the kernel is compiled straight to x86 with AVX (PoCL;
+ * see SGM_PREFETCH; an 8-float vector is then one ymm register, which the
+ * "x" constraint names), an empty asm statement that hides how v was made
+ * from the optimiser: LLVM turns a reversed 8-float load into four 2-float
+ * loads and four shuffles, not the one load and one permute it then gets.
+ * Elsewhere nothing. */
+#if defined(SGM_CPU_PREFETCH) && (defined(__x86_64__) || defined(__i386__)) && defined(__AVX__) && VW == 8
 #if SGM_CPU_PREFETCH
 #define SGM_OPAQUE(v) __asm__("" : "+x"(v))
 #endif
