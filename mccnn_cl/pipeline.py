@@ -674,8 +674,7 @@ class StereoMatcher:
         arms_L, arms_R = self._arms(d_K_L, d_K_R, H, W, rec, "cross_R")
         C_R_SGM = rec("C_R_SGM", self.sgm(C_R, d_K_L, d_K_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                           p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
-                                          p.sgm_outside_large, out=self._take_volume(D, H, W),
-                                          **({"mirror": True} if mirrored else {})))
+                                          p.sgm_outside_large, out=self._take_volume(D, H, W), mirror=mirrored))
         C_R = rec("C_R", self._cbca(C_R_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm),
                   (D, H, W), self.vdtype)
         D_R = self.right_ref.mirror(self.wta.left(C_R, D, H, W), H, W)

@@ -266,6 +266,10 @@ def test_mirror_needs_the_paired_sweeps(ctx):
     assert SGM(ctx, paired=True).reads_mirrored and not SGM(ctx, paired=False).reads_mirrored
     with pytest.raises(ValueError, match="paired"):
         run_sgm(ctx, cost, img, img, paired=False, mirror=True)
+    from mccnn_cl.stages.sgm_wg import SGMWorkGroup
+    assert not SGMWorkGroup(ctx).reads_mirrored
+    with pytest.raises(ValueError, match="paired"):
+        SGMWorkGroup(ctx)(ctx.to_device(cost), ctx.to_device(img), ctx.to_device(img), *cost.shape, mirror=True)
 
 
 @pytest.mark.parametrize("D,H,W", [(40, 9, 170), (64, 12, 300)])

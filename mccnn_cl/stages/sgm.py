@@ -206,9 +206,7 @@ class SGM:
         of ``d_cost`` = C without making it (``RightReference.volume`` would
         mirror C in place, a volume read and written, and again back); the
         same bits as SGM of the mirrored volume."""
-        D, H, W = check_call(d_cost, D, H, W, out)
-        if mirror and not self.reads_mirrored:
-            raise ValueError("SGM mirror=True needs the paired sweeps (paired=True)")
+        D, H, W = check_call(d_cost, D, H, W, out, mirror, self.reads_mirrored)
         if out is None:
             out = self.ctx.empty(volume_bytes(self.half) * D * H * W, "SGM output volume")
         dims = (np.int32(D), np.int32(H), np.int32(W))
@@ -285,8 +283,11 @@ class SGM:
         return out
 
 
-def check_call(d_cost, D, H, W, out) -> tuple:
-    """(D, H, W) of an SGM stage's call, checked (both stages): 1 <= D <= MAX_LEVELS, not in place."""
+def check_call(d_cost, D, H, W, out, mirror=False, reads_mirrored=False) -> tuple:
+    """(D, H, W) of an SGM stage's call, checked (both stages): 1 <= D <= MAX_LEVELS, not in place,
+    ``mirror=True`` only for a stage that ``reads_mirrored``."""
+    if mirror and not reads_mirrored:
+        raise ValueError("SGM mirror=True needs the paired sweeps (paired=True)")
     H, W = check_size(H, W, "cost volume")
     D = int(D)
     if not 1 <= D <= MAX_LEVELS:
