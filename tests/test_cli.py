@@ -429,3 +429,13 @@ def test_evaluate_interrupted_writes_what_it_did(tmp_path, monkeypatch, capsys):
     assert main(["evaluate", str(tmp_path), "--cost", "census", "--baseline", "none"]) == 130
     out = capsys.readouterr().out
     assert "middlebury/A" in out and "INCOMPLETE: 1 of 3 pair(s) evaluated, interrupted" in out
+
+
+def test_counted_says_one_and_many():
+    """The set-up lines of demo and bench: "1 kernel build", not "1 kernel builds"."""
+    from mccnn_cl.cli.common import counted
+
+    assert counted(1, "kernel build") == "1 kernel build"
+    assert [counted(n, "build") for n in (0, 2, 17)] == ["0 builds", "2 builds", "17 builds"]
+    assert counted(1, "stored binary", "stored binaries") == "1 stored binary"
+    assert counted(12, "stored binary", "stored binaries") == "12 stored binaries"

@@ -32,7 +32,7 @@ def run(args) -> int:
     from ..io import read_image
     from ..validate import check_pair, patch_size
     from . import commands
-    from .common import parse_size
+    from .common import counted, parse_size
     say = commands._say
     commands._positive("--max-disp", args.max_disp)
     commands._positive("--repeat", args.repeat)
@@ -63,8 +63,9 @@ def run(args) -> int:
         t0 = time.perf_counter()
         matcher.compute(left, right)  # warm-up: lazy kernel builds, first allocations
         t_warm = time.perf_counter() - t0
-        say(f"set-up: kernels {ctx.build_seconds:.2f} s ({ctx.builds} builds, {ctx.binary_loads} stored "
-            f"binaries); first call {t_warm:.2f} s, builds included (not in the times below)")
+        say(f"set-up: kernels {ctx.build_seconds:.2f} s ({counted(ctx.builds, 'build')}, "
+            f"{counted(ctx.binary_loads, 'stored binary', 'stored binaries')}); first call {t_warm:.2f} s, builds "
+            "included (not in the times below)")
     # numpy's GEMM runs on the host CPU: a floor for the network only on a CPU device
     gemm = matcher.cost_name == "cnn" and host_gemm_applies(ctx)
     before = measure_baselines(ctx, gemm)

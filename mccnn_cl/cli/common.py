@@ -23,6 +23,12 @@ def _say(*args):
     print(*args, flush=True)
 
 
+def counted(n: int, one: str, many: str | None = None) -> str:
+    """"1 kernel build", "3 kernel builds": ``n`` and the noun in its number
+    (``many`` for an irregular plural, else ``one`` + "s")."""
+    return f"{n} {one if n == 1 else (many or one + 's')}"
+
+
 def _read_calibration(args):
     """``--calib`` parsed (None without it).  A file without focal length and
     baseline (Middlebury 2001-2006: width, height, ndisp) gives the range only:

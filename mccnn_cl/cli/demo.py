@@ -15,6 +15,7 @@ from importlib import resources
 import numpy as np
 
 from ..errors import InputError
+from .common import counted
 
 #: The bundled pair's key as the datasets' loaders name it (MiddEval3 training, quarter size).
 DEMO_KEY = "middlebury/trainingQ/Adirondack"
@@ -128,7 +129,7 @@ def run(args) -> int:
     say(f"(errors in % of the {n_gt} pixels with ground truth, 'noc' of the {n_noc} non-occluded ones; "
         f"SGBM's holes filled as the KITTI devkit "
         f"does; one-time OpenCL set-up, not in the time: {t_setup:.1f} s on {ctx.device.name.strip()}, "
-        f"{ctx.builds} kernel builds, {ctx.binary_loads} stored binaries)")
+        f"{counted(ctx.builds, 'kernel build')}, {counted(ctx.binary_loads, 'stored binary', 'stored binaries')})")
     left_bgr = cv2.cvtColor(left, cv2.COLOR_GRAY2BGR) if pair.left.ndim == 2 else pair.left
     captions = ("left image", "ground truth (black: unknown)",
                 f"{label_ours}: bad-2.0 {m_ours['bad2_all']:.1f} %, 3-px {m_ours['bad3_all']:.1f} %",
