@@ -1,0 +1,122 @@
+/* winograd_proto.cl - a PROTOTYPE, not used by the package: one valid 3 x 3
+ * convolution layer (channel-last maps, as kernels/network_conv.cl) by
+ * Winograd's F(2x2, 3x3), measured against network_conv by
+ * tools/benchmarks/winograd_ab.py.
+ *
+ * Work-item (g, quad, ty): output channels g*RN .. g*RN+RN-1 of RT consecutive
+ * 2 x 2 output tiles of tile row ty.  It transforms its tiles' 4 x 4 input
+ * patches (all CIN channels, B^T d B) into its own region of local memory
+ * (V[RT][16][CIN]; no other work-item reads it, so no barrier), runs the 16
+ * products M_xi = V_xi U_xi, XA of the 16 xi at a time over RT tiles (XA x RT
+ * register accumulators of RN floats; U = G g G^T precomputed on the host,
+ * [CIN][16][NP]), keeps M in local memory ([RT][16][RN]) and applies the
+ * output transform (A^T M A), bias and ReLU.  Launch: global (NP/RN,
+ * ceil(tw/RT), th), local (NP/RN, 1, 1).  Needs KS 3, CIN a multiple of RN,
+ * and (NP/RN) x 16 RT (CIN + RN) x 4 bytes of local memory (80 KiB for
+ * 64 -> 64 maps at RT 4: CPU devices only).
+ *
+ * Not done here, needed before a package path: rows anchored to the image
+ * (the tile grid follows the map's first row, so a band or row tile starting
+ * at an odd row would round differently from the whole image, which the
+ * package's tests require to be bit-identical), the first layer (CIN 1), the
+ * tuner's choice of (RT, XA) and of the path per device, and the kernel-to-
+ * reference tests, Oclgrind and the other runtimes.
+ */
+#include "common.h"
+#include "vector.h"
+
+#ifndef RT
+#define RT 4
+#endif
+#ifndef XA
+#define XA 4
+#endif
+
+__kernel void winograd_conv3(__global const float *in, int w_in, int h_in,
+                             __global const float *u, /* [CIN][16][NP] */
+                             __global const float *bias, __global float *out, int w_out, int h_out, int tw, int th)
+{
+    __local float vloc[NP / RN][RT * 16 * CIN + RT * 16 * RN];
+    const int g = get_global_id(0), qd = get_global_id(1), ty = get_global_id(2);
+    const int nq = (tw + RT - 1) / RT;
+    if (g >= NP / RN || qd >= nq || ty >= th) return;
+    __local float *V = vloc[get_local_id(0)];
+    __local float *Mq = V + RT * 16 * CIN;
+    for (int t = 0; t < RT; ++t) {
+        const int tx = min(RT * qd + t, tw - 1);
+        for (int c0 = 0; c0 < CIN; c0 += RN) {
+            VT d[4][4];
+#pragma unroll
+            for (int i = 0; i < 4; ++i)
+#pragma unroll
+                for (int j = 0; j < 4; ++j) {
+                    const int y = min(2 * ty + i, h_in - 1), x = min(2 * tx + j, w_in - 1);
+                    d[i][j] = VLOAD(in + ((size_t)y * w_in + x) * CS + c0);
+                }
+            VT r[4][4];
+#pragma unroll
+            for (int j = 0; j < 4; ++j) {
+                r[0][j] = d[0][j] - d[2][j]; r[1][j] = d[1][j] + d[2][j];
+                r[2][j] = d[2][j] - d[1][j]; r[3][j] = d[1][j] - d[3][j];
+            }
+            __local float *vt = V + (size_t)t * 16 * CIN + c0;
+#pragma unroll
+            for (int i = 0; i < 4; ++i) {
+                VSTORE(r[i][0] - r[i][2], vt + (4 * i + 0) * CIN);
+                VSTORE(r[i][1] + r[i][2], vt + (4 * i + 1) * CIN);
+                VSTORE(r[i][2] - r[i][1], vt + (4 * i + 2) * CIN);
+                VSTORE(r[i][1] - r[i][3], vt + (4 * i + 3) * CIN);
+            }
+        }
+    }
+    const int n0 = g * RN;
+    for (int h = 0; h < 16 / XA; ++h) {
+        VT acc[XA][RT];
+#pragma unroll
+        for (int a = 0; a < XA; ++a)
+#pragma unroll
+            for (int t = 0; t < RT; ++t) acc[a][t] = (VT)(0.0f);
+        __global const float *up = u + (size_t)(XA * h) * NP + n0;
+        __local const float *vh = V + (size_t)(XA * h) * CIN;
+        for (int c = 0; c < CIN; ++c) {
+#pragma unroll
+            for (int a = 0; a < XA; ++a) {
+                const VT w = VLOAD(up + ((size_t)c * 16 + a) * NP);
+#pragma unroll
+                for (int t = 0; t < RT; ++t)
+                    acc[a][t] = fma((VT)(vh[(size_t)t * 16 * CIN + a * CIN + c]), w, acc[a][t]);
+            }
+        }
+#pragma unroll
+        for (int a = 0; a < XA; ++a)
+#pragma unroll
+            for (int t = 0; t < RT; ++t) VSTORE(acc[a][t], Mq + ((size_t)t * 16 + XA * h + a) * RN);
+    }
+    const VT b = VLOAD(bias + n0);
+    for (int t = 0; t < RT; ++t) {
+        const int tx = RT * qd + t;
+        if (tx >= tw) break;
+        __local const float *mt = Mq + (size_t)t * 16 * RN;
+        VT s[2][4];
+#pragma unroll
+        for (int j = 0; j < 4; ++j) {
+            const VT m0 = VLOAD(mt + j * RN), m1 = VLOAD(mt + (4 + j) * RN);
+            const VT m2 = VLOAD(mt + (8 + j) * RN), m3 = VLOAD(mt + (12 + j) * RN);
+            s[0][j] = m0 + m1 + m2;
+            s[1][j] = m1 - m2 - m3;
+        }
+#pragma unroll
+        for (int i = 0; i < 2; ++i) {
+            const int y = 2 * ty + i;
+            if (y < h_out) {
+                VT o0 = b + (s[i][0] + s[i][1] + s[i][2]), o1 = b + (s[i][1] - s[i][2] - s[i][3]);
+#if RELU
+                o0 = fmax(o0, (VT)(0.0f)); o1 = fmax(o1, (VT)(0.0f));
+#endif
+                const int x = 2 * tx;
+                VSTORE(o0, out + ((size_t)y * w_out + x) * NP + n0);
+                if (x + 1 < w_out) VSTORE(o1, out + ((size_t)y * w_out + x + 1) * NP + n0);
+            }
+        }
+    }
+}
