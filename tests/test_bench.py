@@ -465,3 +465,46 @@ def test_run_runtimes_passes_weights_and_keeps_baselines(monkeypatch, tmp_path):
     cmds.clear()
     mod.main(["--quick", "--impls", "pocl"])
     assert not any("--weights" in c for c in cmds)
+
+
+# -- tools/benchmarks/winograd_proto.cl: the Winograd prototype against its reference -----------------
+
+@pytest.mark.parametrize("rt,xa,rn,relu", [(4, 4, 16, True), (4, 1, 16, False), (2, 8, 8, True), (3, 2, 8, False)])
+def test_winograd_prototype_matches_a_float64_convolution(ctx, monkeypatch, rt, xa, rn, relu):
+    """The prototype (not used by the package) on fresh random maps of odd and even sizes (partial
+    last tiles in both directions; RT not dividing the tile row): every output within 1e-5 of the
+    largest, against float64 (float32 rounding of 9 x 16-term sums and the transforms' adds: the
+    measured error is ~5e-7); the NaN-filled output fully written."""
+    mod = _script("winograd_ab", monkeypatch)
+    rng = np.random.default_rng(rt * 100 + xa * 10 + rn)
+    cin = cout = 16
+    layer = mod.WinogradLayer(ctx, cin, cout, relu, rt, xa, rn)
+    for h, w in ((13, 21), (12, 20), (3, 3), (4, 37)):
+        x = rng.standard_normal((h, w, cin)).astype(np.float32)
+        W = (rng.standard_normal((cout, cin, 3, 3)) / 12).astype(np.float32)
+        b = rng.standard_normal(cout).astype(np.float32)
+        got = layer.run(x, W, b)
+        ref = mod.reference(x, W, b, relu)
+        assert not np.isnan(got).any(), (h, w)
+        assert np.abs(got - ref).max() <= 1e-5 * np.abs(ref).max(), (h, w)
+
+
+def test_winograd_prototype_on_real_features(ctx, monkeypatch, shared_data):
+    """A real map: general-fst's first layer (numpy) over a crop of a KITTI 2015 image, then its
+    second layer by the prototype against float64, as above."""
+    from mccnn_cl.io import read_image
+    from mccnn_cl.imageops import to_gray
+    from mccnn_cl.models import resolve
+
+    mod = _script("winograd_ab", monkeypatch)
+    img = to_gray(read_image(shared_data / "kitti2015" / "training" / "image_2" / "000000_10.png"))
+    crop = np.ascontiguousarray(img[100:141, 300:383], np.float32)
+    crop = (crop - crop.mean()) / crop.std()
+    w = resolve("general-fst")
+    (W0, b0), (W1, b1) = w.conv[0], w.conv[1]
+    x = mod.reference(crop[:, :, None], np.asarray(W0), np.asarray(b0)).reshape(39, 81, -1).astype(np.float32)
+    layer = mod.WinogradLayer(ctx, x.shape[2], W1.shape[0], True, 4, 4, 16)
+    got = layer.run(x, np.asarray(W1, np.float32), np.asarray(b1, np.float32))
+    ref = mod.reference(x, np.asarray(W1), np.asarray(b1))
+    assert not np.isnan(got).any()
+    assert np.abs(got - ref).max() <= 1e-5 * np.abs(ref).max()

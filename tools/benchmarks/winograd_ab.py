@@ -33,14 +33,57 @@ HERE = Path(__file__).resolve().parent
 G = np.array([[1, 0, 0], [.5, .5, .5], [.5, -.5, .5], [0, 0, 1]], np.float64)
 
 
-def reference(x, W, b):
-    """float64 valid 3 x 3 convolution + bias + ReLU of a channel-last map, [h_out * w_out][cout]."""
+def reference(x, W, b, relu=True):
+    """float64 valid 3 x 3 convolution + bias (+ ReLU) of a channel-last map, [h_out * w_out][cout]."""
     h, w, _ = x.shape
     out = np.zeros((h - 2, w - 2, W.shape[0]))
     for ky in range(3):
         for kx in range(3):
             out += x[ky:ky + h - 2, kx:kx + w - 2].astype(np.float64) @ W[:, :, ky, kx].T.astype(np.float64)
-    return np.maximum(out + b, 0).reshape(-1, W.shape[0])
+    out = out + np.asarray(b, np.float64)
+    return (np.maximum(out, 0) if relu else out).reshape(-1, W.shape[0])
+
+
+def transformed_weights(W):
+    """U = G g G^T of every (output, input) pair of 3 x 3 kernels W [cout][cin][3][3], as the
+    prototype reads it: float32 [cin][16][cout] (computed in float64)."""
+    cout, cin = W.shape[:2]
+    U = np.einsum("ai,kcij,bj->cabk", G, np.asarray(W, np.float64), G).reshape(cin, 16, cout)
+    return np.ascontiguousarray(U.astype(np.float32))
+
+
+class WinogradLayer:
+    """The prototype built for one layer shape (``cin`` -> ``cout`` maps, ReLU or not) with
+    register block ``rt`` x ``xa`` and ``rn`` channels per work-item: :meth:`__call__` runs it
+    on uploaded buffers, :meth:`run` on host arrays."""
+
+    def __init__(self, ctx, cin, cout, relu, rt, xa, rn):
+        if cin % rn or cout % rn:
+            raise ValueError(f"the prototype needs channels in multiples of RN={rn}, got {cin} -> {cout}")
+        self.ctx, self.cout, self.rt, self.rn = ctx, cout, rt, rn
+        opts = ["-I", ctx.kernel_dir] + [f"-D{k}={v}" for k, v in dict(
+            KS=3, CIN=cin, CS=cin, NP=cout, RELU=int(relu), RN=rn, RT=rt, XA=xa).items()]
+        src = (HERE / "winograd_proto.cl").read_text()
+        self.kernel = ctx.cl.Program(ctx.context, src).build(options=opts).winograd_conv3
+
+    def __call__(self, d_x, h_in, w_in, d_u, d_b, d_out):
+        h_out, w_out = h_in - 2, w_in - 2
+        th, tw = (h_out + 1) // 2, (w_out + 1) // 2
+        g = self.cout // self.rn
+        self.kernel(self.ctx.queue, (g, (tw + self.rt - 1) // self.rt, th), (g, 1, 1), d_x, np.int32(w_in),
+                    np.int32(h_in), d_u, d_b, d_out, np.int32(w_out), np.int32(h_out), np.int32(tw), np.int32(th))
+
+    def run(self, x, W, b):
+        """Output [(h - 2) * (w - 2)][cout] of the channel-last map x [h][w][cin] (float32); the
+        output buffer is filled with NaN before the launch."""
+        ctx = self.ctx
+        h, w = x.shape[:2]
+        n = (h - 2) * (w - 2) * self.cout
+        d_out = ctx.empty(4 * n)
+        ctx.fill(d_out, np.float32(np.nan), 4 * n)
+        self(ctx.to_device(np.ascontiguousarray(x, np.float32)), h, w, ctx.to_device(transformed_weights(W)),
+             ctx.to_device(np.asarray(b, np.float32)), d_out)
+        return ctx.from_device(d_out, ((h - 2) * (w - 2), self.cout))
 
 
 def main():
@@ -51,7 +94,7 @@ def main():
     ap.add_argument("--rounds", type=int, default=3)
     args = ap.parse_args()
     ctx = ClContext()
-    cl, q, rn = ctx.cl, ctx.queue, args.rn
+    q, rn = ctx.queue, args.rn
     print(f"device: {ctx.describe()}")
     wts = resolve("general-fst")  # the shipped Weights
     W, b = wts.conv[args.layer]
@@ -61,29 +104,20 @@ def main():
     x = np.random.default_rng(0).standard_normal((h_in, w_in, cin)).astype(np.float32)
     h_out, w_out = h_in - 2, w_in - 2
     m_total = h_out * w_out
-    ref = reference(x, W, b)
     relu = int(args.layer < len(wts.conv) - 1 or wts.relu_after_last_conv)
-    if not relu:
-        raise SystemExit("the reference here applies ReLU: pick a layer followed by one (1 or 2 for fst)")
+    ref = reference(x, W, b, relu)
     d_x, d_b = ctx.to_device(x), ctx.to_device(b)
     d_wt = ctx.to_device(W.transpose(2, 3, 1, 0).reshape(9 * cin, cout).copy())
-    U = np.einsum("ai,kcij,bj->cabk", G, W.astype(np.float64), G).reshape(cin, 16, cout).astype(np.float32)
-    d_u = ctx.to_device(np.ascontiguousarray(U))
+    d_u = ctx.to_device(transformed_weights(W))
     d_out = ctx.empty(m_total * cout * 4)
-    th, tw = (h_out + 1) // 2, (w_out + 1) // 2
     defs = dict(KS=3, CIN=cin, CS=cin, NP=cout, RELU=relu, RN=rn)
     direct = ctx.kernel("network_conv.cl", "network_conv", RM=4, **defs)
-    opts = ["-I", ctx.kernel_dir] + [f"-D{k}={v}" for k, v in defs.items()]
-    src = (HERE / "winograd_proto.cl").read_text()
     runs = {"network_conv (RM 4)": lambda: direct(q, (cout // rn, math.ceil(m_total / 4)), None, d_x, np.int32(w_in),
                                                    d_wt, d_b, d_out, np.int32(w_out), np.int32(m_total))}
     for spec in args.blocks.split(","):
         rt, xa = (int(v) for v in spec.split("x"))
-        k = cl.Program(ctx.context, src).build(options=opts + [f"-DRT={rt}", f"-DXA={xa}"]).winograd_conv3
-        nq = (tw + rt - 1) // rt
-        runs[f"Winograd RT {rt} XA {xa}"] = (
-            lambda k=k, nq=nq: k(q, (cout // rn, nq, th), (cout // rn, 1, 1), d_x, np.int32(w_in), np.int32(h_in),
-                                 d_u, d_b, d_out, np.int32(w_out), np.int32(h_out), np.int32(tw), np.int32(th)))
+        layer = WinogradLayer(ctx, cin, cout, relu, rt, xa, rn)
+        runs[f"Winograd RT {rt} XA {xa}"] = lambda layer=layer: layer(d_x, h_in, w_in, d_u, d_b, d_out)
     for name, run in runs.items():
         ctx.fill(d_out, np.float32(np.nan), m_total * cout * 4)
         run()
