@@ -66,23 +66,24 @@ class WinogradLayer:
         src = (HERE / "winograd_proto.cl").read_text()
         self.kernel = ctx.cl.Program(ctx.context, src).build(options=opts).winograd_conv3
 
-    def __call__(self, d_x, h_in, w_in, d_u, d_b, d_out):
+    def __call__(self, d_x, h_in, w_in, d_u, d_b, d_out, p=0):
         h_out, w_out = h_in - 2, w_in - 2
-        th, tw = (h_out + 1) // 2, (w_out + 1) // 2
+        th, tw = (h_out + p + 1) // 2, (w_out + 1) // 2
         g = self.cout // self.rn
         self.kernel(self.ctx.queue, (g, (tw + self.rt - 1) // self.rt, th), (g, 1, 1), d_x, np.int32(w_in),
-                    np.int32(h_in), d_u, d_b, d_out, np.int32(w_out), np.int32(h_out), np.int32(tw), np.int32(th))
+                    np.int32(h_in), d_u, d_b, d_out, np.int32(w_out), np.int32(h_out), np.int32(tw), np.int32(th),
+                    np.int32(p))
 
-    def run(self, x, W, b):
-        """Output [(h - 2) * (w - 2)][cout] of the channel-last map x [h][w][cin] (float32); the
-        output buffer is filled with NaN before the launch."""
+    def run(self, x, W, b, p=0):
+        """Output [(h - 2) * (w - 2)][cout] of the channel-last map x [h][w][cin] (float32), its tile
+        grid anchored at row parity ``p``; the output buffer is filled with NaN before the launch."""
         ctx = self.ctx
         h, w = x.shape[:2]
         n = (h - 2) * (w - 2) * self.cout
         d_out = ctx.empty(4 * n)
         ctx.fill(d_out, np.float32(np.nan), 4 * n)
         self(ctx.to_device(np.ascontiguousarray(x, np.float32)), h, w, ctx.to_device(transformed_weights(W)),
-             ctx.to_device(np.asarray(b, np.float32)), d_out)
+             ctx.to_device(np.asarray(b, np.float32)), d_out, p)
         return ctx.from_device(d_out, ((h - 2) * (w - 2), self.cout))
 
 

@@ -11,14 +11,21 @@
  * register accumulators of RN floats; U = G g G^T precomputed on the host,
  * [CIN][16][NP]), keeps M in local memory ([RT][16][RN]) and applies the
  * output transform (A^T M A), bias and ReLU.  Launch: global (NP/RN,
- * ceil(tw/RT), th), local (NP/RN, 1, 1).  Needs KS 3, CIN a multiple of RN,
+ * ceil(tw/RT), th), local (NP/RN, 1, 1).
+ *
+ * Row anchor p (0 or 1): tile row ty covers output rows 2 ty - p and
+ * 2 ty - p + 1, so a map cut from a larger one at an odd row (a band, a row
+ * tile) is computed with p = 1 on the larger map's tile grid.  Row -1 is not
+ * stored, and its input row (clamped to row 0) cannot change the row kept:
+ * of the four transformed rows only the first reads a tile's first input
+ * row, and only the first output row reads that one, so every output gets
+ * the very operations of the whole map's computation (tests/test_bench.py).
+ * th = ceil((h_out + p) / 2).  Needs KS 3, CIN a multiple of RN,
  * and (NP/RN) x 16 RT (CIN + RN) x 4 bytes of local memory (80 KiB for
  * 64 -> 64 maps at RT 4: CPU devices only).
  *
- * Not done here, needed before a package path: rows anchored to the image
- * (the tile grid follows the map's first row, so a band or row tile starting
- * at an odd row would round differently from the whole image, which the
- * package's tests require to be bit-identical), the first layer (CIN 1), the
+ * Not done here, needed before a package path: passing each band's and row
+ * tile's parity down to the layers (p above), the first layer (CIN 1), the
  * tuner's choice of (RT, XA) and of the path per device, and the kernel-to-
  * reference tests, Oclgrind and the other runtimes.
  */
@@ -34,7 +41,8 @@
 
 __kernel void winograd_conv3(__global const float *in, int w_in, int h_in,
                              __global const float *u, /* [CIN][16][NP] */
-                             __global const float *bias, __global float *out, int w_out, int h_out, int tw, int th)
+                             __global const float *bias, __global float *out, int w_out, int h_out, int tw, int th,
+                             int p)
 {
     __local float vloc[NP / RN][RT * 16 * CIN + RT * 16 * RN];
     const int g = get_global_id(0), qd = get_global_id(1), ty = get_global_id(2);
@@ -50,7 +58,7 @@ __kernel void winograd_conv3(__global const float *in, int w_in, int h_in,
             for (int i = 0; i < 4; ++i)
 #pragma unroll
                 for (int j = 0; j < 4; ++j) {
-                    const int y = min(2 * ty + i, h_in - 1), x = min(2 * tx + j, w_in - 1);
+                    const int y = clamp(2 * ty - p + i, 0, h_in - 1), x = min(2 * tx + j, w_in - 1);
                     d[i][j] = VLOAD(in + ((size_t)y * w_in + x) * CS + c0);
                 }
             VT r[4][4];
@@ -107,8 +115,8 @@ __kernel void winograd_conv3(__global const float *in, int w_in, int h_in,
         }
 #pragma unroll
         for (int i = 0; i < 2; ++i) {
-            const int y = 2 * ty + i;
-            if (y < h_out) {
+            const int y = 2 * ty - p + i;
+            if (y >= 0 && y < h_out) {
                 VT o0 = b + (s[i][0] + s[i][1] + s[i][2]), o1 = b + (s[i][1] - s[i][2] - s[i][3]);
 #if RELU
                 o0 = fmax(o0, (VT)(0.0f)); o1 = fmax(o1, (VT)(0.0f));
