@@ -87,24 +87,6 @@ class Variant:
             ctx.kernel_dir = tree_dir
 
 
-def kitti_images(data):
-    """KITTI 2015 000000's left and right images, gray, cropped to H x W about the centre and standardised
-    (the pipeline's images for the cross arms)."""
-    import cv2
-
-    from mccnn_cl.costs.features import normalise
-
-    out = []
-    for side in ("image_2", "image_3"):
-        path = Path(data) / "kitti2015" / "training" / side / "000000_10.png"
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise SystemExit(f"cannot read {path} (give --data)")
-        y0, x0 = (img.shape[0] - H) // 2, (img.shape[1] - W) // 2
-        out.append(normalise(img[y0:y0 + H, x0:x0 + W].astype(np.float32) / 255.0))
-    return out
-
-
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("stage", choices=("sgm", "cbca"))
@@ -117,8 +99,8 @@ def main():
     ap.add_argument("--rounds", type=int, default=7)
     ap.add_argument("--images", choices=("random", "kitti"), default="random",
                     help="CBCA: the arms of the tuner's random images (default) or of KITTI 2015 000000 "
-                         "(cropped to the volume's size, standardised; general-fst's tau 0.03, eta 5)")
-    ap.add_argument("--data", default=str(REPO.parent / "shared" / "data"), help="with --images kitti")
+                         "($MCCNN_DATA, else ../shared/data; its top-left corner at the volume's size, "
+                         "standardised; general-fst's tau 0.03, eta 5)")
     ap.add_argument("--cpu-time", action="store_true", help="time by process CPU time / 2")
     args = ap.parse_args()
     ctx = ClContext()
@@ -130,7 +112,12 @@ def main():
 
         cross = CrossArms(ctx)
         if args.images == "kitti":  # the arms of a real pair with general-fst's settings (tau, eta, neighbour)
-            al, ar = (cross(ctx.to_device(img), H, W, 0.03, 5, True) for img in kitti_images(args.data))
+            from bench_scaling import kitti_gray
+
+            from mccnn_cl.costs.features import normalise
+
+            al, ar = (cross(ctx.to_device(normalise(img.astype(np.float32) / 255.0)), H, W, 0.03, 5, True)
+                      for img in kitti_gray(H, W))
         else:
             al, ar = cross(d_l, H, W), cross(d_r, H, W)
     tmp = tempfile.TemporaryDirectory(prefix="kernel_ab-")

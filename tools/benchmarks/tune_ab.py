@@ -46,7 +46,7 @@ def main():
     ap.add_argument("--data", default=str(REPO.parent / "shared" / "data"))
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--one-off", type=int, default=3, metavar="N",
-                    help="fresh `mccnn-cl match` processes to time, each against the steady calls around it")
+                    help="fresh `mccnn-cl match` processes to time, each against the steady call just before it")
     ap.add_argument("--costs", default="cnn,cnn:kitti-fst,census",
                     help="comma-separated: cnn (the default network), cnn:WEIGHTS (e.g. cnn:kitti-fst, the "
                          "speed issue's own benchmark), census")
