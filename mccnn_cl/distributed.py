@@ -199,14 +199,14 @@ def tile_task(config, job, max_disp, tile, tile_budget, want_confidence):
         rec.tile(c0 - e0, c1 - e0, 0, (c1 - c0, W))
         m._pool.trim(m.memory_plan(I_L.shape).largest_volume)  # as compute() does
         if m.cost.local:
-            d_cost = m.cost(I_L[e0:e1 + 2 * mg], I_R[e0:e1 + 2 * mg], D, out=m._take_volume(D, e1 - e0, W))
+            d_cost = m.cost(I_L[e0:e1 + 2 * mg], I_R[e0:e1 + 2 * mg], D, out=m._take_volume(D, e1 - e0, W), row0=e0)
         else:  # the network on the tile's rows of the whole image's standardisation
             stats = (image_stats(I_L), image_stats(I_R))
             # as StereoMatcher._tiled_volume_stages: no kept volume during the network's bands (the plan
             # does not count one there), and no feature maps during the volume stages
             m._pool.clear()
             host = m.cost.to_host(I_L[e0:e1 + 2 * mg], I_R[e0:e1 + 2 * mg], D, max_bytes=tile_budget,
-                                  stats=stats)
+                                  stats=stats, row0=e0)
             m.cost.release_buffers()
             d_cost = m._take_volume(D, e1 - e0, W)
             ctx.cl.enqueue_copy(ctx.queue, d_cost, np.ascontiguousarray(host))

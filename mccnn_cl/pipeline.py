@@ -567,7 +567,7 @@ class StereoMatcher:
             log.info("tile %d/%d: volume rows %d..%d (core %d..%d)", i + 1, len(plan.tiles), e0, e1, c0, c1)
             rec.tile(c0 - e0, c1 - e0, c0, (H, W))
             if host is None:
-                d_cost = rec("C_CNN", self._mask(self.cost(I_L[e0:e1 + 2 * m], I_R[e0:e1 + 2 * m], D,
+                d_cost = rec("C_CNN", self._mask(self.cost(I_L[e0:e1 + 2 * m], I_R[e0:e1 + 2 * m], D, row0=e0,
                                                            out=self._take_volume(D, e1 - e0, W)), D, e1 - e0, W, rec))
             else:
                 d_cost = self._take_volume(D, e1 - e0, W)

@@ -298,8 +298,8 @@ def test_fst_matcher_tiles_exact(ctx, shared_data, monkeypatch):
 
 def test_conv_rn_sets_the_fst_stack_only(ctx):
     """The tiles' CONV_RN (channels per conv work-item) reaches the fst stack, and every
-    width gives the same volume bit for bit (each output sums its terms in one order
-    whatever the tile) and the reference's within TOL; an explicit RN alone still sets
+    width gives the same volume bit for bit on the direct GEMM (each output sums its
+    terms in one order whatever the tile) and the reference's within TOL; an explicit RN alone still sets
     the stack (as before CONV_RN); the paper network's stack keeps the head's RN."""
     from mccnn_cl.costs.network import PaperCost
 
@@ -308,7 +308,7 @@ def test_conv_rn_sets_the_fst_stack_only(ctx):
     expected = ref.fst_cost_volume(w, left, right, 9)
     vols = []
     for rn in (16, 8, 4):
-        cost = FstCost(ctx, w, tiles={"CONV_RN": rn, "CONV_RM": 3})
+        cost = FstCost(ctx, w, tiles={"CONV_RN": rn, "CONV_RM": 3}, winograd=False)
         assert cost.stack.rn == rn
         vols.append(run_poisoned(ctx, cost, left, right, 9))
         check(vols[-1], expected)

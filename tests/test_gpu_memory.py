@@ -12,6 +12,8 @@ order (tests/test_cbca_gpu.py, tests/test_network_gpu.py), the tiled
 disparity map equals the CPU paths' run on the same tiles bit for bit.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -42,7 +44,10 @@ def _gpu(ctx, monkeypatch):
 @pytest.mark.slow
 def test_tiled_run_on_a_small_gpu(ctx, shared_data, monkeypatch, cost, weights, D, W):
     left, right = kitti_crop(shared_data, 100, 300, 190, W)
+    # the direct conv GEMM (the GPU-shaped GEMM's summation order), not the cpu column's Winograd layers
+    monkeypatch.setattr(ctx, "profile", replace(ctx.profile, tuned={**ctx.profile.tuned, "network_winograd": None}))
     cpu = StereoMatcher(weights, cost=cost, max_disparity=D, device=ctx, tile_overlap=16)
+    assert cpu.cost.local or cpu.cost.stack.winograd is None
     cpu.sgm = SGM(ctx, paired=False)  # SGMWorkGroup's summation order
     whole = cpu.memory_plan(left.shape)
     assert not whole.tiled

@@ -116,7 +116,7 @@ def test_conv_stack_bit_identical(ctx, conv, H, W, relu_last):
     w = Weights.random(conv, [8, 2] if relu_last else None, architecture=arch, seed=H * W)
     raw = np.random.default_rng(H).random((H, W)).astype(np.float32)
     img = normalise(raw)[:, :, None]
-    base = ConvStack(ctx, w, 4, 3, local_tiles=False)
+    base = ConvStack(ctx, w, 4, 3, local_tiles=False, winograd=False)
     assert base.path == "register"
     want = layer_outputs(ctx, base, img)
     assert np.ptp(want[-1]) > 0.1
@@ -160,7 +160,7 @@ def test_fst_volume_bit_identical(ctx, conv, H, W, D):
     bit for every tile, and the reference within test_fst's tolerance."""
     w = Weights.random(conv, architecture="mccnn-fst", seed=H * W)
     left, right = random_pair(np.random.default_rng(H + W), H, W)
-    base_cost = FstCost(ctx, w, local_tiles=False, workgroup=False)
+    base_cost = FstCost(ctx, w, local_tiles=False, workgroup=False, winograd=False)
     assert base_cost.volume_path == "pairs" and base_cost.stack.path == "register"
     base = run_poisoned(ctx, base_cost, left, right, D)
     want = ref.fst_cost_volume(w, left, right, D)
@@ -175,7 +175,7 @@ def test_fst_volume_bit_identical(ctx, conv, H, W, D):
         assert np.abs(got[v] - want[v]).max() <= FST_TOL
     # each GPU-shaped kernel alone, the other CPU-shaped
     for lt, wg in ((True, False), (False, dict(TX=8, TD=3, TK=4, RX=2, RD=1))):
-        got = run_poisoned(ctx, FstCost(ctx, w, local_tiles=lt, workgroup=wg), left, right, D)
+        got = run_poisoned(ctx, FstCost(ctx, w, local_tiles=lt, workgroup=wg, winograd=False), left, right, D)
         np.testing.assert_array_equal(bits(got), bits(base))
 
 
@@ -188,7 +188,7 @@ def test_fst_real_crop_shipped_network(ctx, shared_data):
     left, right = kitti_crop(shared_data, 180, 500, 39, 75)
     assert left.std() > 0.02
     D = 28
-    base = run_poisoned(ctx, FstCost(ctx, w, local_tiles=False, workgroup=False), left, right, D)
+    base = run_poisoned(ctx, FstCost(ctx, w, local_tiles=False, workgroup=False, winograd=False), left, right, D)
     want = ref.fst_cost_volume(w, left, right, D)
     assert np.nanmin(want) < -0.9 and np.nanmax(want) > 0.0
     for wg in (True, dict(TX=16, TD=7, TK=16, RX=4, RD=7)):
@@ -209,7 +209,7 @@ def test_fst_bands_half_and_to_host(ctx, monkeypatch, rows):
     w = Weights.random([[10, 3]] * 3, architecture="mccnn-fst", seed=4)
     left, right = random_pair(np.random.default_rng(9), 20, 45)
     D = 11
-    cpu = FstCost(ctx, w, local_tiles=False, workgroup=False)
+    cpu = FstCost(ctx, w, local_tiles=False, workgroup=False, winograd=False)
     gpu = FstCost(ctx, w, local_tiles=dict(TM=16, TN=8, TK=8, RM=2, RN=2),
                   workgroup=dict(TX=8, TD=4, TK=4, RX=2, RD=2))
     whole = run_poisoned(ctx, cpu, left, right, D)
@@ -217,8 +217,8 @@ def test_fst_bands_half_and_to_host(ctx, monkeypatch, rows):
     assert gpu.band_rows(14, 39) == rows
     np.testing.assert_array_equal(bits(run_poisoned(ctx, gpu, left, right, D)), bits(whole))
     np.testing.assert_array_equal(bits(gpu.to_host(left, right, D, max_bytes=D * 39 * 4 * 2)), bits(whole))
-    half_cpu = run_poisoned(ctx, FstCost(ctx, w, half=True, local_tiles=False, workgroup=False), left, right, D,
-                            half=True)
+    half_cpu = run_poisoned(ctx, FstCost(ctx, w, half=True, local_tiles=False, workgroup=False, winograd=False),
+                            left, right, D, half=True)
     half_gpu = run_poisoned(ctx, FstCost(ctx, w, half=True, local_tiles=True, workgroup=True), left, right, D,
                             half=True)
     np.testing.assert_array_equal(bits(half_gpu), bits(half_cpu))
@@ -237,7 +237,7 @@ def test_fc_networks_local_tiles(ctx, cls, conv, fc, arch):
     w = Weights.random(conv, fc, architecture=arch, seed=11)
     left, right = random_pair(np.random.default_rng(5), 17, 29)
     D = 9
-    base = run_poisoned(ctx, cls(ctx, w, local_tiles=False), left, right, D)
+    base = run_poisoned(ctx, cls(ctx, w, local_tiles=False, winograd=False), left, right, D)
     want = ref.cost_volume(w, left, right, D)
     v = ~np.isnan(want)
     assert np.abs(base[v] - want[v]).max() <= NET_TOL and np.nanstd(want) > 1e-3
@@ -269,19 +269,20 @@ def test_gemm_head_bit_identical(ctx, monkeypatch, cls, conv, fc, arch):
     want = ref.cost_volume(w, left, right, D)
     assert np.nanstd(want) > 1e-3
     for tiles in HEAD_TILES:
-        fused = cls(ctx, w, tiles=tiles, local_tiles=False, head_gemm=False)
+        fused = cls(ctx, w, tiles=tiles, local_tiles=False, head_gemm=False, winograd=False)
         assert fused.head_path == "fused"
         base = run_poisoned(ctx, fused, left, right, D)
         v = ~np.isnan(want)
         assert np.abs(base[v] - want[v]).max() <= NET_TOL
         for lt, cells in ((False, 1 << 16), (True, 7), (dict(TM=6, TN=5, TK=4, RM=2, RN=1), 40)):
             monkeypatch.setattr(network_stage, "GEMM_CELLS", cells)
-            net = cls(ctx, w, tiles=tiles, local_tiles=lt, head_gemm=True)
+            net = cls(ctx, w, tiles=tiles, local_tiles=lt, head_gemm=True, winograd=False)
             assert net.head_path == "gemm"
             np.testing.assert_array_equal(bits(run_poisoned(ctx, net, left, right, D)), bits(base),
                                           err_msg=f"tiles {tiles}, conv tile {lt}, runs of {cells}")
     half = run_poisoned(ctx, cls(ctx, w, half=True, head_gemm=True, local_tiles=True), left, right, D, half=True)
-    np.testing.assert_array_equal(bits(half), bits(run_poisoned(ctx, cls(ctx, w, half=True, head_gemm=False),
+    np.testing.assert_array_equal(bits(half), bits(run_poisoned(ctx, cls(ctx, w, half=True, head_gemm=False,
+                                                                         winograd=False),
                                                                 left, right, D, half=True)))
 
 
@@ -296,7 +297,8 @@ def test_gemm_head_real_crop_bands_to_host(ctx, shared_data, monkeypatch):
     left, right = left * 255, right * 255
     D = 12
     t = dict(RN=4)  # one RN on both sides
-    base = run_poisoned(ctx, PaperCost(ctx, w, tiles=t, local_tiles=False, head_gemm=False), left, right, D)
+    base = run_poisoned(ctx, PaperCost(ctx, w, tiles=t, local_tiles=False, head_gemm=False, winograd=False),
+                        left, right, D)
     want = ref.cost_volume(w, left, right, D)
     v = ~np.isnan(want)
     assert np.abs(base[v] - want[v]).max() <= NET_TOL and np.nanstd(want) > 0.05
@@ -318,7 +320,7 @@ def test_small_local_memory_shrinks_the_tiles(ctx, monkeypatch):
     not fit is an InputError naming the local memory."""
     w = Weights.random([[12, 3]] * 2, architecture="mccnn-fst", seed=8)
     left, right = random_pair(np.random.default_rng(2), 15, 40)
-    base = run_poisoned(ctx, FstCost(ctx, w, local_tiles=False, workgroup=False), left, right, 13)
+    base = run_poisoned(ctx, FstCost(ctx, w, local_tiles=False, workgroup=False, winograd=False), left, right, 13)
     monkeypatch.setattr(type(ctx), "local_mem", property(lambda self: 1200))
     cost = FstCost(ctx, w, local_tiles=True, workgroup=True)
     t = cost.volume_tile
@@ -394,7 +396,10 @@ def test_stereo_matcher_with_the_gpu_profile(ctx, shared_data, monkeypatch):
     work-group paths).  C_CNN equals the CPU path's bit for bit, and so do
     the later volumes and the disparity map when the CPU run uses the CPU
     paths that sum in the same order as the work-group ones (SGM's
-    one-direction kernels; tests/test_cbca_gpu.py)."""
+    one-direction kernels, tests/test_cbca_gpu.py; the direct conv GEMM,
+    not the CPU column's Winograd layers)."""
+    from dataclasses import replace
+
     import pyopencl as cl
 
     from mccnn_cl.pipeline import StereoMatcher
@@ -403,9 +408,10 @@ def test_stereo_matcher_with_the_gpu_profile(ctx, shared_data, monkeypatch):
     left, right = kitti_crop(shared_data, 150, 300, 41, 97)
     D = 24
     # the CPU column for the baseline, also on a GPU (whose own profile is the gpu column)
-    monkeypatch.setattr(ctx, "profile", DeviceProfile.of(fake_device("Some CPU", cl.device_type.CPU, 2, 16), cl))
+    cpu_profile = DeviceProfile.of(fake_device("Some CPU", cl.device_type.CPU, 2, 16), cl)
+    monkeypatch.setattr(ctx, "profile", replace(cpu_profile, tuned={"network_winograd": None}))
     cpu = StereoMatcher(max_disparity=D, device=ctx)
-    assert cpu.cost.volume_path == "pairs" and cpu.cost.stack.path == "register"
+    assert cpu.cost.volume_path == "pairs" and cpu.cost.stack.path == "register" and cpu.cost.stack.winograd is None
     cpu.sgm = SGM(ctx, paired=False)
     want = cpu.compute(left, right, return_intermediates=True)
     monkeypatch.setattr(ctx, "profile", DeviceProfile.of(fake_device("Some GPU", cl.device_type.GPU, 64), cl))
@@ -438,7 +444,7 @@ def test_paper_network_with_the_gpu_profile(ctx, shared_data, monkeypatch):
     monkeypatch.setattr(ctx, "profile", DeviceProfile.of(fake_device("Some GPU", cl.device_type.GPU, 64), cl))
     gpu = make_cost(ctx, w)
     assert gpu.head_path == "gemm" and gpu.stack.path == "local"
-    cpu = PaperCost(ctx, w, local_tiles=False, head_gemm=False)  # the gpu column's register tiles
+    cpu = PaperCost(ctx, w, local_tiles=False, head_gemm=False, winograd=False)  # the gpu column's register tiles
     assert cpu.rn == gpu.rn
     np.testing.assert_array_equal(bits(run_poisoned(ctx, gpu, left, right, D)),
                                   bits(run_poisoned(ctx, cpu, left, right, D)))

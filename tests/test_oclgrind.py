@@ -193,6 +193,39 @@ def case_fst(ctx, rng, chk):
               ctx.from_device(out, (D, H, W)))
 
 
+def case_winograd(ctx, rng, chk):
+    """network_conv_wino.cl (the CPU column's 3 x 3 layers by Winograd's F(2x2, 3x3), forced
+    here: Oclgrind takes the gpu column) in a conv stack at two register blocks: the features
+    against the float64 tower, then a band cut at an odd row (the row anchor) against the
+    whole image's rows bit for bit."""
+    from mccnn_cl.reference import network as ref
+    from mccnn_cl.costs.features import ConvStack, normalise
+    from mccnn_cl.weights import Weights
+
+    # two layers: the second (fst's last, no ReLU) by Winograd, the first (one channel) direct
+    w = Weights.random(conv_layers=[[16, 3], [16, 3]], architecture="mccnn-fst", seed=6)
+    raw = rng.random((13, 29)).astype(np.float32)
+    img = normalise(raw)[:, :, None]
+    r0, r1 = 3, 12
+
+    def features(stack, rows, row0=0):
+        H, W = rows.shape[:2]
+        d = stack(ctx.to_device(np.ascontiguousarray(rows)), H, W, row0)
+        h, wd = H - stack.patch + 1, W - stack.patch + 1
+        return ctx.from_device(d, (h, wd, stack.stride))
+
+    for rn, block in ((16, (4, 4)), (8, (3, 2))):
+        stack = ConvStack(ctx, w, rn, 3, local_tiles=False, winograd=block)
+        assert [l[0].wino for l in stack.layers] == [None, block]
+        whole = features(stack, img)
+        # float32 sums of 9 x 16 terms after a 9-term layer: ~1e-6 of features of magnitude ~1
+        chk.close(f"conv stack with Winograd {block} RN {rn}", whole[:, :, :w.feature_maps],
+                  ref.image_features(w, raw), atol=1e-5)
+        band = features(stack, img[r0:r1], r0)
+        chk.close(f"conv stack with Winograd {block} RN {rn}, rows {r0}..{r1}", band,
+                  whole[r0:r1 - stack.patch + 1])
+
+
 def case_acrt(ctx, rng, chk):
     """network_head.cl with the 1-output sigmoid layer (NOUT=1)."""
     from mccnn_cl.reference import network as ref
@@ -768,6 +801,7 @@ CASES = {
     "network_wg": case_network_wg,
     "fst": case_fst,
     "fst_wg": case_fst_wg,
+    "winograd": case_winograd,
     "acrt": case_acrt,
     "census": case_census,
     "range": case_range,

@@ -7,6 +7,8 @@ pair) on one matcher and comparing bit for bit with a fresh matcher's run
 on B alone, intermediates included.
 """
 
+import gc
+
 import cv2
 import numpy as np
 import pytest
@@ -63,6 +65,7 @@ def test_reused_volumes_give_the_same_result(ctx, shared_data):
     fresh.release_buffers()
 
     m = StereoMatcher(cost="census", max_disparity=D, device=ctx)
+    gc.collect()  # an earlier test's matcher, collected later, would free its buffers inside this count
     base = ctx.memory.live  # the constructor's own small tables
     m.compute(*A)
     kept = m._pool.free_bytes

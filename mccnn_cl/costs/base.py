@@ -52,7 +52,8 @@ class MatchingCost:
         """The cost for ``weights`` (a network's :class:`~mccnn_cl.weights.Weights`)."""
         return cls(ctx, weights, tiles=tiles, half=half)
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None, rows=None):
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None, rows=None,
+                 row0=0):
         """The volume ``[D][H_img - 2m][W_img - 2m]`` on the device (into ``out``
         when given); ``progress(done, D)`` as disparities or bands complete;
         ``stats``: ``((mean, std), (mean, std))`` of the left and right images to
@@ -60,7 +61,9 @@ class MatchingCost:
         ``scratch``: a device buffer lent for the call's own buffers (a cost
         may leave it unused; its contents are overwritten); ``rows``: volume
         rows per band of a banded cost (the networks; None: :meth:`band_rows`,
-        a cost that does not band ignores it)."""
+        a cost that does not band ignores it); ``row0``: the images' first row in
+        the whole images they were cut from (a row tile: the networks' Winograd
+        layers then compute its rows as the whole images'; others ignore it)."""
         raise NotImplementedError
 
     def band_rows(self, H: int, W: int) -> int:
@@ -74,9 +77,10 @@ class MatchingCost:
         return 0
 
     def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None,
-                rows=None) -> np.ndarray:
+                rows=None, row0=0) -> np.ndarray:
         """The volume in host memory, using at most ``max_bytes`` of device memory
-        at a time (bands of at most ``rows`` rows where the cost bands)."""
+        at a time (bands of at most ``rows`` rows where the cost bands; ``row0``
+        as :meth:`__call__`)."""
         raise NotImplementedError
 
     def scratch_bytes(self, H: int, W: int, rows=None) -> int:

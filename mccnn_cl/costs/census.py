@@ -68,7 +68,7 @@ class CensusCost(MatchingCost):
         volume = 2 * 3 * D * h * w
         return {"transform": transform, "volume": volume, "total": transform + volume}
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None, rows=None):
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None, rows=None, row0=0):
         """The volume as a host array (computed on the device, then copied)."""
         if not isinstance(left, np.ndarray):
             raise InputError("census to_host needs host images")
@@ -78,11 +78,13 @@ class CensusCost(MatchingCost):
         d.release()
         return out
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None, rows=None):
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None, rows=None,
+                 row0=0):
         """Cost volume of the host images ``left`` vs ``right``; ``progress`` is
         accepted as every cost's and not called (one launch), so are ``stats``
         (census compares intensities, it standardises nothing), ``scratch``
-        (its bit planes are small: 16 bytes a pixel) and ``rows`` (no bands)."""
+        (its bit planes are small: 16 bytes a pixel), ``rows`` (no bands) and ``row0``
+        (its sums do not depend on where a tile starts)."""
         if not (isinstance(left, np.ndarray) and isinstance(right, np.ndarray)):
             raise InputError("census needs host images (numpy arrays)")
         if left.shape != right.shape or left.ndim != 2:

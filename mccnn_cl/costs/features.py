@@ -26,6 +26,16 @@ Two kernels compute that GEMM, with the same float operations per output
   ``ConvStack(local_tiles=...)`` forces it (True, or a dict of sizes,
   checked: InputError when they do not fit) or excludes it (False).
 
+On CPU devices the 3 x 3 layers whose input channels are a multiple of RN
+run by Winograd's F(2x2, 3x3) instead (``kernels/network_conv_wino.cl``,
+rule ``network_winograd``: 2.25x fewer multiplies, ~1.5x faster a layer;
+the first layer, one channel, stays direct).  Its sums are ordered
+differently: its features equal the direct kernels' to float32 rounding
+(both within ~1e-6 of a float64 convolution), not bit for bit, and a map
+cut at an odd row (a band, a row tile) is computed on the whole map's tile
+grid (``row0``), so bands and row tiles still give the whole image's
+values bit for bit.
+
 Layouts: the image is float32 ``[H][W][C]``; each layer's output is
 channel-last, pixel-major ``[(H - ks + 1) * (W - ks + 1)][NP]`` with NP the
 layer's maps padded to the vector width RN (padded channels hold exactly 0:
@@ -54,12 +64,44 @@ from .base import MatchingCost
 
 CONV_CL = "network_conv.cl"
 CONV_WG_CL = "network_conv_wg.cl"
+CONV_WINO_CL = "network_conv_wino.cl"
 #: network_conv_wg's tile dimensions and their register blocks, in shrinking order
 CONV_BLOCKS = (("TM", "RM"), ("TN", "RN"))
 
 #: One layer's GEMM kernel: ``tile`` None for network_conv (register blocks),
 #: else the sizes network_conv_wg was built with (TM, TN, TK, RM, RN).
-ConvKernel = namedtuple("ConvKernel", "kern tile")
+ConvKernel = namedtuple("ConvKernel", "kern tile wino", defaults=(None,))
+
+#: Winograd F(2x2, 3x3)'s weight transform: U = G g G^T per (output, input) pair
+WINO_G = np.array([[1, 0, 0], [.5, .5, .5], [.5, -.5, .5], [0, 0, 1]], np.float64)
+
+
+def winograd_weights(W, npad: int) -> np.ndarray:
+    """U = G g G^T of every (output, input) pair of 3 x 3 kernels ``W`` [cout][cin][3][3]
+    (computed in float64), as network_conv_wino reads it: float32 [cin][16][npad], the
+    padded outputs zero."""
+    cout, cin = W.shape[:2]
+    U = np.zeros((cin, 16, int(npad)), np.float32)
+    U[:, :, :cout] = np.einsum("ai,kcij,bj->cabk", WINO_G, np.asarray(W, np.float64), WINO_G).reshape(cin, 16, cout)
+    return U
+
+
+def launch_winograd(ctx, kern, rt: int, rn: int, d_in, w_in: int, d_u, d_b, d_out, w_out: int, h_out: int,
+                    npad: int, row0: int = 0) -> None:
+    """Enqueue network_conv_wino (built with RT ``rt``, RN ``rn``, NP ``npad``): the valid 3 x 3
+    layer of a ``(h_out + 2) x w_in`` map into ``h_out x w_out`` outputs, on the tile grid of
+    the whole map whose row ``row0`` is this map's first (``d_u``: :func:`winograd_weights`)."""
+    p = int(row0) % 2
+    tw, th = (int(w_out) + 1) // 2, (int(h_out) + p + 1) // 2
+    g = int(npad) // int(rn)
+    kern(ctx.queue, (g, -(-tw // int(rt)), th), (g, 1, 1), d_in, np.int32(w_in), np.int32(h_out + 2), d_u, d_b,
+         d_out, np.int32(w_out), np.int32(h_out), np.int32(tw), np.int32(th), np.int32(p))
+
+
+def winograd_local_bytes(cin: int, npad: int, rn: int, rt: int) -> int:
+    """Local memory of a network_conv_wino work-group: per channel group RT tiles' 16
+    transformed patches (CIN) and products (RN)."""
+    return (npad // rn) * 16 * rt * (cin + rn) * 4
 
 
 def fit_tile(ctx, what, sizes, forced, local_bytes, local_size, build, shrink):
@@ -154,10 +196,15 @@ class ConvStack:
     profile's tile (shrunk to fit), a dict ``network_conv_wg`` with those
     sizes (keys TM, TN, TK, RM, RN; not shrunk).  ``path`` says which
     ("local" or "register"); each layer's kernel and tile: ``layers[i][0]``.
+    ``winograd``: on the register path, the 3 x 3 layers whose input channels
+    are a multiple of RN by F(2x2, 3x3) with register block (RT, XA): None
+    the profile's rule (:meth:`~mccnn_cl.opencl.device.DeviceProfile.winograd`),
+    False never, a pair that block; a layer whose work-group does not fit the
+    device stays direct.  ``layers[i][0].wino`` says which layers run so.
     """
 
     def __init__(self, ctx, weights, rn: int, conv_rm: int, relu_after_last: bool | None = None,
-                 local_tiles=None):
+                 local_tiles=None, winograd=None):
         if rn not in (1, 2, 4, 8, 16):
             raise InputError(f"tile RN must be 1, 2, 4, 8 or 16, got {rn}")
         if int(conv_rm) < 1:
@@ -167,6 +214,14 @@ class ConvStack:
         if self.local_tile is not None:
             check_tile(self.local_tile[0], CONV_BLOCKS, "conv GEMM")
         self.path = "register" if self.local_tile is None else "local"
+        if winograd is None:
+            winograd = ctx.profile.winograd()
+        if winograd:
+            rt, xa = (int(v) for v in winograd)
+            if rt < 1 or xa not in (1, 2, 4, 8, 16):
+                raise InputError(f"Winograd block (RT, XA) needs RT >= 1 and XA 1, 2, 4, 8 or 16, got {winograd}")
+            winograd = (rt, xa)
+        self.winograd = winograd if winograd and self.path == "register" else None
         relu_last = weights.relu_after_last_conv if relu_after_last is None else bool(relu_after_last)
         self.relu_after_last = relu_last
         self.layers = []  # (kernel, d_w, d_b, kernel size, padded outputs)
@@ -180,7 +235,11 @@ class ConvStack:
             bp = np.zeros(npad, np.float32)
             bp[:cout] = b
             relu = int(i < n - 1 or relu_last)
-            kern = self.kernel(ks, cin, cs, npad, relu)
+            kern = self._winograd_kernel(ks, cin, cs, npad, relu)
+            if kern is None:
+                kern = self.kernel(ks, cin, cs, npad, relu)
+            else:
+                wt = winograd_weights(W, npad)
             self.layers.append((kern, ctx.to_device(wt), ctx.to_device(bp), ks, npad))
             cs = npad
         self.stride = cs            # channels per pixel of the output (maps padded)
@@ -195,6 +254,21 @@ class ConvStack:
 
     def release_buffers(self) -> None:
         self._pool.clear()
+
+    def _winograd_kernel(self, ks, cin, cs, npad, relu):
+        """The layer's network_conv_wino kernel, or None where the layer runs direct
+        (no Winograd block, not 3 x 3, input channels not a multiple of RN, or a
+        work-group that does not fit the device's local memory or the kernel)."""
+        if self.winograd is None or ks != 3 or cin % self.rn:
+            return None
+        rt, xa = self.winograd
+        if winograd_local_bytes(cin, npad, self.rn, rt) > self.ctx.local_mem:
+            return None
+        kern = self.ctx.kernel(CONV_WINO_CL, "network_conv_wino", CIN=cin, CS=cs, NP=npad, RN=self.rn,
+                               RELU=int(relu), RT=rt, XA=xa)
+        if npad // self.rn > self.ctx.work_group_size(kern):
+            return None
+        return ConvKernel(kern, None, (rt, xa))
 
     def kernel(self, ks, cin, cs, npad, relu) -> ConvKernel:
         """The GEMM kernel of one layer (KS x KS, CIN channels read at stride
@@ -216,8 +290,14 @@ class ConvStack:
             shrinker(*CONV_BLOCKS))  # fewer pixels, then fewer channels, then a thinner slice
         return ConvKernel(kern, tile)
 
-    def launch(self, conv: ConvKernel, d_in, w_in, d_w, d_b, d_out, w_out, m_total, npad):
-        kern, tile = conv
+    def launch(self, conv: ConvKernel, d_in, w_in, d_w, d_b, d_out, w_out, m_total, npad, row0: int = 0):
+        """Enqueue one layer; ``row0``: the map's first row in the whole map it was cut
+        from (a Winograd layer's tile grid is anchored at that map's row 0)."""
+        kern, tile, wino = conv
+        if wino is not None:
+            launch_winograd(self.ctx, kern, wino[0], self.rn, d_in, w_in, d_w, d_b, d_out, w_out, m_total // w_out,
+                            npad, row0)
+            return
         if tile is None:
             # a work-group spans every channel group (a fixed count per layer)
             gsize, lsize = launch_sizes(self.ctx, (npad // self.rn, math.ceil(m_total / self.conv_rm)))
@@ -231,8 +311,10 @@ class ConvStack:
         kern(self.ctx.queue, gsize, lsize, d_in, np.int32(w_in), d_w, d_b, d_out,
              np.int32(w_out), np.int32(m_total))
 
-    def __call__(self, d_img, H: int, W: int):
-        """All conv layers over an uploaded image ``[H][W][C]`` (float32).
+    def __call__(self, d_img, H: int, W: int, row0: int = 0):
+        """All conv layers over an uploaded image ``[H][W][C]`` (float32);
+        ``row0``: its first row in the whole image it was cut from (a band,
+        a row tile: the Winograd layers then give the whole image's values).
 
         Returns a device buffer ``[(H-P+1) * (W-P+1)][stride]`` (hand it
         back with :meth:`give`); buffers may be larger than the map."""
@@ -241,17 +323,18 @@ class ConvStack:
         for kern, d_w, d_b, ks, npad in self.layers:
             ho, wo = h - ks + 1, w - ks + 1
             d_out = self._pool.take(ho * wo * npad * 4, "network feature map")
-            self.launch(kern, d_in, w, d_w, d_b, d_out, wo, ho * wo, npad)
+            self.launch(kern, d_in, w, d_w, d_b, d_out, wo, ho * wo, npad, row0)
             if d_in is not d_img:
                 self._pool.give(d_in)  # the in-order queue runs its next writer after this layer
             d_in, h, w = d_out, ho, wo
         return d_in
 
-    def run_image(self, band: np.ndarray):
-        """Upload a standardised float32 image (rows x W x C) and run the stack."""
+    def run_image(self, band: np.ndarray, row0: int = 0):
+        """Upload a standardised float32 image (rows x W x C; its first row is row
+        ``row0`` of the whole image) and run the stack."""
         H, W = band.shape[:2]
         d_img = self.ctx.to_device(np.ascontiguousarray(band, dtype=np.float32))
-        d_feat = self(d_img, H, W)
+        d_feat = self(d_img, H, W, row0)
         d_img.release()
         return d_feat
 
@@ -285,7 +368,7 @@ class ConvNetCost(MatchingCost):
     #: hidden width are padded to it) or the tiles' own CONV_RN (fst: the stack alone)
     stack_rn_from_head = False
 
-    def __init__(self, ctx, weights, tiles=None, half: bool = False, local_tiles=None):
+    def __init__(self, ctx, weights, tiles=None, half: bool = False, local_tiles=None, winograd=None):
         weights.validate()
         if weights.architecture != self.architecture:
             raise WeightsError(f"{type(self).__name__} runs {self.architecture} networks, "
@@ -304,7 +387,8 @@ class ConvNetCost(MatchingCost):
             rn = self.tiles["RN"]  # an explicit RN sets both, as it did before CONV_RN
         else:
             rn = self.tiles["CONV_RN"]
-        self.stack = ConvStack(ctx, weights, int(rn), int(self.tiles["CONV_RM"]), local_tiles=local_tiles)
+        self.stack = ConvStack(ctx, weights, int(rn), int(self.tiles["CONV_RM"]), local_tiles=local_tiles,
+                               winograd=winograd)
 
     def band_rows(self, h: int, w: int) -> int:
         raise NotImplementedError
@@ -320,7 +404,7 @@ class ConvNetCost(MatchingCost):
             raise InputError(f"band rows must be an integer >= 1, not {rows!r}")
         return min(int(rows), most)
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None):
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None, row0=0):
         raise NotImplementedError
 
     @staticmethod
@@ -356,7 +440,8 @@ class ConvNetCost(MatchingCost):
         sure = int(lent) - max(items) - len(items) * self.ctx.sub_buffer_align
         return max(0, min(sum(items), sure))
 
-    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None, rows=None):
+    def __call__(self, left, right, max_disparity, out=None, progress=None, stats=None, scratch=None, rows=None,
+                 row0=0):
         """Inputs checked, the volume's buffer (``out`` or a new one), :meth:`_enqueue`
         over bands of :meth:`rows_of` rows (``rows``; None: :meth:`band_rows`);
         ``stats``: ``((mean, std) of the left, (mean, std)
@@ -368,7 +453,7 @@ class ConvNetCost(MatchingCost):
         it is the caller's again when the call returns (later commands of the
         in-order queue run after the cost's)."""
         if scratch is None or not self.ctx.sub_buffers:
-            return self._call(left, right, max_disparity, out, progress, stats, rows)
+            return self._call(left, right, max_disparity, out, progress, stats, rows, row0)
         if scratch is out:
             raise InputError("the lent scratch buffer must not be the volume's buffer")
         arena = Arena(self.ctx, scratch)
@@ -377,14 +462,14 @@ class ConvNetCost(MatchingCost):
             pool.lend(arena)
         done = False
         try:
-            volume = self._call(left, right, max_disparity, out, progress, stats, rows)
+            volume = self._call(left, right, max_disparity, out, progress, stats, rows, row0)
             done = True
             return volume
         finally:  # after an error (Ctrl-C too) the maps still taken are released, not reported
             for pool in pools:
                 pool.end_loan(check=done)
 
-    def _call(self, left, right, max_disparity, out, progress, stats, rows=None):
+    def _call(self, left, right, max_disparity, out, progress, stats, rows=None, row0=0):
         ctx = self.ctx
         L, R, D, h, w = check_cost_inputs(left, right, max_disparity, self.channels, self.patch)
         nbytes = D * h * w * self.vdtype.itemsize
@@ -395,12 +480,12 @@ class ConvNetCost(MatchingCost):
         elif out.size < nbytes:
             raise InputError(f"out buffer has {out.size} bytes, the volume needs {nbytes}")
         try:
-            self._enqueue(L, R, D, h, w, rows, out, progress, stats=stats)
+            self._enqueue(L, R, D, h, w, rows, out, progress, stats=stats, row0=row0)
         except ctx.cl.Error as exc:
             raise OpenCLError(f"{self.label} ({D} x {h} x {w}) failed on {ctx.describe()}: {exc}") from exc
         return out
 
-    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None, rows=None):
+    def to_host(self, left, right, max_disparity, max_bytes=None, progress=None, stats=None, rows=None, row0=0):
         """Each band (at most ``rows`` rows, :meth:`rows_of`) computed into one
         device buffer of at most ``max_bytes`` (default: the max allocation)
         and copied into the host volume
@@ -420,7 +505,7 @@ class ConvNetCost(MatchingCost):
         host = np.empty((D, h, w), self.vdtype)
         d_band = ctx.empty(D * rows * w * self.vdtype.itemsize, "cost volume band")
         try:
-            self._enqueue(L, R, D, h, w, rows, d_band, progress, host=host, stats=stats)
+            self._enqueue(L, R, D, h, w, rows, d_band, progress, host=host, stats=stats, row0=row0)
         except ctx.cl.Error as exc:
             raise OpenCLError(f"{self.label} ({D} x {h} x {w}, in bands of {rows} rows) failed on "
                               f"{ctx.describe()}: {exc}") from exc

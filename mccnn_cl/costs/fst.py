@@ -36,7 +36,8 @@ in increasing order, negated):
   (True, or a dict of sizes TX, TD, TK, RX, RD, checked) or excludes it.
 
 The conv stack's GEMM has the same two shapes (``local_tiles=``, rule
-``network_local_tiles``; :mod:`.features`).
+``network_local_tiles``; :mod:`.features`), and on CPU devices its 3 x 3
+layers run by Winograd's F(2x2, 3x3) (``winograd=``, rule ``network_winograd``).
 
 Memory: the image is processed in bands of volume rows whose feature
 buffers (both images, pixel-major and planar) take at most ``BAND_BYTES``
@@ -75,7 +76,9 @@ class FstCost(ConvNetCost):
     (module docstring): None the profile's rule, False ``fst_volume_pairs``,
     True ``fst_volume_wg`` with the profile's tile, a dict ``fst_volume_wg``
     with those sizes.  ``volume_path`` says which ("workgroup" or "pairs"),
-    ``volume_tile`` the work-group path's sizes.
+    ``volume_tile`` the work-group path's sizes.  ``winograd``: the conv
+    stack's 3 x 3 layers by Winograd's F(2x2, 3x3) (None: the profile's
+    rule; False: never; :class:`.features.ConvStack`).
     """
 
     architecture = FST
@@ -84,8 +87,8 @@ class FstCost(ConvNetCost):
     label = "fst cost"
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False,
-                 local_tiles=None, workgroup=None, volume_width: int | None = None):
-        super().__init__(ctx, weights, tiles, half, local_tiles)
+                 local_tiles=None, workgroup=None, volume_width: int | None = None, winograd=None):
+        super().__init__(ctx, weights, tiles, half, local_tiles, winograd)
         self.nk = weights.feature_maps
         # the planar features of both images, kept between bands and calls like the conv
         # stack's maps: a fresh 100+ MB buffer's first write is page mapping on CPU devices
@@ -195,8 +198,8 @@ class FstCost(ConvNetCost):
         self._planes.give(d)
         return out[:, :, PADL:PADL + w].transpose(0, 2, 1).copy()
 
-    def _features(self, band, hb, w):
-        d_feat = self.stack.run_image(band)
+    def _features(self, band, hb, w, row0=0):
+        d_feat = self.stack.run_image(band, row0)
         wp = self._wp(w)
         d_out = self._planes.take(hb * self.nk * wp * 4, "fst planar features")
         self._norm(self.ctx.queue, *launch_sizes(self.ctx, (wp // self._norm_px, hb), guarded=(1, 0)), d_feat,
@@ -204,14 +207,14 @@ class FstCost(ConvNetCost):
         self.stack.give(d_feat)
         return d_out
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None):
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None, row0=0):
         q, P = self.ctx.queue, self.patch
         Ln, Rn = self.standardised(L, R, stats)
         bands = range(0, h, rows)
         for i, y0 in enumerate(bands):
             hb = min(rows, h - y0)
-            d_l = self._features(Ln[y0:y0 + hb + P - 1], hb, w)
-            d_r = self._features(Rn[y0:y0 + hb + P - 1], hb, w)
+            d_l = self._features(Ln[y0:y0 + hb + P - 1], hb, w, row0 + y0)
+            d_r = self._features(Rn[y0:y0 + hb + P - 1], hb, w, row0 + y0)
             vh, vy0 = (h, y0) if host is None else (hb, 0)
             self.launch_volume(d_l, d_r, d_cost, vh, w, vy0, D, hb)
             if progress is not None or host is not None:

@@ -96,6 +96,9 @@ class PaperCost(ConvNetCost):
         The head's layout (module docstring): True layer by layer through
         the conv stack's GEMM ("gemm"), False fused (``network_head``),
         None the profile's ``network_head_gemm`` rule.  ``head_path`` says which.
+    winograd : None, False or (RT, XA)
+        The 3 x 3 conv layers by Winograd's F(2x2, 3x3) (None: the
+        profile's ``network_winograd`` rule; see :class:`.features.ConvStack`).
 
     Calls as every cost (:class:`.features.ConvNetCost`): scratch memory is
     bounded, the image being processed in bands of volume rows whose A and B
@@ -114,8 +117,8 @@ class PaperCost(ConvNetCost):
     label = "network (C_CNN)"
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False,
-                 local_tiles=None, head_gemm: bool | None = None):
-        super().__init__(ctx, weights, tiles, half, local_tiles)
+                 local_tiles=None, head_gemm: bool | None = None, winograd=None):
+        super().__init__(ctx, weights, tiles, half, local_tiles, winograd)
         gemm = bool(ctx.profile.rule("network_head_gemm") if head_gemm is None else head_gemm)
         self.head_path = "gemm" if gemm else "fused"
         self._runs = None  # the "gemm" head's (cells, [two activation buffers]), kept between calls
@@ -227,11 +230,11 @@ class PaperCost(ConvNetCost):
                           n_pixels, self.hp)
         return d_out
 
-    def _half(self, band: np.ndarray, left: bool):
+    def _half(self, band: np.ndarray, left: bool, row0: int = 0):
         """Upload a normalised float32 image band (rows x W x C) and run it through
         L1-L3 and its half of L4; returns the ``[pixels][hp]`` buffer A or B."""
         H, W = band.shape[:2]
-        d_feat = self.stack.run_image(band)
+        d_feat = self.stack.run_image(band, row0)
         n = (H - self.patch + 1) * (W - self.patch + 1)
         d_half = self.split_l4(d_feat, n, left=left)
         self.stack.give(d_feat)
@@ -268,7 +271,7 @@ class PaperCost(ConvNetCost):
         self.ctx.check_alloc(row, f"network L4 split of one row ({w} x {self.hp})")
         return max(1, min(h, min(BAND_BYTES, self.ctx.max_alloc) // row))
 
-    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None):
+    def _enqueue(self, L, R, D, h, w, rows, d_cost, progress, host=None, stats=None, row0=0):
         """The launches of :meth:`__call__` (inputs already checked).  With
         ``host`` (a [D][h][w] array), ``d_cost`` holds one band at a time
         ([D][hb][w]), copied into ``host`` after each band."""
@@ -286,8 +289,8 @@ class PaperCost(ConvNetCost):
             vh, vy0 = (h, y0) if host is None else (hb, 0)
             if host is not None:
                 self._mark(q, *launch_sizes(self.ctx, (w, hb, D), guarded=(1, 1, 0)), d_cost, i32(hb), i32(w), i32(0))
-            d_a = self._half(Ln[y0:y0 + hb + P - 1], left=True)
-            d_b = self._half(Rn[y0:y0 + hb + P - 1], left=False)
+            d_a = self._half(Ln[y0:y0 + hb + P - 1], left=True, row0=row0 + y0)
+            d_b = self._half(Rn[y0:y0 + hb + P - 1], left=False, row0=row0 + y0)
             per_chunk = max(1, min(D, CHUNK_CELLS // max(1, hb * w)))
             for d0 in range(0, D, per_chunk):
                 nd = min(per_chunk, D - d0)

@@ -62,6 +62,12 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: image's stack took 0.56 s at CONV_RN 16 against 1.03 s at RN 8, BENCHMARKS.md; the paper
 #: and acrt stacks keep RN, which their heads share; ``mccnn-cl tune`` measures CONV_RM 4, 6
 #: and 8 and CONV_RN 8);
+#: ``network_winograd`` (the conv stack's 3 x 3 layers by Winograd's F(2x2, 3x3),
+#: kernels/network_conv_wino.cl: (RT tiles, XA products) per work-item, XA 0 = 4 where the
+#: kernels get 16-float vectors (:attr:`DeviceProfile.wide_vectors`), else 1; None: the
+#: direct GEMM; CPU devices only (80 KiB of local memory a work-group): a 64 -> 64 layer of
+#: general-fst on a KITTI-sized map took 101 against 158 ms at (4, 4) with AVX-512 code, 113
+#: against 168 ms at (4, 1) with AVX2 code, BENCHMARKS.md);
 #: ``network_local_tiles`` (the conv stack and the L4 split as a local-memory tiled
 #: GEMM, kernels/network_conv_wg.cl) with its starting tile ``network_gemm_tile``
 #: (TM pixels x TN channels per work-group, TK terms per slice, RM x RN per
@@ -101,6 +107,7 @@ RULES = {
                                 GPU: dict(TM=32, RM=4, RN=4, ROWS_FASTEST=0, CONV_RM=4)},
     "network_local_tiles":     {CPU: False, LLVMPIPE: False, GPU: True},
     "network_head_gemm":       {CPU: False, LLVMPIPE: False, GPU: True},
+    "network_winograd":        {CPU: (4, 0), LLVMPIPE: None, GPU: None},
     "network_gemm_tile":       {c: dict(TM=64, TN=64, TK=16, RM=4, RN=4) for c in (CPU, LLVMPIPE, GPU)},
     "fst_workgroup":           {CPU: False, LLVMPIPE: False, GPU: True},
     "fst_volume_tile":         {c: dict(TX=64, TD=64, TK=16, RX=4, RD=4) for c in (CPU, LLVMPIPE, GPU)},
@@ -243,6 +250,15 @@ class DeviceProfile:
                 and "RM" not in self.tuned.get("network_tiles", {})):
             tiles["RM"] = min(int(tiles["RM"]), NARROW_HEAD_RM)
         return tiles
+
+    def winograd(self):
+        """The conv stack's Winograd block (RT, XA) (rule ``network_winograd``; XA 0: 4 on
+        :attr:`wide_vectors` devices, else 1), or None for the direct GEMM."""
+        v = self.rule("network_winograd")
+        if not v:
+            return None
+        rt, xa = (int(a) for a in v)
+        return rt, xa if xa else (4 if self.wide_vectors else 1)
 
     def fst_volume_width(self) -> int:
         """fst's pairs-form volume kernel's vector width (rule ``fst_volume_width``; 0: 16 where the

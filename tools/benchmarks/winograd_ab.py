@@ -1,8 +1,8 @@
 """One 64 -> 64 3 x 3 layer of a shipped fst network: the package's direct
-kernel (``network_conv``, the device's rule tiles) against the Winograd
-F(2x2, 3x3) prototype ``winograd_proto.cl`` (not used by the package) at
-several register blocks, in turn in one process; each output checked against
-a float64 direct sum (BENCHMARKS.md, "The lever left for the network").
+kernel (``network_conv``, RM 4) against its Winograd F(2x2, 3x3) kernel
+(``network_conv_wino``, the CPU devices' rule) at several register blocks,
+in turn in one process; each output checked against a float64 direct sum
+(BENCHMARKS.md, "Winograd F(2x2, 3x3) for the conv stack").
 
     .venv/bin/python tools/benchmarks/winograd_ab.py [--blocks 4x4,4x2,4x1] [--rn 16] [--layer 1] [--rounds 3]
 
@@ -19,18 +19,14 @@ import argparse
 import math
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 
-os.environ.setdefault("MCCNN_BINARY_CACHE", "off")  # prototype builds stay out of the cache
+os.environ.setdefault("MCCNN_BINARY_CACHE", "off")  # blocks the package does not use stay out of the cache
 
+from mccnn_cl.costs.features import CONV_WINO_CL, launch_winograd, winograd_weights  # noqa: E402
 from mccnn_cl.models import resolve  # noqa: E402
 from mccnn_cl.opencl.context import ClContext  # noqa: E402
-
-HERE = Path(__file__).resolve().parent
-#: Winograd F(2x2, 3x3)'s weight transform (U = G g G^T)
-G = np.array([[1, 0, 0], [.5, .5, .5], [.5, -.5, .5], [0, 0, 1]], np.float64)
 
 
 def reference(x, W, b, relu=True):
@@ -44,35 +40,21 @@ def reference(x, W, b, relu=True):
     return (np.maximum(out, 0) if relu else out).reshape(-1, W.shape[0])
 
 
-def transformed_weights(W):
-    """U = G g G^T of every (output, input) pair of 3 x 3 kernels W [cout][cin][3][3], as the
-    prototype reads it: float32 [cin][16][cout] (computed in float64)."""
-    cout, cin = W.shape[:2]
-    U = np.einsum("ai,kcij,bj->cabk", G, np.asarray(W, np.float64), G).reshape(cin, 16, cout)
-    return np.ascontiguousarray(U.astype(np.float32))
-
-
 class WinogradLayer:
-    """The prototype built for one layer shape (``cin`` -> ``cout`` maps, ReLU or not) with
+    """The package's Winograd kernel built for one layer shape (``cin`` -> ``cout`` maps, ReLU or not) with
     register block ``rt`` x ``xa`` and ``rn`` channels per work-item: :meth:`__call__` runs it
     on uploaded buffers, :meth:`run` on host arrays."""
 
     def __init__(self, ctx, cin, cout, relu, rt, xa, rn):
         if cin % rn or cout % rn:
-            raise ValueError(f"the prototype needs channels in multiples of RN={rn}, got {cin} -> {cout}")
+            raise ValueError(f"the Winograd kernel needs channels in multiples of RN={rn}, got {cin} -> {cout}")
         self.ctx, self.cout, self.rt, self.rn = ctx, cout, rt, rn
-        opts = ["-I", ctx.kernel_dir] + [f"-D{k}={v}" for k, v in dict(
-            KS=3, CIN=cin, CS=cin, NP=cout, RELU=int(relu), RN=rn, RT=rt, XA=xa).items()]
-        src = (HERE / "winograd_proto.cl").read_text()
-        self.kernel = ctx.cl.Program(ctx.context, src).build(options=opts).winograd_conv3
+        self.kernel = ctx.kernel(CONV_WINO_CL, "network_conv_wino", CIN=cin, CS=cin, NP=cout, RELU=int(relu),
+                                 RN=rn, RT=rt, XA=xa)
 
     def __call__(self, d_x, h_in, w_in, d_u, d_b, d_out, p=0):
-        h_out, w_out = h_in - 2, w_in - 2
-        th, tw = (h_out + p + 1) // 2, (w_out + 1) // 2
-        g = self.cout // self.rn
-        self.kernel(self.ctx.queue, (g, (tw + self.rt - 1) // self.rt, th), (g, 1, 1), d_x, np.int32(w_in),
-                    np.int32(h_in), d_u, d_b, d_out, np.int32(w_out), np.int32(h_out), np.int32(tw), np.int32(th),
-                    np.int32(p))
+        launch_winograd(self.ctx, self.kernel, self.rt, self.rn, d_x, w_in, d_u, d_b, d_out, w_in - 2, h_in - 2,
+                        self.cout, p)
 
     def run(self, x, W, b, p=0):
         """Output [(h - 2) * (w - 2)][cout] of the channel-last map x [h][w][cin] (float32), its tile
@@ -82,7 +64,7 @@ class WinogradLayer:
         n = (h - 2) * (w - 2) * self.cout
         d_out = ctx.empty(4 * n)
         ctx.fill(d_out, np.float32(np.nan), 4 * n)
-        self(ctx.to_device(np.ascontiguousarray(x, np.float32)), h, w, ctx.to_device(transformed_weights(W)),
+        self(ctx.to_device(np.ascontiguousarray(x, np.float32)), h, w, ctx.to_device(winograd_weights(W, self.cout)),
              ctx.to_device(np.asarray(b, np.float32)), d_out, p)
         return ctx.from_device(d_out, ((h - 2) * (w - 2), self.cout))
 
@@ -109,7 +91,7 @@ def main():
     ref = reference(x, W, b, relu)
     d_x, d_b = ctx.to_device(x), ctx.to_device(b)
     d_wt = ctx.to_device(W.transpose(2, 3, 1, 0).reshape(9 * cin, cout).copy())
-    d_u = ctx.to_device(transformed_weights(W))
+    d_u = ctx.to_device(winograd_weights(W, cout))
     d_out = ctx.empty(m_total * cout * 4)
     defs = dict(KS=3, CIN=cin, CS=cin, NP=cout, RELU=relu, RN=rn)
     direct = ctx.kernel("network_conv.cl", "network_conv", RM=4, **defs)

@@ -1,7 +1,8 @@
-/* winograd_proto.cl - a PROTOTYPE, not used by the package: one valid 3 x 3
- * convolution layer (channel-last maps, as kernels/network_conv.cl) by
- * Winograd's F(2x2, 3x3), measured against network_conv by
- * tools/benchmarks/winograd_ab.py.
+/* network_conv_wino.cl - one valid 3 x 3 convolution layer of the conv stack
+ * (channel-last maps, as kernels/network_conv.cl, whose result it gives to
+ * float32 rounding) by Winograd's F(2x2, 3x3): 16 multiplies per 2 x 2
+ * outputs and channel pair instead of 36 (mccnn_cl/costs/features.py,
+ * ConvStack; the "winograd" path of CPU devices, rule network_winograd).
  *
  * Work-item (g, quad, ty): output channels g*RN .. g*RN+RN-1 of RT consecutive
  * 2 x 2 output tiles of tile row ty.  It transforms its tiles' 4 x 4 input
@@ -19,27 +20,23 @@
  * stored, and its input row (clamped to row 0) cannot change the row kept:
  * of the four transformed rows only the first reads a tile's first input
  * row, and only the first output row reads that one, so every output gets
- * the very operations of the whole map's computation (tests/test_bench.py).
- * th = ceil((h_out + p) / 2).  Needs KS 3, CIN a multiple of RN,
- * and (NP/RN) x 16 RT (CIN + RN) x 4 bytes of local memory (80 KiB for
- * 64 -> 64 maps at RT 4: CPU devices only).
- *
- * Not done here, needed before a package path: passing each band's and row
- * tile's parity down to the layers (p above), the first layer (CIN 1), the
- * tuner's choice of (RT, XA) and of the path per device, and the kernel-to-
- * reference tests, Oclgrind and the other runtimes.
+ * the very operations of the whole map's computation (tests/test_winograd.py).
+ * th = ceil((h_out + p) / 2), tw = ceil(w_out / 2).  Needs KS 3, CIN a
+ * multiple of RN, and (NP/RN) x 16 RT (CIN + RN) x 4 bytes of local memory
+ * (80 KiB for 64 -> 64 maps at RT 4: CPU devices, whose local memory is
+ * ordinary memory).
  */
 #include "common.h"
 #include "vector.h"
 
-#ifndef RT
-#define RT 4
+#if !defined(CIN) || !defined(CS) || !defined(NP) || !defined(RN) || !defined(RELU) || !defined(RT) || !defined(XA)
+#error "CIN, CS, NP, RN, RELU, RT and XA must be defined"
 #endif
-#ifndef XA
-#define XA 4
+#if CIN % RN || NP % RN || 16 % XA
+#error "CIN and NP must be multiples of RN, and XA must divide 16"
 #endif
 
-__kernel void winograd_conv3(__global const float *in, int w_in, int h_in,
+__kernel void network_conv_wino(__global const float *in, int w_in, int h_in,
                              __global const float *u, /* [CIN][16][NP] */
                              __global const float *bias, __global float *out, int w_out, int h_out, int tw, int th,
                              int p)
