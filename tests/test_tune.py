@@ -1,5 +1,6 @@
 """The tuner (mccnn_cl.opencl.tune): its per-device cache and its choices."""
 
+import dataclasses
 import json
 import multiprocessing
 import os
@@ -217,6 +218,12 @@ def test_devices_lines_name_the_source(cache, ctx):
     assert "tuned on this device" in lines[0]
     assert any("sgm_cols" in ln and "48" in ln and "(tuned)" in ln for ln in lines)
     assert any("cbca_fused" in ln and "(rules)" in ln for ln in lines)
+    if ctx.profile.is_cpu:  # the Winograd block as the stack takes it (XA resolved), or None when tuned off
+        rules = dataclasses.replace(ctx.profile, tuned={}).winograd()
+        assert any("network_winograd" in ln and str(rules) in ln and "(rules)" in ln for ln in lines)
+        tune.store(ctx.device, {"network_winograd": None}, {})
+        lines = describe_choices(ctx.device)
+        assert any("network_winograd" in ln and "None" in ln and "(tuned)" in ln for ln in lines)
 
 
 @pytest.mark.slow

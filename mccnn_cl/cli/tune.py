@@ -34,13 +34,15 @@ def describe_choices(device) -> list:
         head = "kernel choices: the rules table (not tuned: run `mccnn-cl tune`)"
     profile.tuned.update(tuned)
     lines = [head]
-    names = ("sgm_paired_max_units", "sgm_cols", "sgm_width", "cbca_fused", "cbca_multi", "fst_volume_width", "wta_chunks",
-             "mirror_lines", "launch_local")
+    names = ("sgm_paired_max_units", "sgm_cols", "sgm_width", "cbca_fused", "cbca_multi", "network_winograd",
+             "fst_volume_width", "wta_chunks", "mirror_lines", "launch_local")
     if not profile.is_cpu:  # the GPU-shaped paths and the GEMM tile are tuned there
         names = ("sgm_stage", "sgm_cols", "sgm_wg_cols", "cbca_workgroup", "launch_local", "network_gemm_tile")
     for name in names:
-        value = profile.fst_volume_width() if name == "fst_volume_width" else profile.rule(name)
-        lines.append(f"  {name:22s} {value!s:14s} ({profile.rule_source(name)})")
+        value = (profile.fst_volume_width() if name == "fst_volume_width" else
+                 profile.winograd() if name == "network_winograd" else profile.rule(name))
+        note = ", 3 x 3 conv layers' (RT, XA) or None (direct)" if name == "network_winograd" else ""
+        lines.append(f"  {name:22s} {value!s:14s} ({profile.rule_source(name)}){note}")
     if not profile.is_cpu:
         return lines
     tiles, mine = profile.network_tiles(), profile.tuned.get("network_tiles", {})
