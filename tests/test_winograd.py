@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mccnn_cl.reference.network import conv_layer as reference
 from mccnn_cl.costs.features import (CONV_WINO_CL, ConvStack, launch_winograd, normalise, winograd_local_bytes,
                                      winograd_weights)
 
@@ -26,17 +27,6 @@ def fitting_block(ctx, cin, npad, rn, rt=4, xa=4):
         rt -= 1
     assert winograd_local_bytes(cin, npad, rn, rt) <= ctx.local_mem, "the test's maps need less local memory"
     return rt, xa
-
-
-def reference(x, W, b, relu=True):
-    """float64 valid 3 x 3 convolution + bias (+ ReLU) of a channel-last map, [h_out * w_out][cout]."""
-    h, w, _ = x.shape
-    out = np.zeros((h - 2, w - 2, W.shape[0]))
-    for ky in range(3):
-        for kx in range(3):
-            out += x[ky:ky + h - 2, kx:kx + w - 2].astype(np.float64) @ W[:, :, ky, kx].T.astype(np.float64)
-    out = out + np.asarray(b, np.float64)
-    return (np.maximum(out, 0) if relu else out).reshape(-1, W.shape[0])
 
 
 def run_layer(ctx, x, W, b, relu, rt, xa, rn, row0=0):

@@ -108,6 +108,21 @@ def _valid_columns(D, M, w):
             yield k, x0, x1
 
 
+def conv_layer(x, W, b, relu: bool = True) -> np.ndarray:
+    """One conv layer of a channel-last map, float64, as the conv stack's kernels compute it:
+    the valid k x k convolution of ``x`` [h][w][cin] with ``W`` [cout][cin][k][k], plus ``b``,
+    then ReLU when ``relu``; returns [(h - k + 1) * (w - k + 1)][cout]."""
+    k = W.shape[2]
+    h, w = x.shape[:2]
+    out = np.zeros((h - k + 1, w - k + 1, W.shape[0]))
+    for ky in range(k):
+        for kx in range(k):
+            out += x[ky:ky + h - k + 1, kx:kx + w - k + 1].astype(np.float64) @ np.asarray(
+                W[:, :, ky, kx], np.float64).T
+    out = out + np.asarray(b, np.float64)
+    return (np.maximum(out, 0) if relu else out).reshape(-1, W.shape[0])
+
+
 def image_features(weights: Weights, img) -> np.ndarray:
     """The tower at every patch of a standardised image: (H-P+1, W-P+1, maps), float64."""
     P = weights.patch_size

@@ -27,17 +27,7 @@ os.environ.setdefault("MCCNN_BINARY_CACHE", "off")  # blocks the package does no
 from mccnn_cl.costs.features import CONV_WINO_CL, launch_winograd, winograd_weights  # noqa: E402
 from mccnn_cl.models import resolve  # noqa: E402
 from mccnn_cl.opencl.context import ClContext  # noqa: E402
-
-
-def reference(x, W, b, relu=True):
-    """float64 valid 3 x 3 convolution + bias (+ ReLU) of a channel-last map, [h_out * w_out][cout]."""
-    h, w, _ = x.shape
-    out = np.zeros((h - 2, w - 2, W.shape[0]))
-    for ky in range(3):
-        for kx in range(3):
-            out += x[ky:ky + h - 2, kx:kx + w - 2].astype(np.float64) @ W[:, :, ky, kx].T.astype(np.float64)
-    out = out + np.asarray(b, np.float64)
-    return (np.maximum(out, 0) if relu else out).reshape(-1, W.shape[0])
+from mccnn_cl.reference.network import conv_layer as reference  # noqa: E402
 
 
 class WinogradLayer:
