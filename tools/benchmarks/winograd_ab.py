@@ -5,6 +5,12 @@ in turn in one process; each output checked against a float64 direct sum
 (BENCHMARKS.md, "Winograd F(2x2, 3x3) for the conv stack").
 
     .venv/bin/python tools/benchmarks/winograd_ab.py [--blocks 4x4,4x2,4x1] [--rn 16] [--layer 1] [--rounds 3]
+    .venv/bin/python tools/benchmarks/winograd_ab.py --stacks [--blocks ...]
+
+``--stacks``: whole conv stacks instead (``ConvStack`` on a 375 x 1242 random
+image, best of 3 after a warm-up): ``kitti-fst``, ``general-paper`` and an
+acrt-shaped stack (1 -> 112, four 112 -> 112 layers, random weights), each on
+the direct GEMM, the device's rule and every block.
 
 ``--blocks RTxXA``: RT tiles per work-item, XA of the 16 Winograd products per
 pass (XA x RT accumulators of RN floats).  The input is a random map of the
@@ -59,16 +65,49 @@ class WinogradLayer:
         return ctx.from_device(d_out, ((h - 2) * (w - 2), self.cout))
 
 
+def stacks(ctx, args):
+    """Each stack on the direct GEMM, the rule's block and every --blocks block (module docstring)."""
+    from mccnn_cl.costs.features import ConvStack, normalise
+    from mccnn_cl.weights import Weights
+
+    img = normalise(np.random.default_rng(0).random((375, 1242)).astype(np.float32))[:, :, None]
+    d_img = ctx.to_device(np.ascontiguousarray(img))
+    nets = {"kitti-fst": resolve("kitti-fst"), "general-paper": resolve("general-paper"),
+            "acrt-shaped, 112 maps": Weights.random([[112, 3]] * 5, [384, 384, 1], architecture="mccnn-acrt",
+                                                   seed=1)}
+    blocks = [tuple(int(v) for v in spec.split("x")) for spec in args.blocks.split(",")]
+    print(f"the rule's block here: {ctx.profile.winograd()}")
+    for name, w in nets.items():
+        print(f"{name}: {[tuple(W.shape) for W, _ in w.conv]}")
+        for choice in [False, None] + blocks:
+            st = ConvStack(ctx, w, args.rn, 4, winograd=choice)
+            feat = st(d_img, 375, 1242)
+            ctx.finish()
+            best = float("inf")
+            for _ in range(3):
+                st.give(feat)
+                t = time.perf_counter()
+                feat = st(d_img, 375, 1242)
+                ctx.finish()
+                best = min(best, time.perf_counter() - t)
+            label = "direct" if choice is False else "rule" if choice is None else f"{choice}"
+            print(f"  {label:>8}: layers {[l[0].wino for l in st.layers]}: {best:.3f} s")
+            st.release_buffers()
+
+
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--blocks", default="4x4,4x2,4x1", help="RTxXA register blocks of the prototype")
+    ap.add_argument("--blocks", default="4x4,4x2,4x1", help="RTxXA register blocks of the Winograd kernel")
     ap.add_argument("--rn", type=int, choices=(8, 16), default=16, help="channels per work-item (both kernels)")
     ap.add_argument("--layer", type=int, choices=(1, 2, 3), default=1, help="general-fst's conv layer")
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--stacks", action="store_true", help="time whole conv stacks (above) instead of one layer")
     args = ap.parse_args()
     ctx = ClContext()
     q, rn = ctx.queue, args.rn
     print(f"device: {ctx.describe()}")
+    if args.stacks:
+        return stacks(ctx, args)
     wts = resolve("general-fst")  # the shipped Weights
     W, b = wts.conv[args.layer]
     W, b = np.asarray(W, np.float32), np.asarray(b, np.float32)
