@@ -196,3 +196,29 @@ def test_winograd_channels_per_work_item_give_the_same_bits(ctx):
         vols.append(run_poisoned(ctx, cost, left, right, 9))
     for v in vols[1:]:
         np.testing.assert_array_equal(v.view(np.uint32), vols[0].view(np.uint32))
+
+
+def test_a_row_tile_at_an_odd_row_gives_the_whole_volume_rows(ctx, shared_data):
+    """The fst cost of a row tile cut at an odd row (as mccnn_cl.distributed's split tiles and the
+    row tiles are), standardised with the whole images' statistics and given its row0, equals the
+    whole volume's rows bit for bit, in one band and in bands of 3 rows; without row0 its
+    Winograd tiles are shifted by a row and the values differ (the check is not vacuous)."""
+    from mccnn_cl.costs.fst import FstCost
+    from mccnn_cl.imageops import image_stats
+    from mccnn_cl.weights import Weights
+
+    w = Weights.random([[16, 3]] * 3, architecture="mccnn-fst", seed=11)  # patch 7
+    L = _kitti_crop(shared_data, slice(120, 160), slice(400, 470))
+    R = _kitti_crop(shared_data, slice(120, 160), slice(403, 473))
+    stats = (image_stats(L), image_stats(R))
+    cost = FstCost(ctx, w, tiles={"CONV_RN": 16}, local_tiles=False, winograd=fitting_block(ctx, 16, 16, 16))
+    assert all(l[0].wino is not None for l in cost.stack.layers[1:])
+    D, P = 8, cost.patch
+    whole = cost.to_host(L, R, D, stats=stats)
+    r0, r1 = 7, 22
+    cut = (L[r0:r1 + P - 1], R[r0:r1 + P - 1])
+    for rows in (None, 3):
+        tile = cost.to_host(*cut, D, stats=stats, rows=rows, row0=r0)
+        np.testing.assert_array_equal(tile.view(np.uint32), whole[:, r0:r1].view(np.uint32), err_msg=f"rows {rows}")
+    shifted = cost.to_host(*cut, D, stats=stats)
+    assert not np.array_equal(shifted.view(np.uint32), whole[:, r0:r1].view(np.uint32))
