@@ -111,29 +111,22 @@ def _stack_features(ctx, stack, img, row0=0):
     return out
 
 
-def _float64_stack(weights, img):
-    x = img[:, :, None].astype(np.float64)
-    n = len(weights.conv)
-    for i, (W, b) in enumerate(weights.conv):
-        relu = i < n - 1 or weights.relu_after_last_conv
-        x = reference(x, np.asarray(W), np.asarray(b), relu).reshape(x.shape[0] - 2, x.shape[1] - 2, -1)
-    return x
-
-
 def test_the_stack_runs_3x3_layers_by_winograd_and_matches_the_direct_path(ctx, shared_data):
     """general-fst's stack: the first layer (one input channel) direct, the 64 -> 64 layers by
     Winograd on the block asked for; both paths within TOL of a float64 stack on a real crop,
     and a band starting at an odd row equals the whole crop's rows bit for bit."""
     from mccnn_cl.models import resolve
+    from mccnn_cl.reference.network import image_features
 
     w = resolve("general-fst")
-    crop = normalise(_kitti_crop(shared_data, slice(60, 131), slice(200, 331)))
+    raw = _kitti_crop(shared_data, slice(60, 131), slice(200, 331))
+    crop = normalise(raw)
     block = fitting_block(ctx, 64, 64, 16)
     wino = ConvStack(ctx, w, 16, 4, local_tiles=False, winograd=block)
     direct = ConvStack(ctx, w, 16, 4, local_tiles=False, winograd=False)
     assert [l[0].wino for l in wino.layers] == [None] + [block] * (len(w.conv) - 1)
     assert all(l[0].wino is None for l in direct.layers)
-    ref = _float64_stack(w, crop)
+    ref = image_features(w, raw)  # the float64 tower, on the same standardised crop
     scale = np.abs(ref).max()
     a, b = _stack_features(ctx, wino, crop), _stack_features(ctx, direct, crop)
     for got in (a, b):

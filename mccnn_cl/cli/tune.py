@@ -39,8 +39,7 @@ def describe_choices(device) -> list:
     if not profile.is_cpu:  # the GPU-shaped paths and the GEMM tile are tuned there
         names = ("sgm_stage", "sgm_cols", "sgm_wg_cols", "cbca_workgroup", "launch_local", "network_gemm_tile")
     for name in names:
-        value = (profile.fst_volume_width() if name == "fst_volume_width" else
-                 profile.winograd() if name == "network_winograd" else profile.rule(name))
+        value = profile.value(name)
         note = ", 3 x 3 conv layers' (RT, XA) or None (direct)" if name == "network_winograd" else ""
         lines.append(f"  {name:22s} {value!s:14s} ({profile.rule_source(name)}){note}")
     if not profile.is_cpu:

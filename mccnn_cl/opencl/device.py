@@ -251,6 +251,14 @@ class DeviceProfile:
             tiles["RM"] = min(int(tiles["RM"]), NARROW_HEAD_RM)
         return tiles
 
+    def value(self, option: str):
+        """A :data:`RULES` row's value as the stages take it: :meth:`rule`, with the rows whose
+        value depends on the device resolved (``fst_volume_width``, ``network_winograd``,
+        ``network_tiles``: their methods)."""
+        resolved = {"fst_volume_width": self.fst_volume_width, "network_winograd": self.winograd,
+                    "network_tiles": self.network_tiles}.get(option)
+        return resolved() if resolved is not None else self.rule(option)
+
     def winograd(self):
         """The conv stack's Winograd block (RT, XA) (rule ``network_winograd``; XA 0: 4 on
         :attr:`wide_vectors` devices, else 1), or None for the direct GEMM."""

@@ -246,11 +246,11 @@ def _cpu_options(ctx, runs) -> list:
         Option("sgm_width", [{"sgm_width": v} for v in (16, 8)], runs["sgm"]),
         Option("cbca_path", [{"cbca_fused": True, "cbca_multi": True}, {"cbca_fused": True, "cbca_multi": False},
                              {"cbca_fused": False, "cbca_multi": False}], runs["cbca"]),
-        # CONV_RN 8: a device that reports 8-wide vectors (the rules take 16 on CPUs)
         # the 3 x 3 layers by Winograd's F(2x2, 3x3) at each register block (RT, XA), or the direct
         # GEMM (None): the same features to float32 rounding (sums ordered differently)
         Option("network_winograd", [{"network_winograd": v} for v in ([4, 4], [4, 2], [4, 1], None)],
                runs["conv"], exact=False),
+        # CONV_RN 8: a device that reports 8-wide vectors (the rules take 16 on CPUs)
         Option("network_conv", [{"network_tiles": {"CONV_RM": r}} for r in (4, 6, 8)]
                + [{"network_tiles": {"CONV_RN": 8, "CONV_RM": 8}}], runs["conv"]),
         # the fst volume's pairs form on 16- or 8-wide vectors (rules: the device's vector width)
@@ -292,13 +292,7 @@ def _rules_value(profile, name):
     :meth:`~mccnn_cl.opencl.device.DeviceProfile.network_tiles` adjusts it to the device)."""
     from dataclasses import replace
 
-    bare = replace(profile, tuned={})
-    if name == "fst_volume_width":  # 0 in the rules: the device's vector width decides
-        return bare.fst_volume_width()
-    if name == "network_winograd":  # XA 0 in the rules: the device's vectors decide
-        v = bare.winograd()
-        return list(v) if v else v
-    v = bare.network_tiles() if name == "network_tiles" else bare.rule(name)
+    v = replace(profile, tuned={}).value(name)
     return list(v) if isinstance(v, tuple) else v
 
 

@@ -39,7 +39,7 @@ from mccnn_cl.reference.network import conv_layer as reference  # noqa: E402
 class WinogradLayer:
     """The package's Winograd kernel built for one layer shape (``cin`` -> ``cout`` maps, ReLU or not) with
     register block ``rt`` x ``xa`` and ``rn`` channels per work-item: :meth:`__call__` runs it
-    on uploaded buffers, :meth:`run` on host arrays."""
+    on uploaded buffers."""
 
     def __init__(self, ctx, cin, cout, relu, rt, xa, rn):
         if cin % rn or cout % rn:
@@ -52,17 +52,10 @@ class WinogradLayer:
         launch_winograd(self.ctx, self.kernel, self.rt, self.rn, d_x, w_in, d_u, d_b, d_out, w_in - 2, h_in - 2,
                         self.cout, p)
 
-    def run(self, x, W, b, p=0):
-        """Output [(h - 2) * (w - 2)][cout] of the channel-last map x [h][w][cin] (float32), its tile
-        grid anchored at row parity ``p``; the output buffer is filled with NaN before the launch."""
-        ctx = self.ctx
-        h, w = x.shape[:2]
-        n = (h - 2) * (w - 2) * self.cout
-        d_out = ctx.empty(4 * n)
-        ctx.fill(d_out, np.float32(np.nan), 4 * n)
-        self(ctx.to_device(np.ascontiguousarray(x, np.float32)), h, w, ctx.to_device(winograd_weights(W, self.cout)),
-             ctx.to_device(np.asarray(b, np.float32)), d_out, p)
-        return ctx.from_device(d_out, ((h - 2) * (w - 2), self.cout))
+
+def parse_blocks(text):
+    """"4x4,4x1" -> [(4, 4), (4, 1)]: the --blocks list of (RT, XA)."""
+    return [tuple(int(v) for v in spec.split("x")) for spec in text.split(",")]
 
 
 def stacks(ctx, args):
@@ -75,7 +68,7 @@ def stacks(ctx, args):
     nets = {"kitti-fst": resolve("kitti-fst"), "general-paper": resolve("general-paper"),
             "acrt-shaped, 112 maps": Weights.random([[112, 3]] * 5, [384, 384, 1], architecture="mccnn-acrt",
                                                    seed=1)}
-    blocks = [tuple(int(v) for v in spec.split("x")) for spec in args.blocks.split(",")]
+    blocks = parse_blocks(args.blocks)
     print(f"the rule's block here: {ctx.profile.winograd()}")
     for name, w in nets.items():
         print(f"{name}: {[tuple(W.shape) for W, _ in w.conv]}")
@@ -126,8 +119,7 @@ def main():
     direct = ctx.kernel("network_conv.cl", "network_conv", RM=4, **defs)
     runs = {"network_conv (RM 4)": lambda: direct(q, (cout // rn, math.ceil(m_total / 4)), None, d_x, np.int32(w_in),
                                                    d_wt, d_b, d_out, np.int32(w_out), np.int32(m_total))}
-    for spec in args.blocks.split(","):
-        rt, xa = (int(v) for v in spec.split("x"))
+    for rt, xa in parse_blocks(args.blocks):
         layer = WinogradLayer(ctx, cin, cout, relu, rt, xa, rn)
         runs[f"Winograd RT {rt} XA {xa}"] = lambda layer=layer: layer(d_x, h_in, w_in, d_u, d_b, d_out)
     for name, run in runs.items():
