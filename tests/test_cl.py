@@ -2,8 +2,11 @@
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import textwrap
+import time
 
 import numpy as np
 import pytest
@@ -82,8 +85,8 @@ def test_no_platform_gives_install_hint(tmp_path):
 
 
 def test_wait_returns_after_the_work(ctx):
-    """ctx.wait (short polls, Ctrl-C answered between them) returns once the event
-    completed: the copy's result is there, the marker COMPLETE; finish() (a marker
+    """ctx.wait (a helper thread's blocking wait, the main thread answering Ctrl-C
+    meanwhile) returns once the event completed: the copy's result is there, the marker COMPLETE; finish() (a marker
     after everything queued) likewise."""
     n = 4_000_000
     src = ctx.to_device(np.arange(n, dtype=np.float32))
@@ -97,3 +100,67 @@ def test_wait_returns_after_the_work(ctx):
     ctx.cl.enqueue_copy(ctx.queue, out, dst, is_blocking=False)
     ctx.finish()
     np.testing.assert_array_equal(out, np.arange(n, dtype=np.float32))
+
+
+BUSY = textwrap.dedent('''
+    import os, sys, time
+    import numpy as np
+    from mccnn_cl.opencl.context import ClContext
+    ctx = ClContext(sys.argv[1] or None)
+    prg = ctx.cl.Program(ctx.context, """
+    __kernel void busy(__global float *a, const int n) {
+        float x = a[get_global_id(0)];
+        for (int j = 0; j < n; ++j)
+            x = x * 0.999f + 0.5f;
+        a[get_global_id(0)] = x;
+    }""").build()
+    k = ctx.cl.Kernel(prg, "busy")
+    buf = ctx.empty(4 * 2)
+    n = 1 << 20
+    while True:  # a launch of ~0.2 s on this device
+        t = time.perf_counter()
+        k(ctx.queue, (2,), (1,), buf, np.int32(n))
+        ctx.finish()
+        dt = time.perf_counter() - t
+        if dt > 0.1 or n > 1 << 30:
+            break
+        n *= 4
+    n = int(min(n * 0.2 / max(dt, 1e-6), 2 ** 31 - 1))
+    for _ in range(100):  # ~20 s of work queued
+        k(ctx.queue, (2,), (1,), buf, np.int32(n))
+    print("waiting", flush=True)
+    try:
+        ctx.finish()
+        print("finished", flush=True)
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+    os._exit(0)  # without draining the queue
+''')
+
+
+def test_ctrl_c_interrupts_a_wait(ctx, request, tmp_path):
+    """SIGINT while the main thread waits for queued work (ctx.wait) raises
+    KeyboardInterrupt there within a fraction of a second, though the
+    process's signals may land on the runtime's threads or on the wait's
+    helper thread (whose blocking wait does not return early): ~20 s of
+    kernels are queued, the signal comes half a second into the wait."""
+    script = tmp_path / "busy.py"
+    script.write_text(BUSY)
+    env = dict(os.environ)
+    p = subprocess.Popen([sys.executable, str(script), request.config.getoption("--cl-device") or ""],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        line = p.stdout.readline()
+        assert line.strip() == "waiting", (line, p.stderr.read() if p.poll() is not None else "")
+        time.sleep(0.5)
+        t = time.perf_counter()
+        p.send_signal(signal.SIGINT)
+        line = p.stdout.readline()
+        took = time.perf_counter() - t
+        assert line.strip() == "interrupted", (line, p.stderr.read())
+        assert took < 3.0, f"KeyboardInterrupt came {took:.2f} s after SIGINT, with ~20 s of work queued"
+        assert p.wait(timeout=60) == 0
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
