@@ -22,13 +22,13 @@ from helpers import ad_volume, blocky_image, invalid_mask, kitti_crop, random_vo
 
 
 def run_sgm(ctx, cost, img_l, img_r, prefetch=None, band=None, cols=None, fused_rows=None, specialize=None,
-            whole_tiles=None, paired=None, width=None, **kw):
+            whole_tiles=None, paired=None, width=None, mirror_reads=None, **kw):
     D, H, W = cost.shape
     d_out = ctx.empty(cost.nbytes)
     ctx.fill(d_out, POISON, cost.nbytes)
     d_cost = ctx.to_device(cost)
     SGM(ctx, prefetch=prefetch, band=band, cols=cols, fused_rows=fused_rows, specialize=specialize,
-        whole_tiles=whole_tiles, paired=paired, width=width)(
+        whole_tiles=whole_tiles, paired=paired, width=width, mirror_reads=mirror_reads)(
         d_cost, ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=d_out, **kw)
     np.testing.assert_array_equal(ctx.from_device(d_cost, cost.shape), cost)  # input untouched
     return ctx.from_device(d_out, cost.shape)
@@ -264,6 +264,11 @@ def test_mirror_needs_the_paired_sweeps(ctx):
     cost = random_volume(rng, 4, 3, 10)
     img = blocky_image(rng, 3, 10, 2, 0.1)
     assert SGM(ctx, paired=True).reads_mirrored and not SGM(ctx, paired=False).reads_mirrored
+    # the paired sweeps still read mirrored when asked, whatever the right reference prefers (sgm_mirror_reads)
+    assert not SGM(ctx, paired=True, mirror_reads=False).reads_mirrored
+    want = run_sgm(ctx, cost, img, img, paired=True, mirror=True)
+    got = run_sgm(ctx, cost, img, img, paired=True, mirror=True, mirror_reads=False)
+    np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
     with pytest.raises(ValueError, match="paired"):
         run_sgm(ctx, cost, img, img, paired=False, mirror=True)
     from mccnn_cl.stages.sgm_wg import SGMWorkGroup

@@ -35,7 +35,7 @@ def describe_choices(device) -> list:
     profile.tuned.update(tuned)
     lines = [head]
     names = ("sgm_paired_max_units", "sgm_cols", "sgm_width", "cbca_fused", "cbca_multi", "network_winograd",
-             "fst_volume_width", "wta_chunks", "mirror_lines", "launch_local")
+             "fst_volume_width", "wta_chunks", "mirror_lines", "sgm_mirror_reads", "launch_local")
     if not profile.is_cpu:  # the GPU-shaped paths and the GEMM tile are tuned there
         names = ("sgm_stage", "sgm_cols", "sgm_wg_cols", "cbca_workgroup", "launch_local", "network_gemm_tile")
     for name in names:

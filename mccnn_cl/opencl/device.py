@@ -47,7 +47,11 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: 8 on CPUs by measurement on both CPU classes at hand, the same bits at either width: the
 #: paired sweeps took 189-210 ms against 214-240 ms a KITTI-sized volume at 16 on a Zen 3
 #: (AVX2), 133-140 against 143-155 ms on a Zen 4 (AVX-512, whose 16-float vectors PoCL uses
-#: elsewhere)); ``sgm_wg_cols``: the work-group stage's vertical
+#: elsewhere)); ``sgm_mirror_reads``: the right reference's SGM reads the volume mirrored where
+#: the stage can (the paired sweeps), else the volume is mirrored in place, there and back
+#: (the same bits; PoCL: reading mirrored saves the two passes, 216 against 183 + 2 x 30 ms a
+#: KITTI-sized volume; Intel's CPU runtime compiles the mirrored loads into slower code: 390
+#: against 184-212 ms for a plain call, so there its tuner keeps the passes); ``sgm_wg_cols``: the work-group stage's vertical
 #: paths with that many adjacent columns per work-group (0: one column per work-group,
 #: as its rows; :class:`~mccnn_cl.stages.sgm_wg.SGMWorkGroup`).  CBCA: ``cbca_workgroup`` (the GPU-shaped
 #: two passes of kernels/cbca_wg.cl, a work-group per row or column tile and
@@ -98,6 +102,7 @@ RULES = {
     "sgm_paired_max_units":    {CPU: 2,     LLVMPIPE: 0,     GPU: 0},
     "sgm_wg_cols":             {CPU: 0,     LLVMPIPE: 0,     GPU: 0},
     "sgm_width":               {CPU: 8,     LLVMPIPE: 16,    GPU: 16},
+    "sgm_mirror_reads":        {CPU: True,  LLVMPIPE: True,  GPU: True},
     "cbca_workgroup":          {CPU: False, LLVMPIPE: False, GPU: True},
     "cbca_fused":              {CPU: True,  LLVMPIPE: False, GPU: False},
     "cbca_multi":              {CPU: True,  LLVMPIPE: True,  GPU: False},
@@ -213,7 +218,8 @@ class DeviceProfile:
                     fused_rows=self.rule("sgm_fused_rows") and limit is None,
                     specialize=self.rule("sgm_specialize"), whole_tiles=self.rule("sgm_whole_tiles"),
                     paired=self.compute_units <= self.rule("sgm_paired_max_units"),
-                    group_of_one=self.rule("sgm_group_of_one"), width=self.sgm_width())
+                    group_of_one=self.rule("sgm_group_of_one"), width=self.sgm_width(),
+                    mirror_reads=bool(self.rule("sgm_mirror_reads")))
 
     def sgm_width(self) -> int:
         """Lanes of sgm.cl's vectors (rule ``sgm_width``, 16 or 8)."""

@@ -127,24 +127,48 @@ def options(ctx, size=SIZE, repeat=1) -> list:
 
     d_mir = []
 
+    def mirror_copy(ctx_):
+        if not d_mir:
+            d_mir.append(ctx_.empty(4 * D * H * W, "tuning mirror volume"))
+            ctx_.cl.enqueue_copy(ctx_.queue, d_mir[0], d_vol)
+        return d_mir[0]
+
     def mirror_run(ctx_):
         # the right reference's in-place mirroring, there and back, around its left WTA (on a copy of
         # the volume: a wrong candidate changes its map, and no other run's input)
         from ..stages.disparity import RightReference, WinnerTakeAll
 
-        if not d_mir:
-            d_mir.append(ctx_.empty(4 * D * H * W, "tuning mirror volume"))
-            ctx_.cl.enqueue_copy(ctx_.queue, d_mir[0], d_vol)
+        mir = mirror_copy(ctx_)
         rr, wta = RightReference(ctx_), WinnerTakeAll(ctx_)
 
         def go():
-            rr.volume(d_mir[0], D, H, W)
-            disp = wta.left(d_mir[0], D, H, W)
-            rr.volume(d_mir[0], D, H, W)
+            rr.volume(mir, D, H, W)
+            disp = wta.left(mir, D, H, W)
+            rr.volume(mir, D, H, W)
             return disp
 
         sec = _timed(ctx_, go, repeat)
         return sec, ctx_.from_device(go(), (H, W), np.int32)
+
+    def right_sgm_run(ctx_):
+        # the right reference's SGM: the paired sweeps reading the volume mirrored, or the volume
+        # mirrored in place around a plain SGM and back (on a copy of the volume, as mirror_run)
+        from ..stages.disparity import RightReference
+        from ..stages.sgm_select import make_sgm
+
+        mir = mirror_copy(ctx_)
+        sgm, rr = make_sgm(ctx_), RightReference(ctx_)
+
+        def go():
+            if sgm.reads_mirrored:
+                sgm(mir, d_l, d_r, D, H, W, out=out, mirror=True)
+            else:
+                rr.volume(mir, D, H, W)
+                sgm(mir, d_l, d_r, D, H, W, out=out)
+                rr.volume(mir, D, H, W)
+
+        sec = _timed(ctx_, go, repeat)
+        return sec, ctx_.from_device(out, (D, H, W))
 
     def conv_run(ctx_):
         # the default network's conv stack (the network's larger share) on one image of the size
@@ -204,7 +228,7 @@ def options(ctx, size=SIZE, repeat=1) -> list:
         return sec, got
 
     runs = dict(sgm=sgm_run, cbca=cbca_run, local=local_run, conv=conv_run, volume=volume_run, head=head_run,
-                mirror=mirror_run)
+                mirror=mirror_run, right_sgm=right_sgm_run)
     return _cpu_options(ctx, runs) if ctx.profile.is_cpu else _gpu_options(ctx, runs)
 
 
@@ -234,8 +258,8 @@ def _gpu_options(ctx, runs) -> list:
 def _cpu_options(ctx, runs) -> list:
     """CPU-shaped devices: SGM's sweeps, column width and vector width, CBCA's kernels, the register
     tiles of the conv stack and of the head, the fst volume's vector width, the left
-    WTA's chunks per work-item, the right reference's mirroring, the work-group size
-    left to launch_local."""
+    WTA's chunks per work-item, the right reference's mirroring and whether its SGM
+    reads the volume mirrored, the work-group size left to launch_local."""
     units = max(ctx.profile.compute_units, 1)
     # SGM: the paired sweeps (their chunk width is fixed), or the one-direction
     # kernels at each column width (without paired sweeps the width matters)
@@ -260,6 +284,9 @@ def _cpu_options(ctx, runs) -> list:
         Option("wta_chunks", [{"wta_chunks": c} for c in (1, 4, 8, 16)], runs["local"]),
         # the right reference's mirroring: a work-item per line or per 16-pair block (the same bits)
         Option("mirror_lines", [{"mirror_lines": v} for v in (True, False)], runs["mirror"]),
+        # the right reference's SGM reading the volume mirrored, or the volume mirrored in place
+        # around it (the same bits; after mirror_lines, whose choice the second form uses)
+        Option("sgm_mirror_reads", [{"sgm_mirror_reads": v} for v in (True, False)], runs["right_sgm"]),
         _launch_local(runs["local"]),
     ]
     if ctx.profile.loop_limit is not None:  # llvmpipe: the paired sweeps refuse to run under its limit

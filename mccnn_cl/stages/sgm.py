@@ -115,6 +115,8 @@ class SGM:
     ``paired``: the paired sweeps (``band``, ``cols``, ``fused_rows`` and
     ``specialize`` configure the one-direction kernels only).
     ``width``: the kernels' vectors, 16 or 8 floats (``SGM_VW``; the same bits).
+    ``mirror_reads``: the right reference reads its volume mirrored through the
+    paired sweeps (:attr:`reads_mirrored`) instead of mirroring it in place.
     ``loop_limit``: the most loop iterations a work-item may take in all (0:
     none); under a limit the one-direction kernels walk their paths in several
     launches (same results) and the paired sweeps refuse volumes beyond it.
@@ -122,7 +124,7 @@ class SGM:
     recurrences run in float, the partial sums in the output are rounded to half."""
 
     def __init__(self, ctx, prefetch=None, half: bool = False, band=None, cols=None, fused_rows=None,
-                 specialize=None, whole_tiles=None, paired=None, loop_limit=None, width=None):
+                 specialize=None, whole_tiles=None, paired=None, loop_limit=None, width=None, mirror_reads=None):
         self.ctx = ctx
         if loop_limit is not None and int(loop_limit) < 0:
             raise InputError(f"SGM loop_limit must be >= 0 (0: none), got {loop_limit}")
@@ -137,6 +139,7 @@ class SGM:
         self.whole_tiles = bool(pick(whole_tiles, "whole_tiles"))
         self.fused_rows = bool(pick(fused_rows, "fused_rows"))
         self.paired = bool(pick(paired, "paired"))
+        self.mirror_reads = bool(pick(mirror_reads, "mirror_reads"))
         width = pick(width, "width")
         if int(width) not in (8, 16):
             raise InputError(f"SGM width must be 8 or 16 floats, got {width}")
@@ -157,8 +160,10 @@ class SGM:
 
     @property
     def reads_mirrored(self) -> bool:
-        """Whether calls take ``mirror=True`` (the paired sweeps do)."""
-        return self.paired
+        """Whether the right reference should call with ``mirror=True``: the
+        stage can (the paired sweeps) and ``mirror_reads`` (rule
+        ``sgm_mirror_reads``) prefers it to mirroring the volume in place."""
+        return self.paired and self.mirror_reads
 
     def scratch_bytes(self, D, W, params=None) -> int:
         """Device scratch a call keeps besides the cost and output volumes (for
@@ -201,12 +206,12 @@ class SGM:
         """Enqueue the four directions; returns ``out`` (allocated when None,
         must not be ``d_cost``) holding C_SGM, NaN where invalid.
 
-        ``mirror=True`` (the paired sweeps only, :attr:`reads_mirrored`): run
+        ``mirror=True`` (the paired sweeps only; see :attr:`reads_mirrored`): run
         on the right-reference volume C_R'(d, y, x) = C(d, y, W - 1 + d - x)
         of ``d_cost`` = C without making it (``RightReference.volume`` would
         mirror C in place, a volume read and written, and again back); the
         same bits as SGM of the mirrored volume."""
-        D, H, W = check_call(d_cost, D, H, W, out, mirror, self.reads_mirrored)
+        D, H, W = check_call(d_cost, D, H, W, out, mirror, self.paired)
         if out is None:
             out = self.ctx.empty(volume_bytes(self.half) * D * H * W, "SGM output volume")
         dims = (np.int32(D), np.int32(H), np.int32(W))
