@@ -108,9 +108,9 @@ def device_seconds(ctx, enqueue, repeat=3, warmup=True, back_to_back=8):
     device's clock, no host wait in it).  Where the device refuses such a
     queue or reports no times, ``back_to_back`` operations are enqueued at
     once on ``ctx.queue`` and waited for with one blocking
-    ``queue.finish()``: their wall time over ``back_to_back``.  Never through
-    ``ctx.finish()``, whose polling (sleeps of 0.2-1 ms) would add up to a
-    millisecond to each time.  Work queued on ``ctx.queue`` beforehand must
+    ``queue.finish()``: their wall time over ``back_to_back``.  Not through
+    ``ctx.finish()``, whose helper thread and checks for Ctrl-C add a little
+    host time to each wait.  Work queued on ``ctx.queue`` beforehand must
     be finished by the caller."""
     cl = ctx.cl
     try:
