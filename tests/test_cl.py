@@ -107,27 +107,31 @@ BUSY = textwrap.dedent('''
     import numpy as np
     from mccnn_cl.opencl.context import ClContext
     ctx = ClContext(sys.argv[1] or None)
+    # 20 000 iterations a work-item (under llvmpipe's loop limit); the work-items make the time
     prg = ctx.cl.Program(ctx.context, """
-    __kernel void busy(__global float *a, const int n) {
+    __kernel void busy(__global float *a) {
         float x = a[get_global_id(0)];
-        for (int j = 0; j < n; ++j)
+        for (int j = 0; j < 20000; ++j)
             x = x * 0.999f + 0.5f;
         a[get_global_id(0)] = x;
     }""").build()
     k = ctx.cl.Kernel(prg, "busy")
-    buf = ctx.empty(4 * 2)
-    n = 1 << 20
+    g = 64
+    k(ctx.queue, (g,), None, ctx.empty(4 * g))  # a first launch may compile (PoCL: per work-group size)
+    ctx.finish()
     while True:  # a launch of ~0.2 s on this device
+        buf = ctx.empty(4 * g)
         t = time.perf_counter()
-        k(ctx.queue, (2,), (1,), buf, np.int32(n))
+        k(ctx.queue, (g,), None, buf)
         ctx.finish()
         dt = time.perf_counter() - t
-        if dt > 0.1 or n > 1 << 30:
+        if dt > 0.05 or g >= 1 << 24:
             break
-        n *= 4
-    n = int(min(n * 0.2 / max(dt, 1e-6), 2 ** 31 - 1))
+        g *= 4
+    g = max(1, int(g * min(0.2 / max(dt, 1e-6), 64)))
+    buf = ctx.empty(4 * g)
     for _ in range(100):  # ~20 s of work queued
-        k(ctx.queue, (2,), (1,), buf, np.int32(n))
+        k(ctx.queue, (g,), None, buf)
     print("waiting", flush=True)
     try:
         ctx.finish()
