@@ -24,6 +24,6 @@ if ! .venv/bin/python -c "$FOUND" 2>/dev/null; then
     .venv/bin/python -c "import mccnn_cl, torch, pytest, pyopencl, dask, distributed, hypothesis"  # fail loudly if incomplete
 fi
 # The package's bytecode, written once here: where PYTHONDONTWRITEBYTECODE is set (these VMs set it),
-# every mccnn-cl process would otherwise compile ~45 modules from source (~0.08 s a start).  Stale files
+# every mccnn-cl process would otherwise compile ~45 modules from source (~0.07 s a start).  Stale files
 # after an edit are only ignored, never wrong.
 .venv/bin/python -m compileall -q mccnn_cl >/dev/null || true

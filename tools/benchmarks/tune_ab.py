@@ -24,6 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+import mccnn_cl
 from mccnn_cl import StereoMatcher
 from mccnn_cl.opencl import tune
 from mccnn_cl.benchmark import (copy_bandwidth, floors as bench_floors, group_timings, host_gemm_applies,
@@ -127,13 +128,12 @@ def main():
           f"{min(reps):.2f} s, ratio {first / min(reps):.2f} (target <= 1.2 + 0.3 s / repeated: "
           f"{first <= 1.2 * min(reps) + 0.3}); programs made for it: {ctx.builds + ctx.binary_loads - b0}")
     m.max_disparity = D
+    # the package's bytecode, as a Python that writes it keeps it after a first run (where
+    # PYTHONDONTWRITEBYTECODE is set, as on these VMs, each process would compile ~45 modules: ~0.07 s)
+    subprocess.run([sys.executable, "-m", "compileall", "-q", *mccnn_cl.__path__], check=True, capture_output=True)
     # fresh `mccnn-cl match` processes on the KITTI pair, each against the steady call of this process just
     # before it (the VM's speed drifts between minutes: a ratio per round, not one number); this process's
     # buffers are freed while the fresh one runs
-    # the package's bytecode, as a Python that writes it keeps it after a first run (where
-    # PYTHONDONTWRITEBYTECODE is set, as on these VMs, each process would compile ~45 modules: ~0.08 s)
-    import mccnn_cl
-    subprocess.run([sys.executable, "-m", "compileall", "-q", *mccnn_cl.__path__], check=True, capture_output=True)
     ratios = []
     for r in range(args.one_off):
         m.compute(L, R)
