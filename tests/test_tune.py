@@ -737,3 +737,24 @@ def test_earlier_versions_temporary_tuning_files_are_deleted_when_old(cache):
     path = tune.store(fake_device(), {"sgm_cols": 32}, {})
     assert sorted(os.listdir(folder)) == sorted([".tmp-young.json", os.path.basename(path)])
     assert tune.load(fake_device()) == {"sgm_cols": 32}
+
+
+def test_same_compares_bits_first_then_values():
+    """tune._same: equal bits are the same output (the fast comparison); otherwise
+    NaNs of another payload still match and a changed value does not, bit for bit
+    (exact) or to rounding (not exact); another shape never matches."""
+    a = np.arange(24, dtype=np.float32).reshape(2, 3, 4)
+    a[0, 0, :2] = np.nan
+    b = a.copy()
+    assert tune._same(a, b, True) and tune._same(a, b, False)
+    b.view(np.uint32)[0, 0, 0] |= 1  # another NaN payload
+    assert np.isnan(b[0, 0, 0]) and tune._same(a, b, True)
+    b[1, 2, 3] = np.nextafter(b[1, 2, 3], np.float32(np.inf))  # one ulp
+    assert not tune._same(a, b, True) and tune._same(a, b, False)
+    b[1, 2, 3] += 1
+    assert not tune._same(a, b, False)
+    b = a.copy()
+    b[1, 1, 1] = np.nan
+    assert not tune._same(a, b, True) and not tune._same(a, b, False)
+    assert not tune._same(a, a.reshape(6, 4), True)
+    assert tune._same(a.astype(np.float64), a.astype(np.float64), True)

@@ -10,7 +10,10 @@
  * launch per up to CBCA_K iterations (cbca_fused_multi_short, at the end).
  * Defines: MAX_ARM (required, below), VOL_HALF [0] (common.h), CBCA_GROUPS [8]
  * (16-column groups per work-item of the short column pass), CBCA_K
- * [4] (iterations per launch of the multi kernel).
+ * [4] (iterations per launch of the multi kernel), CBCA_PART [0] (which
+ * kernels the program holds: 0 all, 1 all but the multi kernel, 2 the multi
+ * kernel only; a program binary holds compiled code for each of its kernels,
+ * and the host's multi path builds only the kernel it launches).
  *
  * Arms: bytes in four planes [4][H][W] (left, right, up, down), as written
  * by cross.cl; ARM(a, k, i) is arm k of pixel index i = y * W + x.
@@ -32,6 +35,9 @@
 
 #ifndef MAX_ARM
 #error "cbca.cl needs -D MAX_ARM=<largest arm length>"
+#endif
+#ifndef CBCA_PART
+#define CBCA_PART 0
 #endif
 #define RING (2 * MAX_ARM + 2)
 #define ARM_LEFT 0
@@ -70,6 +76,7 @@ static inline int2 row_extent(__global const uchar *arms_l, __global const uchar
     return (int2)(max(x - l, d), min(x + r, W - 1));
 }
 
+#if CBCA_PART != 2
 /* Pass 1: row sums.  dst(d, y, x) = sum of src(d, y, x') over the row extent
  * of x (not yet divided), NaN for invalid cells (x < d).  dst may be src. */
 __kernel void cbca_rows(__global const vol_t *src,     /* D x H x W cost C^{i-1} */
@@ -114,7 +121,9 @@ __kernel void cbca_rows(__global const vol_t *src,     /* D x H x W cost C^{i-1}
         }
     }
 }
+#endif /* CBCA_PART != 2 */
 
+#if CBCA_PART != 2
 /* Pass 2: column sums, in place.  buf holds the row sums of pass 1; for each
  * valid cell (x >= d) it becomes the sum of the row sums over the rows of
  * U_d(p) divided by the number of cells |U_d(p)|.  Invalid cells (already
@@ -164,6 +173,7 @@ __kernel void cbca_columns(__global vol_t *buf,           /* D x H x W row sums 
         }
     }
 }
+#endif /* CBCA_PART != 2 */
 
 /* ------------------------------------------------------------------------
  * Short-arm variant (MAX_ARM <= CBCA_SHORT_MAX): the same two passes as
@@ -206,6 +216,7 @@ static inline int16 cbca_arm16(__global const uchar *a, const int k, const int f
 #define CBCA_COMBINED16(k, i, cap) \
     min(min(cbca_arm16(arms_l, (k), (i), n, H, W), cbca_arm16(arms_r, (k), (i) - d, n, H, W)), (cap))
 
+#if CBCA_PART != 2
 /* Pass 1, short arms: dst(d, y, x) = row sum over the row extent of x
  * (NaN where x < d).  One work-item per row; dst may be src. */
 __kernel void cbca_rows_short(__global const vol_t *src,     /* D x H x W cost C^{i-1} */
@@ -259,7 +270,9 @@ __kernel void cbca_rows_short(__global const vol_t *src,     /* D x H x W cost C
             win[i] = win[i + VW];
     }
 }
+#endif /* CBCA_PART != 2 */
 
+#if CBCA_PART != 2
 /* Pass 2, short arms, in place: buf(d, y, x) = (sum of the row sums over
  * the rows of U_d(p)) / |U_d(p)| for valid cells.  One work-item per tile of
  * CBCA_GROUPS x 16 columns of one disparity plane, walking down the rows:
@@ -329,7 +342,9 @@ __kernel void cbca_columns_short(__global vol_t *buf,          /* row sums in, C
     }
 #undef RS
 }
+#endif /* CBCA_PART != 2 */
 
+#if CBCA_PART != 2
 /* One whole short-arm iteration per launch: the rows pass and the columns
  * pass above fused, so the volume is read once and written once (the two
  * passes move it twice each).  One work-item per disparity plane walks down
@@ -460,6 +475,7 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
         }
     }
 }
+#endif /* CBCA_PART != 2 */
 #undef RS
 
 /* ------------------------------------------------------------------------
@@ -577,6 +593,7 @@ __kernel void cbca_fused_short(__global const vol_t *src,     /* D x H x W cost 
     } while (0)
 #endif
 
+#if CBCA_PART != 1
 __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W cost C^{i0} */
                                      __global vol_t *dst,          /* out: C^{i0 + iters} (may alias src) */
                                      __global float *fscr,         /* scratch: D x (K NRS + NCNT) x WR floats */
@@ -746,6 +763,7 @@ __kernel void cbca_fused_multi_short(__global const vol_t *src,    /* D x H x W 
 #undef CBCA_FETCH
     }
 }
+#endif /* CBCA_PART != 1 */
 #undef CBCA_COPY_CHUNK
 #undef CBCA_MASKED_SUM
 #undef CBCA_TERM

@@ -4,7 +4,7 @@
  * output, or runs the paired sweeps (sgm_paired, at the end: two launches
  * of two work-items for all four directions).
  *
- * Defines (the host, stages/sgm.py, passes all eight; defaults in brackets):
+ * Defines (the host, stages/sgm.py, passes all nine; defaults in brackets):
  *   MAX_DISP          required, >= D (a multiple of 32); sizes the private arrays
  *   VOL_HALF          [0] volumes stored as half (common.h)
  *   SGM_COLS          [32] columns per sgm_columns work-item, a multiple of 16
@@ -14,6 +14,13 @@
  *   SGM_SPECIALIZE    [1] the column kernel's inner loop compiled per case
  *   SGM_WHOLE_TILES   [1] sgm_rows' separate path for whole 16 x 16 tiles
  *   SGM_PAIR_CW       [16] columns per chunk of sgm_paired
+ *   SGM_PART          [0] which kernels the program holds: 0 all, 1 the
+ *                     one-direction kernels (sgm_rows, sgm_columns), 2 the
+ *                     paired sweeps only.  A program binary holds compiled
+ *                     code for each of its kernels (PoCL compiles them all
+ *                     when it is asked for one), and sgm_columns alone took
+ *                     15 s to compile on a Zen 3: the host builds only the
+ *                     part it launches.
  *   SGM_VW            [16] lanes per vector, 16 or 8 (VW below; the host's
  *                     rule sgm_width: 8 on CPUs, measured faster there
  *                     with AVX2 and AVX-512 alike).  The text below says 16;
@@ -51,6 +58,10 @@
  */
 #include "common.h"
 #include "sgm_recurrence.h"
+
+#ifndef SGM_PART
+#define SGM_PART 0
+#endif
 
 #ifndef MAX_DISP
 #error "sgm.cl needs -D MAX_DISP=<upper bound of the disparity levels D>"
@@ -284,6 +295,7 @@ static inline __attribute__((always_inline)) void col_row(
     } while (0)
 #endif
 
+#if SGM_PART != 2
 /* Vertical paths, rows j0 .. j0 + nj - 1 of the path (row y = j on
  * top->bottom paths, H - 1 - j on bottom->top ones): one work-item walks
  * SGM_COLS adjacent columns (SGM_G groups of VW on floatV lanes over x, so
@@ -368,6 +380,7 @@ __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume 
     for (int g = 0; g < SGM_G; ++g)
         vstoreV(m[g], 0, st_m + g * VW);
 }
+#endif /* SGM_PART != 2 */
 
 /* Whole 16 x 16 tiles (16 columns, 16 levels all inside the chunk's valid
  * range) are moved by sgm_rows with plain vector loads and stores one plane
@@ -639,6 +652,7 @@ static inline __attribute__((always_inline)) void write_tile(
     }
 }
 
+#if SGM_PART != 2
 /* Horizontal paths.  One work-item walks one row.  For each chunk of 16
  * x it copies the chunk's costs into a private block transposed to [x][d]
  * (16 x 16 tiles transposed in registers), so that the recurrence at one
@@ -751,7 +765,9 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
         }
     }
 }
+#endif /* SGM_PART != 2 */
 
+#if SGM_PART != 1
 /* Paired sweeps (``sgm_paired``, two work-items, two launches): work-item A
  * walks its rows top to bottom and adds the left->right and top->bottom
  * paths, work-item B walks its rows bottom to top and adds the right->left
@@ -940,3 +956,4 @@ __kernel __attribute__((vec_type_hint(floatV))) void sgm_paired(__global const v
         }
     }
 }
+#endif /* SGM_PART != 1 */

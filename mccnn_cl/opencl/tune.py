@@ -192,18 +192,22 @@ def options(ctx, size=SIZE, repeat=1) -> list:
         stack.release_buffers()
         return sec, out_map
 
+    host_feats = []
+
     def volume_run(ctx_):
         # fst's cosine volume (the pairs form) from planar features of the default network's maps
         from ..costs.fst import PADL, FstCost
         from ..models import resolve
 
         cost = FstCost(ctx_, resolve("general-fst"))
-        wp, rng = cost._wp(W), np.random.default_rng(7)
-        feats = []
-        for _ in range(2):
-            f = np.zeros((H, cost.nk, wp), np.float32)
-            f[:, :, PADL:PADL + W] = rng.standard_normal((H, cost.nk, W), dtype=np.float32)
-            feats.append(ctx_.to_device(f))
+        wp = cost._wp(W)
+        if not host_feats:  # made once (0.35 s), uploaded each run
+            rng = np.random.default_rng(7)
+            for _ in range(2):
+                f = np.zeros((H, cost.nk, wp), np.float32)
+                f[:, :, PADL:PADL + W] = rng.standard_normal((H, cost.nk, W), dtype=np.float32)
+                host_feats.append(f)
+        feats = [ctx_.to_device(f) for f in host_feats]
         sec = _timed(ctx_, lambda: cost.launch_volume(feats[0], feats[1], out, H, W, 0, D, H), repeat)
         got = ctx_.from_device(out, (D, H, W))
         for f in feats:
@@ -262,8 +266,13 @@ def _cpu_options(ctx, runs) -> list:
     reads the volume mirrored, the work-group size left to launch_local."""
     units = max(ctx.profile.compute_units, 1)
     # SGM: the paired sweeps (their chunk width is fixed), or the one-direction
-    # kernels at each column width (without paired sweeps the width matters)
-    sgm = [{"sgm_paired_max_units": units}] + [{"sgm_paired_max_units": 0, "sgm_cols": c} for c in (32, 64, 128)]
+    # kernels at each column width (without paired sweeps the width matters).
+    # Where the rules take the paired sweeps (a device of few units), the one-direction
+    # kernels are tried at 32 columns only: their fastest width on every such CPU measured,
+    # and still 1.6-2.4x the paired sweeps' time there; 64 and 128 columns cost a first
+    # tune ~25 s of compiling on a 2-core Zen 3 (sgm_columns at 128 alone 15 s)
+    widths = (32,) if units <= _rules_value(ctx.profile, "sgm_paired_max_units") else (32, 64, 128)
+    sgm = [{"sgm_paired_max_units": units}] + [{"sgm_paired_max_units": 0, "sgm_cols": c} for c in widths]
     opts = [
         Option("sgm", sgm, runs["sgm"], exact=False),
         # sgm.cl on 16- or 8-wide vectors (rules: the device's vector width; the same bits)
@@ -295,8 +304,11 @@ def _cpu_options(ctx, runs) -> list:
 
 
 #: (rows, columns, levels) of the head's option: the paper network's head costs ~0.5 MFLOP per cell,
-#: so the tuning size would take seconds per run; a cell costs the same at any size
-HEAD_SIZE = (24, 400, 64)
+#: so the tuning size would take seconds per run.  At 16 x 400 x 32 (8 rows of 392 patch centres,
+#: 100 k cells) a run takes ~0.6 s on a 2-core Zen 3 and the tiles compare as at 24 x 400 x 64
+#: (RM 4 / RM 8: 0.806 / 0.593 s against 2.966 / 2.224 s), which took 45 of a tune's 100 s; fewer
+#: rows (12) crowd the tiles' difference (0.371 / 0.339 s)
+HEAD_SIZE = (16, 400, 32)
 
 #: The least relative margin by which a candidate must beat the rules' own
 #: to replace it, whatever the measured noise.
@@ -342,6 +354,12 @@ def _candidates(profile, opt) -> list:
 def _same(a, b, exact) -> bool:
     if a.shape != b.shape:
         return False
+    bits = {1: np.uint8, 2: np.uint16, 4: np.uint32, 8: np.uint64}.get(a.dtype.itemsize)
+    if (a.dtype == b.dtype and bits is not None and a.flags.c_contiguous and b.flags.c_contiguous
+            and np.array_equal(a.view(bits), b.view(bits))):
+        # the same bits (the usual case): ~0.02 s for a tuning volume, where the NaN-aware
+        # comparison below takes 0.14-0.55 s and ran after each of ~50 volume runs of a tune
+        return True
     if exact:
         return np.array_equal(a, b, equal_nan=True)
     return bool(np.allclose(a, b, rtol=1e-5, atol=1e-5, equal_nan=True))

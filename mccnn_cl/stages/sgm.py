@@ -179,7 +179,7 @@ class SGM:
             k = [self.ctx.kernel("sgm.cl", name, MAX_DISP=max_disp, SGM_CPU_PREFETCH=int(self.prefetch),
                                  VOL_HALF=int(self.half), SGM_COLS=self.cols, SGM_SPECIALIZE=int(self.specialize),
                                  SGM_WHOLE_TILES=int(self.whole_tiles), SGM_PAIR_CW=PAIR_CW,
-                                 SGM_VW=self.width)
+                                 SGM_VW=self.width, SGM_PART=2 if names == ("sgm_paired",) else 1)
                  for name in names]
             k = [(kern, self.ctx.profile.line_group(self.ctx, kern, self._group_of_one)) for kern in k]
             self._kernels[(max_disp, names)] = k
