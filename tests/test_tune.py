@@ -133,28 +133,43 @@ def test_wrong_candidate_never_chosen(ctx):
 
 def test_rules_candidate_kept_unless_faster_than_the_noise(ctx):
     """Another candidate replaces the rules' choice only when faster by more
-    than the rules' own spread over the rounds (at least tune.MARGIN)."""
+    than the rules' own spread over the rounds (at least tune.MARGIN), or by
+    MARGIN while the faster in every round: a machine whose speed drifts
+    between rounds still resolves a candidate faster in each round, and a
+    candidate faster at best but slower in some round stays out."""
     rules = tune._rules_value(ctx.profile, "sgm_cols")
     other = 32 if rules != 32 else 64
-    rounds = {"n": 0}
-    times = {rules: [1.0], other: [0.98]}
+    calls = {"n": 0}
+    times = {}  # cols -> function of the round
 
     def run(c):
-        seq = times[c.profile.rule("sgm_cols")]
-        rounds["n"] += 1
-        return seq[rounds["n"] % len(seq)], np.zeros(3)
+        n = calls["n"]  # 0: the rules' reference run; then two runs a round
+        calls["n"] += 1
+        return times[c.profile.rule("sgm_cols")](max(n - 1, 0) // 2), np.zeros(3)
 
     opt = tune.Option("sgm_cols", [{"sgm_cols": c} for c in (rules, other)], run)
-    assert tune.choose(ctx, [opt], rounds=3)[0] == {}  # 2 % faster: inside MARGIN
-    times[other] = [0.5]
-    assert tune.choose(ctx, [opt], rounds=3)[0] == {"sgm_cols": other}
-    # the rules' timings spread by 30 %: 20 % faster is noise, 35 % is not
-    times[rules] = [1.0, 1.3]
-    times[other] = [0.8]
-    choices, measured = tune.choose(ctx, [opt], rounds=4)
+
+    def choose(rounds):
+        calls["n"] = 0
+        return tune.choose(ctx, [opt], rounds=rounds)
+
+    times[rules] = lambda r: 1.0
+    times[other] = lambda r: 0.98
+    assert choose(3)[0] == {}  # 2 % faster in every round: inside MARGIN
+    times[other] = lambda r: 0.5
+    assert choose(3)[0] == {"sgm_cols": other}
+    # the machine drifts: the rules take 1.0 s in even rounds, 1.3 s in odd ones (30 % spread)
+    times[rules] = lambda r: 1.0 if r % 2 == 0 else 1.3
+    times[other] = lambda r: 0.8 if r % 2 == 0 else 1.4  # faster at best, slower in odd rounds
+    choices, measured = choose(4)
     assert choices == {} and abs(measured["sgm_cols"]["noise"] - 0.3) < 1e-9
-    times[other] = [0.65]
-    assert tune.choose(ctx, [opt], rounds=4)[0] == {"sgm_cols": other}
+    assert measured["sgm_cols"]["faster_rounds"] == [None, (2, 4)]
+    times[other] = lambda r: 0.8 * times[rules](r)  # 20 % faster in each round: chosen
+    choices, measured = choose(4)
+    assert choices == {"sgm_cols": other} and measured["sgm_cols"]["faster_rounds"] == [None, (4, 4)]
+    assert choose(2)[0] == {}  # but not on fewer than tune.PAIRED_ROUNDS rounds (0.8 is inside the 30 % spread)
+    times[other] = lambda r: 0.65  # beyond the spread
+    assert choose(4)[0] == {"sgm_cols": other}
     assert tune.noise([1.0, 1.1, None]) == pytest.approx(0.1) and tune.noise([2.0]) == 0.0
 
 

@@ -179,9 +179,13 @@ def run(args) -> int:
         choices, measured, path = tune.tune(ctx, progress=True, size=size, rounds=rounds)
         for name, res in measured.items():
             parts = []
-            for cand, sec in res["candidates"]:
+            faster = res.get("faster_rounds") or [None] * len(res["candidates"])
+            for (cand, sec), won in zip(res["candidates"], faster):
                 label = " ".join(f"{k}={v}" for k, v in cand.items()) or "rules"
-                parts.append(f"{label}: " + ("wrong/failed" if sec is None else f"{sec * 1e3:.1f} ms"))
+                text = "wrong/failed" if sec is None else f"{sec * 1e3:.1f} ms"
+                if sec is not None and won and won[1]:
+                    text += f" (faster in {won[0]}/{won[1]})"
+                parts.append(f"{label}: {text}")
             print(f"  {name} (noise {res['noise']:.0%}): " + "; ".join(parts))
         _say(f"choices {choices or 'none (the rules table stands)'}\nwritten to {path} "
              f"({time.perf_counter() - t0:.0f} s)")

@@ -17,8 +17,8 @@ warning and rewritten by the next tuning.
 Every :class:`~mccnn_cl.opencl.context.ClContext` loads its device's choices
 (:meth:`DeviceProfile.rule <mccnn_cl.opencl.device.DeviceProfile.rule>` returns
 them) unless ``MCCNN_TUNE=off``.  A device never tuned uses the rules: the
-first use does not tune (``mccnn-cl tune`` does, in about a minute on 2 CPU
-cores).  On devices of the ``cpu`` and ``llvmpipe`` columns the choices tuned
+first use does not tune (``mccnn-cl tune`` does: on 2 CPU cores about a
+minute, the first run on a device ~2 minutes, most of the extra compiling).  On devices of the ``cpu`` and ``llvmpipe`` columns the choices tuned
 are the CPU-shaped paths' sizes; on the others (GPUs) each GPU-shaped path
 (SGM's and CBCA's work-groups) is measured against the CPU-shaped one it
 replaces, with the conv GEMM's tile and the work-group size left to
@@ -385,6 +385,32 @@ def _hopeless(times, j) -> bool:
     return j > 0 and bool(times[j]) and bool(times[0]) and min(times[j]) > HOPELESS * min(times[0])
 
 
+def _faster_rounds(rules: dict, cand: dict) -> tuple:
+    """``(k, n)``: of the ``n`` rounds in which both the rules' choice and a candidate were
+    timed (``{round: seconds}`` each), those in which the candidate was the faster."""
+    both = [r for r in cand if r in rules]
+    return sum(cand[r] < rules[r] for r in both), len(both)
+
+
+def _beats(best, rules_best, spread, faster) -> bool:
+    """A candidate replaces the rules' choice when its best time beats the rules' best
+    by more than their own spread over the rounds (:func:`noise`), or by at least
+    :data:`MARGIN` while it was the faster in every round that timed both (at
+    least :data:`PAIRED_ROUNDS`).  The second test compares each candidate run
+    with the rules' run of the same round, seconds apart, so a machine whose speed
+    drifts between rounds (a shared VM: 12-60 % spreads at 96 rows on a Zen 3)
+    still resolves a clear difference; a tie is the faster in all of 5 rounds
+    one time in 32."""
+    if best * (1 + spread) < rules_best:
+        return True
+    k, n = faster
+    return n >= PAIRED_ROUNDS and k == n and best * (1 + MARGIN) < rules_best
+
+
+#: The least rounds of a paired win (:func:`_beats`)
+PAIRED_ROUNDS = 3
+
+
 def choose(ctx, opts, progress=None, rounds=1) -> tuple:
     """Measure the rules' choice (candidate ``{}``, always first; candidates
     equal to it are dropped) and every other candidate of every option,
@@ -394,12 +420,16 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
     not timed again).  Another candidate replaces the rules' choice only
     when its best time beats the rules' best by more than the noise: the
     relative spread of the rules' own timings over the rounds
-    (:func:`noise`), at least :data:`MARGIN`.  A candidate whose output
+    (:func:`noise`), at least :data:`MARGIN`; or by MARGIN while it was the
+    faster in each of at least PAIRED_ROUNDS rounds (:func:`_beats`); of
+    several such, the fastest.  A candidate whose output
     differs from the rules' (bit for bit, or to rounding where the option is
     not ``exact``) in any round, or that fails, is never chosen.  Returns
     ``(choices, measured)``: the RULES rows set by the chosen candidates
     (none for an option whose rules' choice stands), and per option each
-    candidate's best seconds (None: wrong or failed) and the noise.
+    candidate's best seconds (None: wrong or failed), the noise and, per
+    candidate, ``faster_rounds`` (k, n): faster than the rules in k of the n
+    rounds that timed both (None for the rules' own).
 
     The rules' choice's first run gives the reference output every candidate
     is checked against.  When that run fails (raises), the option cannot be
@@ -417,6 +447,7 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
         cands = _candidates(profile, opt)
         saved = dict(profile.tuned)
         times = [[] for _ in cands]
+        by_round = [{} for _ in cands]  # round -> seconds, to compare a candidate with the rules' run of its round
         failed = [False] * len(cands)
         try:
             profile.tuned.clear()
@@ -427,6 +458,7 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
                 log.warning("tuning %s: the rules' own choice failed (%s: %s); option skipped, its rules' "
                             "choice kept", opt.name, type(exc).__name__, exc)
                 measured[opt.name] = {"candidates": [[c, None] for c in cands], "noise": MARGIN,
+                                      "faster_rounds": [None] * len(cands),
                                       "error": f"{type(exc).__name__}: {exc}"}
                 if progress is not None:
                     for _ in range(max(1, int(rounds)) * len(cands)):
@@ -450,6 +482,7 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
                         ok = False
                     if ok:
                         times[j].append(sec)
+                        by_round[j][r] = sec
                     else:
                         failed[j] = True
                     if progress is not None:
@@ -459,17 +492,18 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
             profile.tuned.update(saved)
         best = [None if failed[j] or not times[j] else min(times[j]) for j in range(len(cands))]
         spread = max(MARGIN, noise(times[0]))
-        measured[opt.name] = {"candidates": [[c, s] for c, s in zip(cands, best)], "noise": spread}
+        faster = [None] + [_faster_rounds(by_round[0], by_round[j]) for j in range(1, len(cands))]
+        measured[opt.name] = {"candidates": [[c, s] for c, s in zip(cands, best)], "noise": spread,
+                              "faster_rounds": faster}
         if best[0] is None:  # the rules' own choice failed: the fastest that ran is taken
             good = [(s, j) for j, s in enumerate(best) if s is not None]
             if good:
                 _merge(choices, cands[min(good)[1]])
             continue
-        others = [(s, j) for j, s in enumerate(best) if j > 0 and s is not None]
-        if others:
-            fastest, j = min(others)
-            if fastest * (1 + spread) < best[0]:
-                _merge(choices, cands[j])
+        beats = [(s, j) for j, s in enumerate(best)
+                 if j > 0 and s is not None and _beats(s, best[0], spread, faster[j])]
+        if beats:
+            _merge(choices, cands[min(beats)[1]])
     return choices, measured
 
 
