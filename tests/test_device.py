@@ -52,6 +52,23 @@ def test_declared_loop_limit_and_the_rules_it_changes():
     assert pipe.cbca_path(3, SHORT_MAX) == "short" and pocl.cbca_path(3, SHORT_MAX) == "multi"
 
 
+def test_sgm_mirror_reads_follow_the_vector_width():
+    """On CPUs the right reference's SGM reads the volume mirrored where the device's float
+    vectors hold 16 (the rules' None), and mirrors it in place where they hold 8 (a Zen 3);
+    a tuned value wins either way; llvmpipe and GPUs read mirrored."""
+    from dataclasses import replace
+
+    wide = DeviceProfile.of(DEVICES["pocl"], cl)
+    narrow = DeviceProfile.of(fake_device("pthread-haswell-AMD EPYC", T.CPU, width=8), cl)
+    assert RULES["sgm_mirror_reads"][CPU] is None
+    assert wide.sgm_mirror_reads() is True and wide.value("sgm_mirror_reads") is True
+    assert narrow.sgm_mirror_reads() is False and narrow.sgm_options()["mirror_reads"] is False
+    assert replace(narrow, tuned={"sgm_mirror_reads": True}).sgm_options()["mirror_reads"] is True
+    assert replace(wide, tuned={"sgm_mirror_reads": False}).value("sgm_mirror_reads") is False
+    for key in ("llvmpipe", "gpu"):
+        assert DeviceProfile.of(DEVICES[key], cl).sgm_mirror_reads() is True
+
+
 @pytest.mark.parametrize("key, sgm, cbca, rn", [
     # the defaults each stage had before the profile (one device of each kind seen here), except
     # Oclgrind's CBCA: "multi" before (its CPU bit), now the generic column's work-group passes

@@ -49,8 +49,10 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: (AVX2), 133-140 against 143-155 ms on a Zen 4 (AVX-512, whose 16-float vectors PoCL uses
 #: elsewhere)); ``sgm_mirror_reads``: the right reference's SGM reads the volume mirrored where
 #: the stage can (the paired sweeps), else the volume is mirrored in place, there and back
-#: (the same bits; PoCL: reading mirrored saves the two passes, 216 against 183 + 2 x 30 ms a
-#: KITTI-sized volume; Intel's CPU runtime compiles the mirrored loads into slower code: 390
+#: (the same bits; None on CPUs: where the float vector width is 16 or more,
+#: :meth:`DeviceProfile.sgm_mirror_reads`; PoCL with 16-wide vectors: reading mirrored saves the
+#: two passes, 216 against 183 + 2 x 30 ms a KITTI-sized volume; with 8-wide ones, a Zen 3, the
+#: passes were the faster; Intel's CPU runtime compiles the mirrored loads into slower code: 390
 #: against 184-212 ms for a plain call, so there its tuner keeps the passes); ``sgm_wg_cols``: the work-group stage's vertical
 #: paths with that many adjacent columns per work-group (0: one column per work-group,
 #: as its rows; :class:`~mccnn_cl.stages.sgm_wg.SGMWorkGroup`).  CBCA: ``cbca_workgroup`` (the GPU-shaped
@@ -102,7 +104,7 @@ RULES = {
     "sgm_paired_max_units":    {CPU: 2,     LLVMPIPE: 0,     GPU: 0},
     "sgm_wg_cols":             {CPU: 0,     LLVMPIPE: 0,     GPU: 0},
     "sgm_width":               {CPU: 8,     LLVMPIPE: 16,    GPU: 16},
-    "sgm_mirror_reads":        {CPU: True,  LLVMPIPE: True,  GPU: True},
+    "sgm_mirror_reads":        {CPU: None,  LLVMPIPE: True,  GPU: True},
     "cbca_workgroup":          {CPU: False, LLVMPIPE: False, GPU: True},
     "cbca_fused":              {CPU: True,  LLVMPIPE: False, GPU: False},
     "cbca_multi":              {CPU: True,  LLVMPIPE: True,  GPU: False},
@@ -219,7 +221,18 @@ class DeviceProfile:
                     specialize=self.rule("sgm_specialize"), whole_tiles=self.rule("sgm_whole_tiles"),
                     paired=self.compute_units <= self.rule("sgm_paired_max_units"),
                     group_of_one=self.rule("sgm_group_of_one"), width=self.sgm_width(),
-                    mirror_reads=bool(self.rule("sgm_mirror_reads")))
+                    mirror_reads=self.sgm_mirror_reads())
+
+    def sgm_mirror_reads(self) -> bool:
+        """Whether the right reference's SGM reads the volume mirrored (rule ``sgm_mirror_reads``;
+        None: where the device's float vector width is 16 or more).  With 8-wide vectors (PoCL on
+        a Zen 3) each mirrored tile row is an 8-float load and permute at a cell offset that moves
+        a level at a time, and mirroring the volume in place there and back was the faster:
+        ``mccnn-cl tune`` 113 against 132 ms (the faster in 4 of 5 rounds), the census pipeline
+        on a KITTI pair 2.05 against 2.22 s (medians of 12 alternating rounds, 9 of 12 faster);
+        with 16-wide vectors the mirrored reads save the two passes (BENCHMARKS.md)."""
+        v = self.rule("sgm_mirror_reads")
+        return bool(v) if v is not None else self.vector_width >= 16
 
     def sgm_width(self) -> int:
         """Lanes of sgm.cl's vectors (rule ``sgm_width``, 16 or 8)."""
@@ -260,9 +273,9 @@ class DeviceProfile:
     def value(self, option: str):
         """A :data:`RULES` row's value as the stages take it: :meth:`rule`, with the rows whose
         value depends on the device resolved (``fst_volume_width``, ``network_winograd``,
-        ``network_tiles``: their methods)."""
+        ``network_tiles``, ``sgm_mirror_reads``: their methods)."""
         resolved = {"fst_volume_width": self.fst_volume_width, "network_winograd": self.winograd,
-                    "network_tiles": self.network_tiles}.get(option)
+                    "network_tiles": self.network_tiles, "sgm_mirror_reads": self.sgm_mirror_reads}.get(option)
         return resolved() if resolved is not None else self.rule(option)
 
     def winograd(self):
