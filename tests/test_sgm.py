@@ -263,7 +263,8 @@ def test_mirror_needs_the_paired_sweeps(ctx):
     rng = np.random.default_rng(5)
     cost = random_volume(rng, 4, 3, 10)
     img = blocky_image(rng, 3, 10, 2, 0.1)
-    assert SGM(ctx, paired=True).reads_mirrored and not SGM(ctx, paired=False).reads_mirrored
+    assert SGM(ctx, paired=True, mirror_reads=True).reads_mirrored
+    assert not SGM(ctx, paired=False, mirror_reads=True).reads_mirrored
     # the paired sweeps still read mirrored when asked, whatever the right reference prefers (sgm_mirror_reads)
     assert not SGM(ctx, paired=True, mirror_reads=False).reads_mirrored
     want = run_sgm(ctx, cost, img, img, paired=True, mirror=True)
