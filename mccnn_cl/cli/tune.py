@@ -179,8 +179,7 @@ def run(args) -> int:
         choices, measured, path = tune.tune(ctx, progress=True, size=size, rounds=rounds)
         for name, res in measured.items():
             parts = []
-            faster = res.get("faster_rounds") or [None] * len(res["candidates"])
-            for (cand, sec), won in zip(res["candidates"], faster):
+            for (cand, sec), won in zip(res["candidates"], res["faster_rounds"]):
                 label = " ".join(f"{k}={v}" for k, v in cand.items()) or "rules"
                 text = "wrong/failed" if sec is None else f"{sec * 1e3:.1f} ms"
                 if sec is not None and won and won[1]:

@@ -446,7 +446,6 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
     for opt in opts:
         cands = _candidates(profile, opt)
         saved = dict(profile.tuned)
-        times = [[] for _ in cands]
         by_round = [{} for _ in cands]  # round -> seconds, to compare a candidate with the rules' run of its round
         failed = [False] * len(cands)
         try:
@@ -467,7 +466,7 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
             for r in range(max(1, int(rounds))):
                 order = range(len(cands)) if r % 2 == 0 else reversed(range(len(cands)))
                 for j in order:
-                    if failed[j] or _hopeless(times, j):
+                    if failed[j] or _hopeless([list(t.values()) for t in by_round], j):
                         if progress is not None:
                             progress()
                         continue
@@ -481,7 +480,6 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
                         log.info("tuning %s: candidate %s failed: %s", opt.name, cands[j], exc)
                         ok = False
                     if ok:
-                        times[j].append(sec)
                         by_round[j][r] = sec
                     else:
                         failed[j] = True
@@ -490,8 +488,8 @@ def choose(ctx, opts, progress=None, rounds=1) -> tuple:
         finally:
             profile.tuned.clear()
             profile.tuned.update(saved)
-        best = [None if failed[j] or not times[j] else min(times[j]) for j in range(len(cands))]
-        spread = max(MARGIN, noise(times[0]))
+        best = [None if failed[j] or not by_round[j] else min(by_round[j].values()) for j in range(len(cands))]
+        spread = max(MARGIN, noise(list(by_round[0].values())))
         faster = [None] + [_faster_rounds(by_round[0], by_round[j]) for j in range(1, len(cands))]
         measured[opt.name] = {"candidates": [[c, s] for c, s in zip(cands, best)], "noise": spread,
                               "faster_rounds": faster}
