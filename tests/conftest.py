@@ -28,6 +28,7 @@ without ``$MCCNN_DATA`` it is skipped with that reason (``-rs`` lists it).
 
 import os
 import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -185,6 +186,30 @@ def pytest_configure(config):
     config._mccnn_cl_impl_env = env
     for flt in CL_IMPLS[impl].get("filterwarnings", []):
         config.addinivalue_line("filterwarnings", flt)
+
+
+def pytest_collection_finish(session):
+    """Start the selected stage cases on other implementations in the background
+    (tests/helpers.py, BackgroundCases): they build for minutes on one core
+    while the rest of the suite runs."""
+    pairs = []
+    for item in session.items:
+        if getattr(item, "originalname", None) != "test_stage_matches_reference_on":
+            continue
+        if item.get_closest_marker("skip") or item.get_closest_marker("xfail"):
+            continue
+        params = item.callspec.params
+        pairs.append((params["impl"], params["case"]))
+    if pairs and not session.config.getoption("collectonly"):
+        from helpers import BACKGROUND, STAGE_CASE_TIMEOUT
+
+        BACKGROUND.start(pairs, timeout=STAGE_CASE_TIMEOUT)
+
+
+def pytest_unconfigure(config):
+    helpers = sys.modules.get("helpers")
+    if helpers is not None:
+        helpers.BACKGROUND.stop()
 
 
 def pytest_report_header(config):

@@ -123,12 +123,15 @@ CASE_FORMS = {
 }
 
 
-def run_isolated(impl: str, case: str, timeout: float = 600) -> dict:
+def run_isolated(impl: str, case: str, timeout: float = 600, nice: int = 0, started=None) -> dict:
     """Run one case in a subprocess that sees only ``impl``.
 
     Returns ``{"ok", "result" (the worker's dict or None), "oclgrind_errors",
     "stdout", "stderr", "seconds"}``.  Raises ``conftest.ImplUnavailable``
-    when the implementation is not installed.
+    when the implementation is not installed, ``subprocess.TimeoutExpired``
+    (the worker killed) past ``timeout`` seconds.  ``nice``: the worker's
+    niceness increment (``nice -n``); ``started(proc)``: called with the
+    worker's Popen once it runs (:class:`BackgroundCases` keeps it to stop it).
     """
     from conftest import CL_IMPLS, impl_environ, oclgrind_errors  # noqa: E402
 
@@ -137,24 +140,126 @@ def run_isolated(impl: str, case: str, timeout: float = 600) -> dict:
         env = {k: v for k, v in os.environ.items()
                if not k.startswith(("OCLGRIND_", "PYOPENCL_CTX", "RUSTICL_", "OCL_ICD_"))}
         env.update(impl_environ(impl, oclgrind_log=log))
+        cmd = [sys.executable, str(WORKER), case, "--expect-platform", CL_IMPLS[impl]["platform"]]
+        if nice:
+            cmd = ["nice", "-n", str(nice)] + cmd
         t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, str(WORKER), case,
-                               "--expect-platform", CL_IMPLS[impl]["platform"]],
-                              env=env, capture_output=True, text=True, timeout=timeout)
+        with subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+            if started is not None:
+                started(proc)
+            try:
+                stdout, stderr = proc.communicate(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.communicate()
+                raise
         seconds = time.perf_counter() - t0
         log_text = log.read_text(errors="replace") if log.exists() else ""
     result = None
-    for line in proc.stdout.splitlines():
+    for line in stdout.splitlines():
         if line.startswith("RESULT "):
             result = json.loads(line[7:])
     errors = ""
     if impl == "oclgrind":
         # the log holds only kernel diagnostics: any content fails; API errors go to stderr
         errors = "\n\n".join(e for e in (log_text.strip(), oclgrind_errors(
-            "\n\n".join(b for b in proc.stderr.split("\n\n") if "Oclgrind" in b))) if e)
+            "\n\n".join(b for b in stderr.split("\n\n") if "Oclgrind" in b))) if e)
     ok = proc.returncode == 0 and result is not None and result["ok"] and not errors
-    return {"ok": ok, "result": result, "oclgrind_errors": errors, "stdout": proc.stdout,
-            "stderr": proc.stderr, "seconds": seconds, "returncode": proc.returncode}
+    return {"ok": ok, "result": result, "oclgrind_errors": errors, "stdout": stdout,
+            "stderr": stderr, "seconds": seconds, "returncode": proc.returncode}
+
+
+class BackgroundCases:
+    """Stage cases on other implementations (test_portability.py) run by one
+    background thread, one after another, from the start of the session.
+
+    Why: on a fresh machine the Rusticl cases spend ~13 minutes compiling
+    (llvmpipe builds each kernel at its first launch, on one core, with a cold
+    Mesa cache), while the rest of the suite leaves a core idle through its own
+    single-threaded builds.  Started by ``conftest.pytest_collection_finish``
+    for the selected cases only, at ``nice`` 19 so that they take what the
+    suite leaves idle; each test then waits for its case's result
+    (:meth:`result`), which runs the case in the foreground when it was not
+    queued.  :meth:`stop` (``pytest_unconfigure``) kills a worker still running.
+    """
+
+    NICE = 19
+    #: the cases slowest to build first (measured on Rusticl with a cold cache: fst ~320 s,
+    #: sgm ~135 s, half ~120 s, winograd ~50 s); the rest in name order
+    FIRST = ("fst", "sgm", "half", "winograd", "cbca")
+
+    def __init__(self):
+        import threading
+
+        self._lock = threading.Lock()
+        self._done = {}  # (impl, case) -> threading.Event
+        self._results = {}  # (impl, case) -> result dict or the exception raised
+        self._proc = None
+        self._stopped = False
+        self._thread = None
+
+    def start(self, pairs, timeout: float) -> None:
+        """Queue ``pairs`` [(impl, case)] and start the thread (once)."""
+        import threading
+
+        order = {c: i for i, c in enumerate(self.FIRST)}
+        queue = sorted(dict.fromkeys(pairs), key=lambda p: (order.get(p[1], len(order)), p[1], p[0]))
+        if not queue or self._thread is not None:
+            return
+        with self._lock:
+            for p in queue:
+                self._done[p] = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(queue, timeout), daemon=True,
+                                        name="mccnn-background-cases")
+        self._thread.start()
+
+    def _started(self, proc):
+        with self._lock:
+            self._proc = proc
+            stopped = self._stopped
+        if stopped:
+            proc.kill()
+
+    def _run(self, queue, timeout):
+        for p in queue:
+            if self._stopped:
+                break
+            try:
+                res = run_isolated(*p, timeout=timeout, nice=self.NICE, started=self._started)
+            except BaseException as exc:  # handed to the test, which raises it
+                res = exc
+            with self._lock:
+                self._proc = None
+                self._results[p] = res
+            self._done[p].set()
+
+    def result(self, impl: str, case: str, timeout: float) -> dict:
+        """The case's result: from the background run when it was queued, else run now."""
+        ev = self._done.get((impl, case))
+        if ev is None:
+            return run_isolated(impl, case, timeout=timeout)
+        while not ev.wait(5.0):
+            if self._thread is None or not self._thread.is_alive():
+                raise RuntimeError(f"the background run of {case} on {impl} ended without a result")
+        res = self._results[(impl, case)]
+        if isinstance(res, BaseException):
+            raise res
+        return res
+
+    def stop(self) -> None:
+        with self._lock:
+            self._stopped = True
+            proc = self._proc
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+
+
+#: seconds one stage case may run on another implementation (test_portability.py): a guard
+#: against hangs, not a speed test
+STAGE_CASE_TIMEOUT = 900
+
+#: the session's background runner (conftest.py starts it; test_portability.py reads it)
+BACKGROUND = BackgroundCases()
 
 
 # -- device profiles (test_device.py, test_cbca_gpu.py, test_network_gpu.py, test_gpu_memory.py) --

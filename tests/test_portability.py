@@ -29,7 +29,7 @@ import pytest
 
 from conftest import CL_IMPLS, REPO, ImplUnavailable, impl_environ
 
-from helpers import CASE_KERNELS, run_isolated
+from helpers import BACKGROUND, CASE_KERNELS, STAGE_CASE_TIMEOUT
 
 IMPLS = [s.strip() for s in os.environ.get("MCCNN_CL_IMPLS", "pocl,oclgrind,rusticl").split(",") if s.strip()]
 KERNEL_DIR = REPO / "mccnn_cl" / "kernels"
@@ -88,9 +88,11 @@ def test_unknown_or_missing_implementation_fails_loudly(tmp_path):
 @pytest.mark.slow
 def test_stage_matches_reference_on(impl, case, tmp_path):
     _env(impl, tmp_path)  # fails loudly if unavailable
-    # a guard against hangs, not a speed test: on a slow host (a 2-core Zen 3 whose whole suite
-    # took 45 min) the fst case on Rusticl, whose llvmpipe builds the network's kernels, ran past 300 s
-    res = run_isolated(impl, case, timeout=900)
+    # run from the session's start in the background (helpers.BackgroundCases, started by
+    # conftest.pytest_collection_finish); the timeout is a guard against hangs, not a speed test:
+    # on a slow host (a 2-core Zen 3 whose whole suite took 45 min) the fst case on Rusticl, whose
+    # llvmpipe builds the network's kernels, ran past 300 s
+    res = BACKGROUND.result(impl, case, timeout=STAGE_CASE_TIMEOUT)
     if res["result"] is None:
         pytest.fail(f"{case} on {impl} crashed (rc {res['returncode']}):\n{res['stderr'][-6000:]}")
     bad = [r for r in res["result"]["checks"] if not r["ok"]]

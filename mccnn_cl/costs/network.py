@@ -332,10 +332,15 @@ class PaperCost(ConvNetCost):
             n_valid = hb * max(w - d, 0)
             for c0 in range(0, n_valid, n_max):
                 n = min(n_max, n_valid - c0)
-                self._l4(q, (hp // rn, n), None, d_a, d_b, acts[0], i32(w), i32(d), i32(c0), i32(n))
+                # launch_sizes: n follows the image width and the disparity, so on PoCL a
+                # work-group size left to the runtime was a new compile of both kernels
+                # for nearly every n (both return beyond n)
+                self._l4(q, *launch_sizes(self.ctx, (hp // rn, n)), d_a, d_b, acts[0], i32(w), i32(d), i32(c0),
+                         i32(n))
                 for l, (d_w, d_bias) in enumerate(self._d_layers):
                     self.stack.launch(self._hidden, acts[l & 1], n, d_w, d_bias, acts[(l + 1) & 1], n, n, hp)
-                self._out(q, (n,), None, acts[self.nhid & 1], self._d_w8, self._d_b8, d_cost, i32(h), i32(w),
+                self._out(q, *launch_sizes(self.ctx, (n,)), acts[self.nhid & 1], self._d_w8, self._d_b8, d_cost,
+                          i32(h), i32(w),
                           i32(y0), i32(d), i32(c0), i32(n))
 
     def compute(self, left, right, max_disparity) -> np.ndarray:
