@@ -35,10 +35,10 @@ def test_second_size_and_disparity_count_build_nothing(ctx):
 
 
 def test_max_disp_buckets():
-    """SGM's compiled MAX_DISP: a power of two >= D, at least 32; seven values in all."""
+    """SGM's compiled MAX_DISP: a power of two >= D, at least 64; six values in all."""
     assert [_max_disp(d) for d in (1, 32, 33, 64, 65, 228, 256, 257, MAX_LEVELS)] == \
-        [32, 32, 64, 64, 128, 256, 256, 512, MAX_LEVELS]
-    assert len({_max_disp(d) for d in range(1, MAX_LEVELS + 1)}) == 7
+        [64, 64, 64, 64, 128, 256, 256, 512, MAX_LEVELS]
+    assert len({_max_disp(d) for d in range(1, MAX_LEVELS + 1)}) == 6
 
 
 def test_launch_local_sizes_do_not_follow_the_image(ctx):

@@ -13,7 +13,7 @@
  * [4] (iterations per launch of the multi kernel), CBCA_PART [0] (which
  * kernels the program holds: 0 all, 1 all but the multi kernel, 2 the multi
  * kernel only; a program binary holds compiled code for each of its kernels,
- * and the host's multi path builds only the kernel it launches).
+ * so the host builds the multi path with 2 and the other paths with 1).
  *
  * Arms: bytes in four planes [4][H][W] (left, right, up, down), as written
  * by cross.cl; ARM(a, k, i) is arm k of pixel index i = y * W + x.

@@ -151,12 +151,16 @@ class CBCA:
                 k = [(ctx.kernel("cbca_wg.cl", "cbca_rows_wg", **defs), None),
                      (ctx.kernel("cbca_wg.cl", "cbca_columns_wg", **defs), None)]
             elif path == "fused":
-                kern = ctx.kernel("cbca.cl", "cbca_fused_short", MAX_ARM=max_arm, CBCA_GROUPS=_GROUPS, VOL_HALF=half)
+                # CBCA_PART 1: the program without the multi kernel (a binary holds code for every
+                # kernel of its program, and PoCL compiles them all to hand it out)
+                kern = ctx.kernel("cbca.cl", "cbca_fused_short", MAX_ARM=max_arm, CBCA_GROUPS=_GROUPS, VOL_HALF=half,
+                                  CBCA_PART=1)
                 k = [(kern, ctx.profile.line_group(ctx, kern))]
             else:
                 suffix = "_short" if path == "short" else ""
                 defs = dict(MAX_ARM=max_arm, CBCA_GROUPS=_GROUPS) if path == "short" else dict(MAX_ARM=max_arm)
                 defs["VOL_HALF"] = half
+                defs["CBCA_PART"] = 1
                 k = [(kern, ctx.profile.line_group(ctx, kern))
                      for kern in (ctx.kernel("cbca.cl", "cbca_rows" + suffix, **defs),
                                   ctx.kernel("cbca.cl", "cbca_columns" + suffix, **defs))]
