@@ -134,10 +134,10 @@ def test_wrong_candidate_never_chosen(ctx):
 def test_rules_candidate_kept_unless_faster_than_the_noise(ctx):
     """Another candidate replaces the rules' choice only when faster by more
     than the rules' own spread over the rounds (at least tune.MARGIN) while the
-    faster in most rounds, or by
-    MARGIN while the faster in every round: a machine whose speed drifts
-    between rounds still resolves a candidate faster in each round, and a
-    candidate faster at best but slower in most rounds stays out."""
+    faster in most rounds, or by MARGIN while the faster in every round: a
+    machine whose speed drifts between rounds still resolves a candidate faster
+    in each round, and a candidate faster at best but slower in most rounds
+    stays out."""
     rules = tune._rules_value(ctx.profile, "sgm_cols")
     other = 32 if rules != 32 else 64
     calls = {"n": 0}

@@ -340,8 +340,7 @@ class PaperCost(ConvNetCost):
                 for l, (d_w, d_bias) in enumerate(self._d_layers):
                     self.stack.launch(self._hidden, acts[l & 1], n, d_w, d_bias, acts[(l + 1) & 1], n, n, hp)
                 self._out(q, *launch_sizes(self.ctx, (n,)), acts[self.nhid & 1], self._d_w8, self._d_b8, d_cost,
-                          i32(h), i32(w),
-                          i32(y0), i32(d), i32(c0), i32(n))
+                          i32(h), i32(w), i32(y0), i32(d), i32(c0), i32(n))
 
     def compute(self, left, right, max_disparity) -> np.ndarray:
         """Host copy of :meth:`__call__`: array ``[D][H_img-8][W_img-8]`` (float32,
