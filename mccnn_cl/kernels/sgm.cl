@@ -89,6 +89,7 @@
 #define vol_storeV_partial vol_store16_partial
 #define VOL_LOADV VOL_LOAD16
 #define sgm_stepV sgm_step16
+#define sgm_step_mp2V sgm_step_mp216
 #define fmin_aV fmin_a16
 #define SGM_LARGEV SGM_LARGE16
 #define SGM_BY_D1_V SGM_BY_D1_16
@@ -109,6 +110,7 @@
 #define vol_storeV_partial vol_store8_partial
 #define VOL_LOADV VOL_LOAD8
 #define sgm_stepV sgm_step8
+#define sgm_step_mp2V sgm_step_mp28
 #define fmin_aV fmin_a8
 #define SGM_LARGEV SGM_LARGE8
 #define SGM_BY_D1_V SGM_BY_D1_8
@@ -489,6 +491,7 @@ static inline __attribute__((always_inline)) void row_chunk(
         SGM_BY_D1(p1_small, p1_one, p1_both, big_l, p1_a, p1_b);
         SGM_BY_D1(p2_small, p2_one, p2_both, big_l, p2_a, p2_b);
         const float mm = *m;
+        const float mp2_a = mm + p2_a, mp2_b = mm + p2_b; /* m + P2 (sgm_step_mp2N) */
         float *pv = *prev, *cv = *cur;
         floatV newm = (floatV)(INFINITY);
         for (int v = 0; v < nvec; ++v) {
@@ -504,8 +507,8 @@ static inline __attribute__((always_inline)) void row_chunk(
                 const floatV pm = vloadV(0, pv + d0);     /* d - 1 */
                 const floatV pd = vloadV(0, pv + d0 + 1); /* d */
                 const floatV pn = vloadV(0, pv + d0 + 2); /* d + 1 */
-                val = sgm_stepV(c, (floatV)(mm), pm, pd, pn, SGM_BY_D2_V((floatV)(p1_a), (floatV)(p1_b), big_r),
-                                 SGM_BY_D2_V((floatV)(p2_a), (floatV)(p2_b), big_r));
+                val = sgm_step_mp2V(c, (floatV)(mm), pm, pd, pn, SGM_BY_D2_V((floatV)(p1_a), (floatV)(p1_b), big_r),
+                                    SGM_BY_D2_V((floatV)(mp2_a), (floatV)(mp2_b), big_r));
             }
             if (v == nvec - 1) /* only the last vector has lanes d > dmax */
                 val = select((floatV)(INFINITY), val, (intV)(d0) + lane <= (intV)(dmax));
@@ -616,6 +619,16 @@ static inline __attribute__((always_inline)) void write_tile(
     const int d0, const int n, const int dmax, const int mode)
 {
     const intV xs = (intV)(x0) + LANESV;
+    if (SGM_WHOLE_TILES && n == VW && d0 + VW - 1 <= dmax && x0 >= d0 + VW - 1) {
+        /* every cell valid (x >= d): plain loads and stores, no select */
+        __attribute__((opencl_unroll_hint))
+        for (int i = 0; i < VW; ++i) {
+            const floatV v = add ? r[i] + vloadV(0, add + (d0 + i) * VW) : r[i];
+            __global vol_t *p = dst + i * plane;
+            vol_storeV_partial(mode == 0 ? v : SGM_COMBINE(VOL_LOADV(p), v, mode), p, VW);
+        }
+        return;
+    }
     if (SGM_WHOLE_TILES && n == VW && d0 + VW - 1 <= dmax) { /* plain loads and stores */
         __attribute__((opencl_unroll_hint))
         for (int i = 0; i < VW; ++i) {
@@ -768,6 +781,45 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
 #endif /* SGM_PART != 2 */
 
 #if SGM_PART != 1
+/* The vertical recurrence over the rows i < iend of one tile of sgm_paired
+ * (levels d0 + i, lanes over VW columns): C_r from the costs r[i], the
+ * previous row's C_r in the group's state sg ([D + 2][VW], level d at sg +
+ * d * VW, overwritten) and its minimum mv (mp2a, mp2b: mv + P2 for a small
+ * and a large D2, sgm_step_mp2N); pm1 and pd carry levels d - 1
+ * and d from row to row; bigv[-d]: the lanes' D2 flags at level d; newmv
+ * gathers the minimum.  masked = 0 where every lane of the tile is valid
+ * (no select of +INFINITY for x < d or for lanes past the image): a
+ * constant at each call, so that each call compiles to its own loop. */
+static inline __attribute__((always_inline)) void vertical_tile(
+    const floatV *r, const int *bigv, __global float *sg, const int d0, const int iend, const int vfirst,
+    const floatV mv, const floatV p1a, const floatV p1b, const floatV mp2a, const floatV mp2b, floatV *pm1,
+    floatV *pd, floatV *newmv, const intV xs, const intV valid_x, const int masked)
+{
+    __attribute__((opencl_unroll_hint))
+    for (int i = 0; i < VW; ++i) { /* a constant trip count keeps r[] in registers */
+        const int d = d0 + i;
+        if (i < iend) {
+            floatV val;
+            if (vfirst) {
+                val = r[i];
+            } else {
+                const intV big_r = vloadV(0, bigv - d);
+                const floatV pn = vloadV(0, sg + (d + 1) * VW); /* C_r(p - r, d + 1) */
+                val = sgm_step_mp2V(r[i], mv, *pm1, *pd, pn, SGM_BY_D2_V(p1a, p1b, big_r),
+                                    SGM_BY_D2_V(mp2a, mp2b, big_r));
+                *pm1 = *pd;
+                *pd = pn;
+            }
+            if (masked)
+                val = select((floatV)(INFINITY), val, (xs >= (intV)(d)) & valid_x);
+            vstoreV(val, 0, sg + d * VW);
+            *newmv = fmin_aV(*newmv, val);
+        }
+    }
+}
+#endif /* SGM_PART != 1 */
+
+#if SGM_PART != 1
 /* Paired sweeps (``sgm_paired``, two work-items, two launches): work-item A
  * walks its rows top to bottom and adds the left->right and top->bottom
  * paths, work-item B walks its rows bottom to top and adds the right->left
@@ -889,6 +941,7 @@ __kernel __attribute__((vec_type_hint(floatV))) void sgm_paired(__global const v
                     pd = vloadV(0, sg);
                     pm1 = (floatV)(INFINITY);
                 }
+                const floatV mp2a = mv + p2a, mp2b = mv + p2b; /* m + P2 (sgm_step_mp2N) */
                 floatV newmv = (floatV)(INFINITY);
                 for (int g = 0; g < ntiles; ++g) {
                     const int d0 = g * VW;
@@ -897,26 +950,13 @@ __kernel __attribute__((vec_type_hint(floatV))) void sgm_paired(__global const v
                     else
                         load_tile(r, cost, y, xg, d0, ng, dmaxg, H, W);
                     const int iend = min(VW, dmaxg + 1 - d0);
-                    __attribute__((opencl_unroll_hint))
-                    for (int i = 0; i < VW; ++i) { /* a constant trip count keeps r[] in registers */
-                        const int d = d0 + i;
-                        if (i < iend) {
-                            floatV val;
-                            if (vfirst) {
-                                val = r[i];
-                            } else {
-                                const intV big_r = vloadV(0, bigv + MAX_DISP + gx * VW - d);
-                                const floatV pn = vloadV(0, sg + (d + 1) * VW); /* C_r(p - r, d + 1) */
-                                val = sgm_stepV(r[i], mv, pm1, pd, pn, SGM_BY_D2_V(p1a, p1b, big_r),
-                                                 SGM_BY_D2_V(p2a, p2b, big_r));
-                                pm1 = pd;
-                                pd = pn;
-                            }
-                            val = select((floatV)(INFINITY), val, (xs >= (intV)(d)) & valid_x);
-                            vstoreV(val, 0, sg + d * VW);
-                            newmv = fmin_aV(newmv, val);
-                        }
-                    }
+                    /* the validity select only for a tile with an invalid lane */
+                    if (ng == VW && xg >= d0 + VW - 1)
+                        vertical_tile(r, bigv + MAX_DISP + gx * VW, sg, d0, iend, vfirst, mv, p1a, p1b, mp2a, mp2b,
+                                      &pm1, &pd, &newmv, xs, valid_x, 0);
+                    else
+                        vertical_tile(r, bigv + MAX_DISP + gx * VW, sg, d0, iend, vfirst, mv, p1a, p1b, mp2a, mp2b,
+                                      &pm1, &pd, &newmv, xs, valid_x, 1);
                     transposeV(r);
                     __attribute__((opencl_unroll_hint)) /* unrolled: r[] stays in registers (header) */
                     for (int k = 0; k < VW; ++k)

@@ -57,8 +57,11 @@
  * C_r(p - r, .) at d - 1 (lo), d and d + 1 (hi).  m is never NaN (a minimum
  * from +INFINITY through fmin, which drops NaN), so neither is m + P2:
  * fmin_b and fmin_a are fmin there; C_r(p - r, .) may be NaN (a NaN cost).
- * One text for float16 and float8 lanes (N = 16, 8), the scalar sgm_step
- * below in the same order of operations. */
+ * sgm_step_mp2N takes m + P2 instead of P2: where P2 is a select of two
+ * values, the select of the two sums m + P2a, m + P2b (made once per pixel
+ * or row) is the same value as m + select(P2a, P2b), one add fewer per
+ * vector.  One text for float16 and float8 lanes (N = 16, 8), the scalar
+ * sgm_step below in the same order of operations. */
 #define SGM_VECTOR_FUNCTIONS(N)                                                                            \
     static inline __attribute__((always_inline)) float##N fmin_a##N(const float##N a, const float##N b)   \
     {                                                                                                      \
@@ -68,12 +71,18 @@
     {                                                                                                      \
         return select(a, b, !(a <= b));                                                                    \
     }                                                                                                      \
+    static inline __attribute__((always_inline)) float##N sgm_step_mp2##N(                                \
+        const float##N c, const float##N m, const float##N lo, const float##N d, const float##N hi,        \
+        const float##N p1, const float##N mp2)                                                             \
+    {                                                                                                      \
+        const float##N best = fmin_a##N(fmin_b##N(d, mp2), fmin(lo, hi) + p1);                             \
+        return c - m + best;                                                                               \
+    }                                                                                                      \
     static inline __attribute__((always_inline)) float##N sgm_step##N(                                    \
         const float##N c, const float##N m, const float##N lo, const float##N d, const float##N hi,        \
         const float##N p1, const float##N p2)                                                              \
     {                                                                                                      \
-        const float##N best = fmin_a##N(fmin_b##N(d, m + p2), fmin(lo, hi) + p1);                          \
-        return c - m + best;                                                                               \
+        return sgm_step_mp2##N(c, m, lo, d, hi, p1, m + p2);                                               \
     }
 SGM_VECTOR_FUNCTIONS(16)
 SGM_VECTOR_FUNCTIONS(8)
