@@ -140,10 +140,11 @@ class CBCA:
             ctx, half = self.ctx, int(self.half)
             if path == "multi":
                 # the masked terms' form (kernels/cbca.cl, CBCA_MASKED_SUM): one masked add where the CPU
-                # has AVX-512, the mask on the term off the chain of adds elsewhere (the same bits)
+                # has AVX-512, the mask on the term off the chain of adds elsewhere (the same bits);
+                # CBCA_CPU_ASM: asm barriers where the kernel is compiled straight to x86 (PoCL)
                 sel = int(self.select_add if self.select_add is not None else not ctx.profile.wide_vectors)
                 kern = ctx.kernel("cbca.cl", "cbca_fused_multi_short", MAX_ARM=max_arm, CBCA_K=MULTI_K, VOL_HALF=half,
-                                  CBCA_SELECT_ADD=sel, CBCA_PART=2)
+                                  CBCA_SELECT_ADD=sel, CBCA_CPU_ASM=int(ctx.profile.is_cpu), CBCA_PART=2)
                 # a work-item walks a whole plane: on CPUs groups of one spread the D planes evenly over the cores
                 k = [(kern, ctx.profile.line_group(ctx, kern, ctx.profile.rule("cbca_multi_group_of_one")))]
             elif path == "workgroup":
