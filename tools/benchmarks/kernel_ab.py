@@ -1,11 +1,11 @@
 """Kernel sources A/B for one stage alone (SGM or CBCA) on a KITTI-sized
-random volume (stage_alone.py's inputs: 228 x 367 x 1234), in turn in one
+random volume (stage_alone.py's inputs: 228 x 367 x 1234, or ``--rows`` rows), in turn in one
 process: the working tree's kernels against those of a git revision
 (``--rev``) and/or against the tree built with extra defines (``--define``),
 each round timing every variant (best of 3 calls), the outputs compared bit
 for bit with the first variant's (BENCHMARKS.md, "SGM's tile loops unrolled").
 
-    .venv/bin/python tools/benchmarks/kernel_ab.py sgm --rev HEAD~1 [--width 8] [--rounds 7]
+    .venv/bin/python tools/benchmarks/kernel_ab.py sgm --rev HEAD~1 [--width 8] [--rounds 7] [--rows 48]
     .venv/bin/python tools/benchmarks/kernel_ab.py sgm --define SGM_PAIR_CW=32 [--define ...]
     .venv/bin/python tools/benchmarks/kernel_ab.py cbca --rev f36a0c6 [--iterations 4 --max-arm 4] [--images kitti]
 
@@ -97,15 +97,25 @@ def main():
     ap.add_argument("--iterations", type=int, default=4, help="CBCA iterations (general-fst: 4)")
     ap.add_argument("--max-arm", type=int, default=4, help="CBCA arm bound (general-fst's eta 5: 4)")
     ap.add_argument("--rounds", type=int, default=7)
+    ap.add_argument("--rows", type=int, default=None,
+                    help="rows of the volume instead of 367 (e.g. 48: ~40 ms calls, so many rounds fit in a "
+                         "minute and the host's drift between minutes weighs less; the kernels' time per cell "
+                         "is the same at 4 and at 367 rows on the Zen 3)")
     ap.add_argument("--images", choices=("random", "kitti"), default="random",
                     help="CBCA: the arms of the tuner's random images (default) or of KITTI 2015 000000 "
                          "($MCCNN_DATA, else ../shared/data; its top-left corner at the volume's size, "
                          "standardised; general-fst's tau 0.03, eta 5)")
     ap.add_argument("--cpu-time", action="store_true", help="time by process CPU time / 2")
     args = ap.parse_args()
+    global H
+    if args.rows is not None:
+        if args.rows < 1:
+            ap.error("--rows must be >= 1")
+        H = args.rows
     ctx = ClContext()
-    print(f"device: {ctx.describe()}; {args.stage}, {args.rounds} rounds, best of 3 calls per round")
-    d_l, d_r, d_vol, d_out = volume_inputs(ctx)
+    print(f"device: {ctx.describe()}; {args.stage}, {D} x {H} x {W}, {args.rounds} rounds, best of 3 calls per "
+          "round")
+    d_l, d_r, d_vol, d_out = volume_inputs(ctx, H)
     al = ar = None
     if args.stage == "cbca":
         from mccnn_cl.stages.cross import CrossArms

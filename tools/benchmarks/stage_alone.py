@@ -35,11 +35,12 @@ def timed(ctx, fn, runs):
     return out
 
 
-def volume_inputs(ctx):
-    """The tuner's random inputs (:func:`mccnn_cl.opencl.tune._inputs`) at this size, on the device."""
+def volume_inputs(ctx, rows=None):
+    """The tuner's random inputs (:func:`mccnn_cl.opencl.tune._inputs`) at this size (``rows`` rows
+    instead of H where given), on the device."""
     from mccnn_cl.opencl.tune import _inputs
 
-    img_l, img_r, vol = _inputs(ctx, (H, W, D))
+    img_l, img_r, vol = _inputs(ctx, (H if rows is None else int(rows), W, D))
     return ctx.to_device(img_l), ctx.to_device(img_r), ctx.to_device(vol), ctx.empty(vol.nbytes, "out")
 
 
