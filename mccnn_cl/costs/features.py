@@ -78,11 +78,13 @@ WINO_G = np.array([[1, 0, 0], [.5, .5, .5], [.5, -.5, .5], [0, 0, 1]], np.float6
 
 def winograd_weights(W, npad: int) -> np.ndarray:
     """U = G g G^T of every (output, input) pair of 3 x 3 kernels ``W`` [cout][cin][3][3]
-    (computed in float64), as network_conv_wino reads it: float32 [cin][16][npad], the
-    padded outputs zero."""
+    (computed in float64), as network_conv_wino reads it: float32 [16][cin][npad] (a run
+    over the input channels contiguous, kernels/network_conv_wino.cl), the padded outputs
+    zero."""
     cout, cin = W.shape[:2]
-    U = np.zeros((cin, 16, int(npad)), np.float32)
-    U[:, :, :cout] = np.einsum("ai,kcij,bj->cabk", WINO_G, np.asarray(W, np.float64), WINO_G).reshape(cin, 16, cout)
+    U = np.zeros((16, cin, int(npad)), np.float32)
+    u = np.einsum("ai,kcij,bj->cabk", WINO_G, np.asarray(W, np.float64), WINO_G).reshape(cin, 16, cout)
+    U[:, :, :cout] = u.transpose(1, 0, 2)
     return U
 
 
@@ -100,8 +102,8 @@ def launch_winograd(ctx, kern, rt: int, rn: int, d_in, w_in: int, d_u, d_b, d_ou
 
 def winograd_local_bytes(cin: int, npad: int, rn: int, rt: int) -> int:
     """Local memory of a network_conv_wino work-group: per channel group RT tiles' 16
-    transformed patches (CIN) and products (RN)."""
-    return (npad // rn) * 16 * rt * (cin + rn) * 4
+    transformed patches (CIN, each tile padded by 16 floats) and products (RN)."""
+    return (npad // rn) * rt * (16 * cin + 16 + 16 * rn) * 4
 
 
 def fit_tile(ctx, what, sizes, forced, local_bytes, local_size, build, shrink):
