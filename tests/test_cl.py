@@ -131,7 +131,7 @@ BUSY = textwrap.dedent('''
         g *= 4
     g = max(1, int(g * min(0.2 / max(dt, 1e-6), 64)))
     buf = ctx.empty(4 * g)
-    for _ in range(100):  # ~20 s of work queued
+    for _ in range(int(sys.argv[2]) if len(sys.argv) > 2 else 100):  # 100: ~20 s of work queued
         k(ctx.queue, (g,), None, buf)
     print("waiting", flush=True)
     try:
@@ -139,8 +139,62 @@ BUSY = textwrap.dedent('''
         print("finished", flush=True)
     except KeyboardInterrupt:
         print("interrupted", flush=True)
+        if len(sys.argv) > 3:  # exit as the command line does after Ctrl-C: the interpreter finalizes
+            sys.exit(130)
     os._exit(0)  # without draining the queue
 ''')
+
+
+def test_exit_after_an_interrupted_wait_waits_for_its_helper(ctx, request, tmp_path):
+    """After Ctrl-C interrupted a wait, the helper thread is still blocked in the runtime until
+    the work already queued is done; the interpreter's exit waits for it
+    (context._join_waiters, atexit) instead of finalizing under it, which could abort the
+    process inside PyOpenCL ("terminate called without an active exception", status -6): ~5 s
+    of kernels queued, SIGINT half a second into the wait, then a normal exit with status 130,
+    which must come after the queued work, not at once."""
+    script = tmp_path / "busy.py"
+    script.write_text(BUSY)
+    p = subprocess.Popen([sys.executable, str(script), request.config.getoption("--cl-device") or "", "25", "exit"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = p.stdout.readline()
+        assert line.strip() == "waiting", (line, p.stderr.read() if p.poll() is not None else "")
+        time.sleep(0.5)
+        p.send_signal(signal.SIGINT)
+        line = p.stdout.readline()
+        t = time.perf_counter()
+        assert line.strip() == "interrupted", (line, p.stderr.read())
+        assert p.wait(timeout=60) == 130, p.stderr.read()
+        took = time.perf_counter() - t
+        assert took > 0.8, f"exited {took:.2f} s after the interrupt, with ~4.5 s of work still queued"
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+
+
+def test_join_waiters_returns_when_the_helpers_end():
+    """context._join_waiters: joins the registered helper threads, at most for its timeout."""
+    import threading
+
+    from mccnn_cl.opencl import context
+
+    done = threading.Event()
+    t = threading.Thread(target=done.wait, args=(30,), daemon=True)
+    with context._WAITERS_LOCK:
+        context._WAITERS.add(t)
+    try:
+        t.start()
+        start = time.perf_counter()
+        context._join_waiters(timeout=0.3)  # the helper still runs: back after the timeout
+        assert t.is_alive() and 0.25 < time.perf_counter() - start < 5
+        done.set()
+        context._join_waiters(timeout=30)
+        assert not t.is_alive()
+    finally:
+        done.set()
+        with context._WAITERS_LOCK:
+            context._WAITERS.discard(t)
 
 
 def test_ctrl_c_interrupts_a_wait(ctx, request, tmp_path):

@@ -25,6 +25,7 @@ Device selection (:func:`select_device`):
 
 from __future__ import annotations
 
+import atexit
 import logging
 import os
 import re
@@ -373,6 +374,32 @@ def _format_define(value) -> str:
 #: and then do not wake a waiting main thread.
 WAIT_SIGNALS = 0.02
 
+#: Longest time (seconds) the interpreter's exit waits for :meth:`ClContext.wait`'s helper
+#: threads still blocked in the runtime (after an interrupted wait: the work already queued).
+WAIT_AT_EXIT = 60.0
+
+#: :meth:`ClContext.wait`'s helper threads still blocked in the runtime.
+_WAITERS: set = set()
+_WAITERS_LOCK = threading.Lock()
+
+
+def _join_waiters(timeout=None) -> None:
+    """Let the helper threads of interrupted waits return before the interpreter finalizes
+    (registered with :mod:`atexit`, which runs while threads may still take the GIL).  A daemon
+    thread whose blocking wait returned during finalization was ended by the interpreter inside
+    PyOpenCL's C++ (its GIL reacquisition), and the process aborted with "terminate called without
+    an active exception" (status -6) instead of exiting 130 after Ctrl-C: a race, seen once in a
+    fresh-clone test run (``tests/test_robustness.py::test_ctrl_c_is_answered_within_seconds``).
+    The wait is the work already queued, which :meth:`ClContext.pace` bounds to about two steps."""
+    deadline = time.monotonic() + (WAIT_AT_EXIT if timeout is None else float(timeout))
+    with _WAITERS_LOCK:
+        waiters = list(_WAITERS)
+    for t in waiters:
+        t.join(max(0.0, deadline - time.monotonic()))
+
+
+atexit.register(_join_waiters)
+
 
 class ClContext:
     """Context, queue and program cache for one OpenCL device.
@@ -596,7 +623,9 @@ class ClContext:
         its own threads either way.  Why not on the main thread: a blocking
         call there holds off signals until the work is done.  (Completion
         callbacks crashed Rusticl at exit: "terminate called without an
-        active exception".)"""
+        active exception".)  After an interrupted wait the interpreter's exit
+        waits for the helper thread (:func:`_join_waiters`, at most
+        :data:`WAIT_AT_EXIT` seconds)."""
         cl = self.cl
         if event is None:
             event = cl.enqueue_marker(self.queue)
@@ -611,8 +640,13 @@ class ClContext:
                     pass
                 finally:
                     done.set()
+                    with _WAITERS_LOCK:
+                        _WAITERS.discard(threading.current_thread())
 
-            threading.Thread(target=block, name="mccnn_cl wait", daemon=True).start()
+            helper = threading.Thread(target=block, name="mccnn_cl wait", daemon=True)
+            with _WAITERS_LOCK:
+                _WAITERS.add(helper)
+            helper.start()
             while not done.wait(WAIT_SIGNALS):  # a signal may land on any thread: look every WAIT_SIGNALS
                 pass
         event.wait()
