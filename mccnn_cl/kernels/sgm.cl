@@ -276,26 +276,19 @@ static inline __attribute__((always_inline)) void col_row(
         m[g] = newm[g];
 }
 
-/* col_row with constant first (f), mode and full arguments (12 inlined
- * copies), or with SGM_SPECIALIZE=0 one copy taking them at run time: the
- * same operations on every value (bit-identical), a sixth of the code, for
- * compilers that take minutes on the specialised kernel (Mesa's llvmpipe:
- * ~190 s at MAX_DISP = 32). */
+/* col_row with constant first (f), mode and full (fl) arguments where it is
+ * hot: every row after the first, all SGM_COLS columns inside the image (3
+ * inlined copies, one per mode); the first row of a path and a work-item's
+ * partial group of columns take the copy with run-time arguments.  Or, with
+ * SGM_SPECIALIZE=0, that one copy everywhere.  The same operations on every
+ * value (bit-identical).  Each copy unrolls SGM_G groups: 12 specialised
+ * copies (every first/mode/full) took PoCL ~11 s to compile at SGM_COLS 128,
+ * and Mesa's llvmpipe minutes at MAX_DISP = 32. */
 #ifndef SGM_SPECIALIZE
 #define SGM_SPECIALIZE 1
 #endif
 #define COL_ROW(f, md, fl) col_row(cost, out, state, ws, H, W, xw, dmax, y, dy, last, (f), (md), (fl), bigr, \
                                    p1a, p1b, p2a, p2b, m)
-#if SGM_SPECIALIZE
-#define COL_ROW_MODES(f)                                                                        \
-    do {                                                                                        \
-        if (full) {                                                                             \
-            if (mode == 0) COL_ROW(f, 0, 1); else if (mode == 1) COL_ROW(f, 1, 1); else COL_ROW(f, 2, 1); \
-        } else {                                                                                \
-            if (mode == 0) COL_ROW(f, 0, 0); else if (mode == 1) COL_ROW(f, 1, 0); else COL_ROW(f, 2, 0); \
-        }                                                                                       \
-    } while (0)
-#endif
 
 #if SGM_PART != 2
 /* Vertical paths, rows j0 .. j0 + nj - 1 of the path (row y = j on
@@ -350,11 +343,7 @@ __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume 
         const int y = dy > 0 ? j : H - 1 - j;
         const int last = j + 1 >= H;
         floatV p1a[SGM_G], p1b[SGM_G], p2a[SGM_G], p2b[SGM_G];
-        if (j == 0) {
-#if SGM_SPECIALIZE
-            COL_ROW_MODES(1);
-#endif
-        } else {
+        if (j > 0) {
             const int py = y - dy;
             __attribute__((opencl_unroll_hint))
             for (int g = 0; g < SGM_G; ++g) {
@@ -363,13 +352,17 @@ __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume 
                                    p2_small, p2_one, p2_both, &p1a[g], &p1b[g], &p2a[g], &p2b[g]);
             }
             vertical_gradients(img_r, W, y, py, xw, t_lo, MAX_DISP + SGM_COLS, tau_so, bigr);
-#if SGM_SPECIALIZE
-            COL_ROW_MODES(0);
-#endif
         }
-#if !SGM_SPECIALIZE
-        COL_ROW(j == 0, mode, full); /* first row: p1a .. p2b and bigr are not read */
-#endif
+        if (SGM_SPECIALIZE && j > 0 && full) {
+            if (mode == 0)
+                COL_ROW(0, 0, 1);
+            else if (mode == 1)
+                COL_ROW(0, 1, 1);
+            else
+                COL_ROW(0, 2, 1);
+        } else {
+            COL_ROW(j == 0, mode, full); /* first row: p1a .. p2b and bigr are not read */
+        }
         if (mode == 0)
             for (int d = dmax + 1; d < D; ++d)
                 for (int g = 0; g < SGM_G; ++g) {

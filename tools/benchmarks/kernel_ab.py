@@ -7,6 +7,7 @@ for bit with the first variant's (BENCHMARKS.md, "SGM's tile loops unrolled").
 
     .venv/bin/python tools/benchmarks/kernel_ab.py sgm --rev HEAD~1 [--width 8] [--rounds 7] [--rows 48]
     .venv/bin/python tools/benchmarks/kernel_ab.py sgm --define SGM_PAIR_CW=32 [--define ...]
+    .venv/bin/python tools/benchmarks/kernel_ab.py sgm --paired 0 --rev HEAD  # the one-direction kernels
     .venv/bin/python tools/benchmarks/kernel_ab.py cbca --rev f36a0c6 [--iterations 4 --max-arm 4] [--images kitti]
 
 A revision's kernels are checked out (``git show``) into a temporary folder
@@ -61,7 +62,7 @@ class Variant:
         if stage == "sgm":
             from mccnn_cl.stages.sgm import SGM
 
-            self.obj = SGM(ctx, width=args.width)
+            self.obj = SGM(ctx, width=args.width, paired=args.paired)
             self.call = lambda d_vol, d_l, d_r, al, ar, out: self.obj(d_vol, d_l, d_r, D, H, W, out=out)
         else:
             from mccnn_cl.stages.cbca import CBCA
@@ -94,6 +95,9 @@ def main():
     ap.add_argument("--define", action="append", default=[], metavar="NAME=VALUE",
                     help="a variant: the tree's kernels with this extra define (repeatable; 'A=1,B=2' for several)")
     ap.add_argument("--width", type=int, choices=(8, 16), default=None, help="SGM vector width (default: the rule)")
+    ap.add_argument("--paired", type=int, choices=(0, 1), default=None,
+                    help="SGM: 1 the paired sweeps, 0 the one-direction kernels (sgm_rows, sgm_columns; "
+                         "the rule on CPUs with more than 2 compute units); default: the rule")
     ap.add_argument("--iterations", type=int, default=4, help="CBCA iterations (general-fst: 4)")
     ap.add_argument("--max-arm", type=int, default=4, help="CBCA arm bound (general-fst's eta 5: 4)")
     ap.add_argument("--rounds", type=int, default=7)
