@@ -11,7 +11,7 @@
  *                     (the host's default: 128 on CPU devices, 32 elsewhere
  *                     and on llvmpipe; mccnn_cl.opencl.device.RULES)
  *   SGM_CPU_PREFETCH  [unset] 1: CPU prefetch instructions, see SGM_PREFETCH
- *   SGM_SPECIALIZE    [1] the column kernel's inner loop compiled per case
+ *   SGM_SPECIALIZE    [1] the column kernel's hot rows compiled per output mode
  *   SGM_WHOLE_TILES   [1] sgm_rows' separate path for whole 16 x 16 tiles
  *   SGM_PAIR_CW       [16] columns per chunk of sgm_paired
  *   SGM_PART          [0] which kernels the program holds: 0 all, 1 the

@@ -114,7 +114,8 @@ class SGM:
     (0, the default: the whole image).  ``cols``: columns per ``sgm_columns``
     work-item, a multiple of 16.  ``fused_rows``: both row directions in one
     ``sgm_rows`` pass.  ``specialize``: the column kernel's inner loop compiled
-    per (first row, output mode, strip inside the image).  ``whole_tiles``:
+    per output mode for its hot rows (after the first, the strip inside the
+    image), the rest by one run-time copy.  ``whole_tiles``:
     whole 16 x 16 tiles of ``sgm_rows`` moved by plain vector loads and stores.
     ``paired``: the paired sweeps (``band``, ``cols``, ``fused_rows`` and
     ``specialize`` configure the one-direction kernels only).
