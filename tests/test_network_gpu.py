@@ -262,13 +262,15 @@ def test_gemm_head_bit_identical(ctx, monkeypatch, cls, conv, fc, arch):
     """The head layer by layer equals the fused head bit for bit (same
     register tiles, so the same RN), with either conv kernel, in runs of 7
     cells (runs across rows and disparities), in float32 and half; and the
-    reference within 1e-4."""
+    reference within 1e-4.  Every register tile with two hidden layers; the
+    default and one other with fewer (each tile is a program per layer shape,
+    ~4 s of builds on a cold PoCL cache)."""
     w = Weights.random(conv, fc, architecture=arch, seed=len(fc) * 7)
     left, right = random_pair(np.random.default_rng(len(conv)), 16, 27)
     D = 10
     want = ref.cost_volume(w, left, right, D)
     assert np.nanstd(want) > 1e-3
-    for tiles in HEAD_TILES:
+    for tiles in HEAD_TILES if len(fc) == 4 else HEAD_TILES[:2]:
         fused = cls(ctx, w, tiles=tiles, local_tiles=False, head_gemm=False, winograd=False)
         assert fused.head_path == "fused"
         base = run_poisoned(ctx, fused, left, right, D)
