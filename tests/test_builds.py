@@ -35,10 +35,43 @@ def test_second_size_and_disparity_count_build_nothing(ctx):
 
 
 def test_max_disp_buckets():
-    """SGM's compiled MAX_DISP: a power of two >= D, at least 64; six values in all."""
+    """SGM's compiled MAX_DISP: a power of two >= D, at least the floor; six values in all
+    at the least floor (64), four at the CPU's (256)."""
     assert [_max_disp(d) for d in (1, 32, 33, 64, 65, 228, 256, 257, MAX_LEVELS)] == \
         [64, 64, 64, 64, 128, 256, 256, 512, MAX_LEVELS]
     assert len({_max_disp(d) for d in range(1, MAX_LEVELS + 1)}) == 6
+    assert [_max_disp(d, 256) for d in (1, 73, 228, 256, 257, 600, MAX_LEVELS)] == \
+        [256, 256, 256, 256, 512, 1024, MAX_LEVELS]
+    assert len({_max_disp(d, 256) for d in range(1, MAX_LEVELS + 1)}) == 4
+
+
+def test_disparity_floor_by_device(ctx):
+    """CPUs build SGM for 256 levels at least (so that the program `mccnn-cl tune` stores
+    for D 228 serves every D up to 256); llvmpipe and GPUs for 64; a loop limit (llvmpipe's
+    bands are sized from MAX_DISP) takes 64 on any device."""
+    from mccnn_cl.stages.sgm import SGM
+
+    assert device.RULES["sgm_disp_floor"] == {device.CPU: 256, device.LLVMPIPE: 64, device.GPU: 64}
+    sgm = SGM(ctx)
+    assert sgm.disp_floor == device.RULES["sgm_disp_floor"][ctx.profile.kind]
+    assert sgm.max_disp(40) == max(64, sgm.disp_floor)
+    assert SGM(ctx, loop_limit=65535).max_disp(40) == 64
+
+
+def test_small_and_large_disparity_counts_share_one_sgm_program_on_cpus(ctx):
+    """On a CPU device a pair at D 228 and then pairs at D 40 and 73 (other images'
+    sizes) build nothing: one SGM program serves D 1 .. 256 there."""
+    if ctx.profile.kind != device.CPU:
+        pytest.skip(f"the floor of 256 levels is the CPU rule; this device is {ctx.profile.kind}")
+    rng = np.random.default_rng(12)
+    m = StereoMatcher(cost="census", max_disparity=228, device=ctx)
+    m.compute(*random_pair(rng, 20, 240))
+    before = ctx.builds
+    for (H, W, D) in ((23, 97, 40), (19, 130, 73)):
+        m.max_disparity = D
+        out = m.compute(*random_pair(rng, H, W))
+        assert out.shape == (H, W) and np.isfinite(out).all()
+    assert ctx.builds == before, "a smaller D built a program"
 
 
 def test_launch_local_sizes_do_not_follow_the_image(ctx):

@@ -55,7 +55,14 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: passes were the faster; Intel's CPU runtime compiles the mirrored loads into slower code: 390
 #: against 184-212 ms for a plain call, so there its tuner keeps the passes); ``sgm_wg_cols``: the work-group stage's vertical
 #: paths with that many adjacent columns per work-group (0: one column per work-group,
-#: as its rows; :class:`~mccnn_cl.stages.sgm_wg.SGMWorkGroup`).  CBCA: ``cbca_workgroup`` (the GPU-shaped
+#: as its rows; :class:`~mccnn_cl.stages.sgm_wg.SGMWorkGroup`); ``sgm_disp_floor``: the least
+#: MAX_DISP sgm.cl is compiled for (D rounded up to a power of two, at least this; it sizes
+#: private arrays only, the loops run over D): 256 on CPUs, so that every D up to 256 shares the
+#: program ``mccnn-cl tune`` stores (a D 73 pair built a program of 4 s after a D 228 one), the
+#: paired sweeps' time level (Zen 3, PoCL, medians of 10-20 alternating rounds: D 73 on 496 x 718
+#: 69.5 ms at MAX_DISP 128 against 69.3 at 256, D 100 87.3 / 85.4 ms, D 16 9.0 / 9.1 ms, D 40 37.2
+#: at 64 against 39.3 ms, faster in 5 of 20); 64 elsewhere (llvmpipe's loop limits are
+#: estimated from MAX_DISP; on GPUs private arrays cost registers or spills).  CBCA: ``cbca_workgroup`` (the GPU-shaped
 #: two passes of kernels/cbca_wg.cl, a work-group per row or column tile and
 #: disparity; before the fused rules), ``cbca_fused`` (both passes in one
 #: launch, one work-item per plane walking it whole), ``cbca_multi`` (several
@@ -103,6 +110,7 @@ RULES = {
     "sgm_group_of_one":        {CPU: True,  LLVMPIPE: True,  GPU: False},
     "sgm_paired_max_units":    {CPU: 2,     LLVMPIPE: 0,     GPU: 0},
     "sgm_wg_cols":             {CPU: 0,     LLVMPIPE: 0,     GPU: 0},
+    "sgm_disp_floor":          {CPU: 256,   LLVMPIPE: 64,    GPU: 64},
     "sgm_width":               {CPU: 8,     LLVMPIPE: 16,    GPU: 16},
     "sgm_mirror_reads":        {CPU: None,  LLVMPIPE: True,  GPU: True},
     "cbca_workgroup":          {CPU: False, LLVMPIPE: False, GPU: True},
@@ -221,7 +229,7 @@ class DeviceProfile:
                     specialize=self.rule("sgm_specialize"), whole_tiles=self.rule("sgm_whole_tiles"),
                     paired=self.compute_units <= self.rule("sgm_paired_max_units"),
                     group_of_one=self.rule("sgm_group_of_one"), width=self.sgm_width(),
-                    mirror_reads=self.sgm_mirror_reads())
+                    mirror_reads=self.sgm_mirror_reads(), disp_floor=int(self.rule("sgm_disp_floor")))
 
     def sgm_mirror_reads(self) -> bool:
         """Whether the right reference's SGM reads the volume mirrored (rule ``sgm_mirror_reads``;

@@ -84,16 +84,17 @@ def penalty_table(pi1=1.0, pi2=32.0, q1=4.0, q2=10.0, v=2.0, vertical=False, var
     return p1s, p2s
 
 
-def _max_disp(D) -> int:
+def _max_disp(D, floor=_DISP_ROUND) -> int:
     """MAX_DISP compiled for D levels: D rounded up to a power of two, at least
-    64, so that the kernels are built for six disparity counts at most (64 ..
-    MAX_LEVELS) and a new D rarely needs a build.  MAX_DISP sizes private
+    ``floor`` (a power of two; the device's rule ``sgm_disp_floor``: 256 on
+    CPUs, else 64), so that the kernels are built for six disparity counts at
+    most (64 .. MAX_LEVELS) and a new D rarely needs a build.  MAX_DISP sizes private
     arrays only; the loops run over D.  A floor of 32 gave every D <= 32 builds
     of its own (~14 s for the one-direction kernels on a cold PoCL cache, a
     dozen of them in the test suite) for a call ~1 ms faster on small volumes
     (the paired sweeps, Zen 3, PoCL: 10.0 against 10.3 ms at D 16 on 288 x
     384, 22.2 against 23.4 ms at D 32 on 375 x 450, medians of 6 rounds)."""
-    n = _DISP_ROUND
+    n = int(floor)
     while n < int(D):
         n *= 2
     return n
@@ -158,6 +159,8 @@ class SGM:
         if int(cols) < 16 or int(cols) % 16:
             raise InputError(f"SGM cols must be a positive multiple of 16, got {cols}")
         self.cols = int(cols)
+        # under a loop limit (llvmpipe) the bands are sized from MAX_DISP: the least floor there
+        self.disp_floor = int(rule["disp_floor"]) if self._loop_limit is None else _DISP_ROUND
         self.half = bool(half)
         self._kernels = {}
         self._state = None
@@ -176,9 +179,13 @@ class SGM:
         here): :func:`state_bytes` of this configuration."""
         return state_bytes(D, W, self.cols, self.paired)
 
+    def max_disp(self, D) -> int:
+        """MAX_DISP the kernels are built with for D levels (:func:`_max_disp`, this device's floor)."""
+        return _max_disp(D, self.disp_floor)
+
     def _kernel(self, D, names):
         """(kernel, local size) for each of ``names``, built for D levels."""
-        max_disp = _max_disp(D)
+        max_disp = self.max_disp(D)
         k = self._kernels.get((max_disp, names))
         if k is None:
             k = [self.ctx.kernel("sgm.cl", name, MAX_DISP=max_disp, SGM_CPU_PREFETCH=int(self.prefetch),
@@ -225,7 +232,7 @@ class SGM:
         pen_v = penalty_table(pi1, pi2, q1, q2, v, True, variant, p2_times_pi1)
         if self.paired:
             if self._loop_limit is not None and \
-                    3 * (H + 1) // 2 * llvmpipe_row_iterations(_max_disp(D), W) // 2 > self._loop_limit:
+                    3 * (H + 1) // 2 * llvmpipe_row_iterations(self.max_disp(D), W) // 2 > self._loop_limit:
                 # a paired work-item walks half the rows whole (about 1.5x a row pass per row)
                 raise InputError(f"SGM paired sweeps over {D} x {H} x {W} exceed the loop limit of "
                                  f"{self._loop_limit} iterations per work-item (loop_limit; llvmpipe's on "
@@ -264,14 +271,14 @@ class SGM:
         vband = H
         fused = self.fused_rows
         if self._loop_limit is not None:
-            vband = llvmpipe_column_band(_max_disp(D), self.cols, self._loop_limit)
-            if llvmpipe_row_iterations(_max_disp(D), W, self.fused_rows) > self._loop_limit:
+            vband = llvmpipe_column_band(self.max_disp(D), self.cols, self._loop_limit)
+            if llvmpipe_row_iterations(self.max_disp(D), W, self.fused_rows) > self._loop_limit:
                 # walk the rows in ranges of chunks, one direction per launch
                 fused = False
-                hband = max(1, self._loop_limit // llvmpipe_row_iterations(_max_disp(D), self.width))
+                hband = max(1, self._loop_limit // llvmpipe_row_iterations(self.max_disp(D), self.width))
                 if hband < nchunks:
                     # SGM_RST = MAX_DISP + 19 floats per row (sgm.cl)
-                    rstate = self._scratch("_rstate", 4 * H * (_max_disp(D) + 19), "SGM row path state")
+                    rstate = self._scratch("_rstate", 4 * H * (self.max_disp(D) + 19), "SGM row path state")
 
         def columns_banded(dy, mode, j0, nj):
             for j in range(j0, j0 + nj, vband):
