@@ -87,8 +87,9 @@ def penalty_table(pi1=1.0, pi2=32.0, q1=4.0, q2=10.0, v=2.0, vertical=False, var
 def _max_disp(D, floor=_DISP_ROUND) -> int:
     """MAX_DISP compiled for D levels: D rounded up to a power of two, at least
     ``floor`` (a power of two; the device's rule ``sgm_disp_floor``: 256 on
-    CPUs, else 64), so that the kernels are built for six disparity counts at
-    most (64 .. MAX_LEVELS) and a new D rarely needs a build.  MAX_DISP sizes private
+    CPUs, else 64), so that the kernels are built for a few disparity counts
+    at most (four from 256, six from 64, up to MAX_LEVELS) and a new D rarely
+    needs a build.  MAX_DISP sizes private
     arrays only; the loops run over D.  A floor of 32 gave every D <= 32 builds
     of its own (~14 s for the one-direction kernels on a cold PoCL cache, a
     dozen of them in the test suite) for a call ~1 ms faster on small volumes
