@@ -341,6 +341,85 @@ def test_short_runs_are_timed_several_times(ctx):
     assert len(calls) == 1 + 2
 
 
+def test_timed_runs_inside_quiet_the_warm_up_outside(ctx, monkeypatch):
+    """The timed runs of a candidate run inside tune.quiet (where `mccnn-cl tune` pauses its
+    background build), its warm-up run (which builds) outside it."""
+    import contextlib
+
+    log = []
+
+    @contextlib.contextmanager
+    def quiet():
+        log.append("enter")
+        yield
+        log.append("exit")
+
+    monkeypatch.setattr(tune, "quiet", quiet)
+    tune._timed(ctx, lambda: log.append("run"), 2)
+    assert log[0] == "run" and log[1] == "enter" and log[-1] == "exit"
+    assert log.count("enter") == 1 and log.count("run") >= 3 and set(log[2:-1]) == {"run"}
+
+
+def test_background_build_only_for_the_real_runs(cache, monkeypatch):
+    """`mccnn-cl tune`'s background build of the default method starts for the real
+    BINARY_RUNS only (not when a caller replaced them, nor with MCCNN_TUNE_PREBUILD=off),
+    at nice 19; paused() stops and continues it; finish_prebuild(wait=False) ends a paused
+    one, finish_prebuild(wait=True) waits for it."""
+    import signal
+    import subprocess
+    import sys
+    import time as _time
+
+    from mccnn_cl.cli import tune as cli_tune
+
+    monkeypatch.setattr(cli_tune, "BINARY_RUNS", [("a run", lambda ctx: None)])
+    assert cli_tune.start_prebuild(None) is None
+    monkeypatch.setattr(cli_tune, "BINARY_RUNS", cli_tune._DEFAULT_RUNS)
+    monkeypatch.setenv("MCCNN_TUNE_PREBUILD", "off")
+    assert cli_tune.start_prebuild(None) is None
+    monkeypatch.delenv("MCCNN_TUNE_PREBUILD")
+    # the real helper's command line, with a stand-in program: one that counts while it runs
+    counter = cache / "count"
+    code = ("import os, sys, time\n"
+            "while True:\n"
+            "    n = int(open(sys.argv[2]).read() or 0) if os.path.exists(sys.argv[2]) else 0\n"
+            "    open(sys.argv[2], 'w').write(str(n + 1)); time.sleep(0.01)\n")
+    real_popen = subprocess.Popen
+
+    def popen(argv, **kw):
+        assert argv[1] == "-c" and argv[2] == cli_tune._PREBUILD and argv[3] == ""
+        return real_popen([sys.executable, "-c", code, "", str(counter)], **kw)
+
+    monkeypatch.setattr(subprocess, "Popen", popen)
+    helper = cli_tune.start_prebuild(None)
+    assert helper is not None
+    try:
+        deadline = _time.time() + 60
+        while not counter.exists() and _time.time() < deadline:
+            _time.sleep(0.05)
+        assert os.getpriority(os.PRIO_PROCESS, helper.pid) == 19
+        with cli_tune.paused(helper):
+            _time.sleep(0.3)  # a write under way when it stopped lands by now
+            n = counter.read_text()
+            _time.sleep(0.5)
+            assert counter.read_text() == n, "a paused helper kept running"
+        deadline = _time.time() + 30
+        while counter.read_text() == n and _time.time() < deadline:
+            _time.sleep(0.05)
+        assert counter.read_text() != n, "the helper was not continued"
+        with cli_tune.paused(helper):
+            cli_tune.finish_prebuild(helper, wait=False)  # SIGKILL: a paused process ends too
+        assert helper.returncode == -signal.SIGKILL
+    finally:
+        if helper.poll() is None:
+            helper.kill()
+            helper.wait()
+    done = real_popen([sys.executable, "-c", "import time; time.sleep(0.5)"])
+    cli_tune.finish_prebuild(done, wait=True)
+    assert done.returncode == 0
+    cli_tune.finish_prebuild(None, wait=True)  # no helper: nothing to do
+
+
 def test_hopeless_candidates_are_timed_once(ctx):
     """A candidate over tune.HOPELESS x the rules' time in the first round is not timed
     again (it cannot win), while the others are timed every round; the progress count

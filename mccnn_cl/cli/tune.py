@@ -10,6 +10,7 @@ reports how many were stored; when some could not be, a warning and status 1."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
@@ -112,6 +113,88 @@ def _default_method(cost):
 #: each cost of the default method, so that the kernels built lazily are stored too.
 BINARY_RUNS = [("the fst network's method (cost cnn)", _default_method("cnn")),
                ("the census method", _default_method("census"))]
+_DEFAULT_RUNS = BINARY_RUNS
+
+#: The helper process's code: the binaries' phase, its output discarded.
+_PREBUILD = "import sys\nfrom mccnn_cl.cli.tune import store_binaries\nsys.exit(store_binaries(sys.argv[1] or None))"
+
+
+def _low_priority() -> None:  # pragma: no cover - runs in the child between fork and exec
+    os.nice(19)
+    try:  # Linux: the helper ends with the tuning process, however that ends
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG (SIGKILL: also when paused)
+    except (OSError, AttributeError):
+        pass
+
+
+def start_prebuild(device):
+    """The binaries' phase started in a second process at the lowest priority
+    (``nice`` 19), or None (``MCCNN_TUNE_PREBUILD=off``, no ``os.nice``, or
+    :data:`BINARY_RUNS` replaced).  Why: building and fetching the default
+    method's programs takes ~20 s on 2 cores when PoCL's cache is cold (PoCL
+    builds one program at a time per process), and the tuning leaves a core
+    idle while it compiles its candidates; the helper takes that core and
+    hardly any time while the tuner measures (it gets ~1.5 % of a core
+    against a process at nice 0), and it is paused (SIGSTOP, SIGCONT) while
+    a candidate's runs are timed (:data:`mccnn_cl.opencl.tune.quiet`).  It
+    stores the binaries of the choices in force when it starts (the rules, or
+    an earlier tuning's); the phase run after the tuning then finds those of
+    unchanged programs already there."""
+    import subprocess
+
+    if os.environ.get("MCCNN_TUNE_PREBUILD", "on").lower() in ("off", "0", "no") or \
+            BINARY_RUNS is not _DEFAULT_RUNS or not hasattr(os, "nice"):
+        return None
+    try:
+        return subprocess.Popen([sys.executable, "-c", _PREBUILD, "" if device is None else str(device)],
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                preexec_fn=_low_priority)
+    except OSError:
+        return None
+
+
+def _signal(helper, sig) -> None:
+    try:
+        os.kill(helper.pid, sig)
+    except ProcessLookupError:  # it ended meanwhile
+        pass
+
+
+@contextlib.contextmanager
+def paused(helper):
+    """The helper stopped (SIGSTOP) inside the block, continued after it."""
+    import signal
+
+    running = helper.poll() is None
+    if running:
+        _signal(helper, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        if running:
+            _signal(helper, signal.SIGCONT)
+
+
+def finish_prebuild(helper, wait: bool) -> None:
+    """Wait for the helper (``wait``; at most 10 minutes), else end it (SIGKILL:
+    a paused one too; a binary it was writing stays a temporary file, which a
+    later store deletes)."""
+    import subprocess
+
+    if helper is None or helper.poll() is not None:
+        return
+    if wait:
+        _say("waiting for the background build of the default method's programs")
+        try:
+            helper.wait(timeout=600)
+            return
+        except subprocess.TimeoutExpired:
+            pass
+    helper.kill()
+    helper.wait()
 
 
 def store_binaries(device) -> int:
@@ -150,7 +233,6 @@ def store_binaries(device) -> int:
 
 def run(args) -> int:
     from ..opencl import tune, tune_cache
-    from ..opencl.context import ClContext
 
     from ..errors import InputError
     from .common import parse_size
@@ -173,21 +255,38 @@ def run(args) -> int:
              "for it to finish, so that the two do not measure under each other's load (Ctrl-C to stop)")
 
     with tune_cache.tuning_lock(waiting):
-        ctx = ClContext(args.device)
-        _say(f"tuning {ctx.describe()} at {'x'.join(map(str, size))} (rows x columns x levels), {rounds} rounds")
-        t0 = time.perf_counter()
-        choices, measured, path = tune.tune(ctx, progress=True, size=size, rounds=rounds)
-        for name, res in measured.items():
-            parts = []
-            for (cand, sec), won in zip(res["candidates"], res["faster_rounds"]):
-                label = " ".join(f"{k}={v}" for k, v in cand.items()) or "rules"
-                text = "wrong/failed" if sec is None else f"{sec * 1e3:.1f} ms"
-                if sec is not None and won and won[1]:
-                    text += f" (faster in {won[0]}/{won[1]})"
-                parts.append(f"{label}: {text}")
-            print(f"  {name} (noise {res['noise']:.0%}): " + "; ".join(parts))
-        _say(f"choices {choices or 'none (the rules table stands)'}\nwritten to {path} "
-             f"({time.perf_counter() - t0:.0f} s)")
-        if with_binaries:
-            return store_binaries(args.device)
+        helper = start_prebuild(args.device) if with_binaries else None
+        quiet = tune.quiet
+        if helper is not None:
+            tune.quiet = lambda: paused(helper)
+        try:
+            return _tune_and_store(args, size, rounds, with_binaries, helper)
+        finally:
+            tune.quiet = quiet
+            finish_prebuild(helper, wait=False)  # ended when the tuning failed or was interrupted
+
+
+def _tune_and_store(args, size, rounds, with_binaries, helper) -> int:
+    """The measuring and, with ``with_binaries``, the binaries' phase (after the helper)."""
+    from ..opencl import tune
+    from ..opencl.context import ClContext
+
+    ctx = ClContext(args.device)
+    _say(f"tuning {ctx.describe()} at {'x'.join(map(str, size))} (rows x columns x levels), {rounds} rounds")
+    t0 = time.perf_counter()
+    choices, measured, path = tune.tune(ctx, progress=True, size=size, rounds=rounds)
+    for name, res in measured.items():
+        parts = []
+        for (cand, sec), won in zip(res["candidates"], res["faster_rounds"]):
+            label = " ".join(f"{k}={v}" for k, v in cand.items()) or "rules"
+            text = "wrong/failed" if sec is None else f"{sec * 1e3:.1f} ms"
+            if sec is not None and won and won[1]:
+                text += f" (faster in {won[0]}/{won[1]})"
+            parts.append(f"{label}: {text}")
+        print(f"  {name} (noise {res['noise']:.0%}): " + "; ".join(parts))
+    _say(f"choices {choices or 'none (the rules table stands)'}\nwritten to {path} "
+         f"({time.perf_counter() - t0:.0f} s)")
+    if with_binaries:
+        finish_prebuild(helper, wait=True)
+        return store_binaries(args.device)
     return 0

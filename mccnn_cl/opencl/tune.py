@@ -27,6 +27,7 @@ replaces, with the conv GEMM's tile and the work-group size left to
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from dataclasses import dataclass
@@ -69,18 +70,26 @@ LEAST_SECONDS = 0.1
 MAX_RUNS = 20
 
 
+#: A context manager factory around each candidate's timed runs (not its warm-up run,
+#: which builds what it needs): ``mccnn-cl tune`` pauses its background build of the
+#: default method's programs there (:func:`mccnn_cl.cli.tune.start_prebuild`).
+quiet = contextlib.nullcontext
+
+
 def _timed(ctx, fn, repeat):
     """Best time of ``fn`` (queue finished) after a warm-up: ``repeat`` runs, more
-    while they add up to less than :data:`LEAST_SECONDS` (at most :data:`MAX_RUNS`)."""
+    while they add up to less than :data:`LEAST_SECONDS` (at most :data:`MAX_RUNS`),
+    inside :data:`quiet`."""
     fn()
     ctx.finish()
     best, spent, runs = float("inf"), 0.0, 0
-    while runs < max(1, int(repeat)) or (spent < LEAST_SECONDS and runs < MAX_RUNS):
-        t = time.perf_counter()
-        fn()
-        ctx.finish()
-        dt = time.perf_counter() - t
-        best, spent, runs = min(best, dt), spent + dt, runs + 1
+    with quiet():
+        while runs < max(1, int(repeat)) or (spent < LEAST_SECONDS and runs < MAX_RUNS):
+            t = time.perf_counter()
+            fn()
+            ctx.finish()
+            dt = time.perf_counter() - t
+            best, spent, runs = min(best, dt), spent + dt, runs + 1
     return best
 
 
