@@ -47,6 +47,7 @@ def test_declared_loop_limit_and_the_rules_it_changes():
     # an explicit limit overrides the declared one either way
     assert pocl.sgm_options(loop_limit=3000)["loop_limit"] == 3000
     assert pocl.sgm_options(loop_limit=3000)["fused_rows"] is False
+    assert pocl.sgm_options(loop_limit=3000)["disp_floor"] == 64 and pocl.sgm_options()["disp_floor"] == 256
     assert pipe.sgm_options(loop_limit=0)["loop_limit"] is None
     # CBCA's fused kernels walk a whole plane per work-item: not under llvmpipe's limit
     assert pipe.cbca_path(3, SHORT_MAX) == "short" and pocl.cbca_path(3, SHORT_MAX) == "multi"

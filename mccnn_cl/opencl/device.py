@@ -229,7 +229,9 @@ class DeviceProfile:
                     specialize=self.rule("sgm_specialize"), whole_tiles=self.rule("sgm_whole_tiles"),
                     paired=self.compute_units <= self.rule("sgm_paired_max_units"),
                     group_of_one=self.rule("sgm_group_of_one"), width=self.sgm_width(),
-                    mirror_reads=self.sgm_mirror_reads(), disp_floor=int(self.rule("sgm_disp_floor")))
+                    mirror_reads=self.sgm_mirror_reads(),
+                    # under a loop limit the bands are sized from MAX_DISP: the limited column's floor
+                    disp_floor=int(self.rule("sgm_disp_floor") if limit is None else RULES["sgm_disp_floor"][LLVMPIPE]))
 
     def sgm_mirror_reads(self) -> bool:
         """Whether the right reference's SGM reads the volume mirrored (rule ``sgm_mirror_reads``;

@@ -160,8 +160,7 @@ class SGM:
         if int(cols) < 16 or int(cols) % 16:
             raise InputError(f"SGM cols must be a positive multiple of 16, got {cols}")
         self.cols = int(cols)
-        # under a loop limit (llvmpipe) the bands are sized from MAX_DISP: the least floor there
-        self.disp_floor = int(rule["disp_floor"]) if self._loop_limit is None else _DISP_ROUND
+        self.disp_floor = int(rule["disp_floor"])
         self.half = bool(half)
         self._kernels = {}
         self._state = None
