@@ -465,3 +465,22 @@ def test_run_runtimes_passes_weights_and_keeps_baselines(monkeypatch, tmp_path):
     cmds.clear()
     mod.main(["--quick", "--impls", "pocl"])
     assert not any("--weights" in c for c in cmds)
+
+
+def test_sgm_int16_prototype_matches_its_integer_reference(ctx, monkeypatch, capsys):
+    """tools/benchmarks/sgm_int16.py --check: the short-lane prototype whose timings BENCHMARKS.md
+    reports computes the paired sweeps' recurrence (exact integers), with 16-bit and float volumes."""
+    mod = _script("sgm_int16", monkeypatch)
+    assert mod.check(ctx) == 0
+    assert capsys.readouterr().out.count("the same integers as the reference") == 3
+
+
+def test_sgm_int16_reference_sees_a_wrong_penalty(monkeypatch):
+    """The prototype's reference is not blind: another P1 changes its integers."""
+    mod = _script("sgm_int16", monkeypatch)
+    rng = np.random.default_rng(3)
+    c = rng.integers(0, 1024, (32, 4, 32)).astype(np.int16)
+    bigs = mod.flag_table(rng, 32, np.int16)
+    a = mod.reference(c, bigs, 2)
+    b = mod.reference(c, bigs, 2, pen=(21,) + mod.PEN_SHORT[1:])
+    assert a.shape == c.shape and not np.array_equal(a, b)
