@@ -214,6 +214,15 @@ __kernel void proto(__global const CT *cost, __global CT *out, __global T *state
             for (int k = 0; k < 16; ++k) {
                 const int x = x0 + k;
                 const int first = x == 0;
+#if PROTO_PREFETCH /* the next chunk's cost and output lines, spread over the pixels (as sgm.cl) */
+                if (x0 + 16 < W) {
+                    const int per = (D + 15) / 16;
+                    for (int d = k * per; d < min(D, k * per + per); ++d) {
+                        __builtin_prefetch(cost + (size_t)d * plane + (size_t)y * W + x0 + 16, 0, 2);
+                        __builtin_prefetch(out + (size_t)d * plane + (size_t)y * W + x0 + 16, 0, 2);
+                    }
+                }
+#endif
                 const T mm = m;
                 const T mp2ha = mm + p2a, mp2hb = mm + p2b;
                 V newm = (V)(BIG);

@@ -32,12 +32,13 @@ PEN_SHORT = (20, 10, 300, 150)  # P1 (flag clear, set), P2 (flag clear, set): in
 PEN_FLOAT = (0.02, 0.01, 0.3, 0.15)
 
 
-def build(ctx, short, float_io=False):
+def build(ctx, short, float_io=False, prefetch=False):
     src = (HERE / "sgm_int16.cl").read_text()
     with warnings.catch_warnings():  # PoCL's notes on 16-float vectors without AVX-512 (as the package)
         warnings.simplefilter("ignore", ctx.cl.CompilerWarning)
         return ctx.cl.Program(ctx.context, src).build(
-            options=[f"-DPROTO_SHORT={int(short)}", f"-DFLOAT_IO={int(float_io)}", "-DMAXD=256"])
+            options=[f"-DPROTO_SHORT={int(short)}", f"-DFLOAT_IO={int(float_io)}", f"-DPROTO_PREFETCH={int(prefetch)}",
+                     "-DMAXD=256"])
 
 
 def flag_table(rng, W, dtype):
@@ -79,9 +80,9 @@ def reference(c, bigs, rows_per, pen=PEN_SHORT):
 class Proto:
     """One prototype form on its own buffers, arguments set."""
 
-    def __init__(self, ctx, short, float_io, D, H, W, rng):
+    def __init__(self, ctx, short, float_io, D, H, W, rng, prefetch=False):
         cl, mf = ctx.cl, ctx.cl.mem_flags
-        self.ctx, self.prog = ctx, build(ctx, short, float_io)
+        self.ctx, self.prog = ctx, build(ctx, short, float_io, prefetch)
         t = np.int16 if short else np.float32
         io = np.float32 if (float_io or not short) else np.int16
         host = rng.random((D, H, W), dtype=np.float32)
@@ -154,7 +155,9 @@ def main() -> int:
     forms = {f"package SGM (paired {sgm.paired}, width {sgm.width}), {D} x {rows} x {W}": (package, 1)}
     for name, short, fio in (("float16 lanes", False, False), ("short16 lanes, short volumes", True, False),
                              ("short16 lanes, float volumes", True, True)):
-        forms[f"prototype, {name}, {Dp} x {rows} x {Wp}, two calls"] = (Proto(ctx, short, fio, Dp, rows, Wp, rng), 2)
+        for pf in (False, True):
+            label = f"prototype, {name}{', prefetch' if pf else ''}, {Dp} x {rows} x {Wp}, two calls"
+            forms[label] = (Proto(ctx, short, fio, Dp, rows, Wp, rng, pf), 2)
 
     def timed(f, n):
         t = time.perf_counter()
