@@ -8,7 +8,8 @@
  * C + P2, so they fit 16 bits).  FLOAT_IO 1 (with PROTO_SHORT 1): float
  * volumes in and out, the costs scaled by 512 and rounded on load.
  * Simplifications against sgm.cl (the same in both forms): W and D
- * multiples of 16, no validity masks or NaN, penalties from one flag table
+ * multiples of 16 (the volumes' rows P >= W floats apart: P = W aligns
+ * every tile line to 64 bytes, P = 1234 does not), no validity masks or NaN, penalties from one flag table
  * (bigs) instead of the images' gradients, no prefetches.  Driven by
  * sgm_int16.py, which checks the short form bit for bit against an integer
  * reference.  Clang-only constructs (PoCL): __builtin_shufflevector,
@@ -158,14 +159,14 @@ typedef T CT;
 #endif
 __kernel void proto(__global const CT *cost, __global CT *out, __global T *state, __global const MT *bigs,
                     const int D, const int H, const int W, const T p1a, const T p1b, const T p2a, const T p2b,
-                    const int rows_per)
+                    const int rows_per, const int P)
 {
     const int role = get_global_id(0);
     const int y0 = role * rows_per, y1 = min(H, y0 + rows_per);
     __global T *st = state + (size_t)role * (size_t)(W / 16) * (size_t)(D + 2) * 16;
     T blk[16 * MAXD];
     T bufa[MAXD + 2 + 16], bufb[MAXD + 2 + 16];
-    const size_t plane = (size_t)H * (size_t)W;
+    const size_t plane = (size_t)H * (size_t)P;
     V r[16];
     for (int y = y0; y < y1; ++y) {
         const int vfirst = y == y0;
@@ -183,7 +184,7 @@ __kernel void proto(__global const CT *cost, __global CT *out, __global T *state
             const V mp2a = mv + (V)(p2a), mp2b = mv + (V)(p2b);
             V newmv = (V)(BIG);
             for (int d0 = 0; d0 < D; d0 += 16) {
-                __global const CT *src = cost + (size_t)d0 * plane + (size_t)y * W + x0;
+                __global const CT *src = cost + (size_t)d0 * plane + (size_t)y * P + x0;
                 __attribute__((opencl_unroll_hint))
                 for (int i = 0; i < 16; ++i)
                     r[i] = LOADC(src + i * plane);
@@ -218,8 +219,8 @@ __kernel void proto(__global const CT *cost, __global CT *out, __global T *state
                 if (x0 + 16 < W) {
                     const int per = (D + 15) / 16;
                     for (int d = k * per; d < min(D, k * per + per); ++d) {
-                        __builtin_prefetch(cost + (size_t)d * plane + (size_t)y * W + x0 + 16, 0, 2);
-                        __builtin_prefetch(out + (size_t)d * plane + (size_t)y * W + x0 + 16, 0, 2);
+                        __builtin_prefetch(cost + (size_t)d * plane + (size_t)y * P + x0 + 16, 0, 2);
+                        __builtin_prefetch(out + (size_t)d * plane + (size_t)y * P + x0 + 16, 0, 2);
                     }
                 }
 #endif
@@ -251,7 +252,7 @@ __kernel void proto(__global const CT *cost, __global CT *out, __global T *state
                 for (int k = 0; k < 16; ++k)
                     r[k] = LDP(0, blk + k * MAXD + d0);
                 tr16(r);
-                __global CT *dst = out + (size_t)d0 * plane + (size_t)y * W + x0;
+                __global CT *dst = out + (size_t)d0 * plane + (size_t)y * P + x0;
                 __attribute__((opencl_unroll_hint))
                 for (int i = 0; i < 16; ++i)
                     STOREC(r[i] + LD(0, sg + (d0 + i) * 16), dst + i * plane);

@@ -5,7 +5,7 @@ beside the package's SGM (the device's rules) on stage_alone.py's KITTI-sized
 random volume (BENCHMARKS.md, "SGM in 16-bit lanes").
 
     .venv/bin/python tools/benchmarks/sgm_int16.py --check      # short form == integer reference
-    .venv/bin/python tools/benchmarks/sgm_int16.py [--rounds 5] [--rows 367]
+    .venv/bin/python tools/benchmarks/sgm_int16.py [--rounds 5] [--rows 367] [--pitch 1232]
 
 A prototype work-item walks its half of the rows with two of the four paths;
 the package's paired sweeps walk every row with all four (two launches), so
@@ -80,23 +80,24 @@ def reference(c, bigs, rows_per, pen=PEN_SHORT):
 class Proto:
     """One prototype form on its own buffers, arguments set."""
 
-    def __init__(self, ctx, short, float_io, D, H, W, rng, prefetch=False):
+    def __init__(self, ctx, short, float_io, D, H, W, rng, prefetch=False, pitch=None):
         cl, mf = ctx.cl, ctx.cl.mem_flags
         self.ctx, self.prog = ctx, build(ctx, short, float_io, prefetch)
         t = np.int16 if short else np.float32
         io = np.float32 if (float_io or not short) else np.int16
-        host = rng.random((D, H, W), dtype=np.float32)
+        P = W if pitch is None else int(pitch)
+        host = rng.random((D, H, P), dtype=np.float32)
         self.cost = (np.round(host * 1023) if io == np.int16 else host).astype(io)
         self.bigs = flag_table(rng, W, np.int16 if short else np.int32)
         self.bufs = [cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self.cost),
                      cl.Buffer(ctx.context, mf.READ_WRITE, size=self.cost.nbytes),
                      cl.Buffer(ctx.context, mf.READ_WRITE, size=2 * (W // 16) * (D + 2) * 16 * np.dtype(t).itemsize),
                      cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self.bigs)]
-        self.rows_per = (H + 1) // 2
+        self.rows_per, self.W = (H + 1) // 2, W
         pen = PEN_SHORT if short else PEN_FLOAT
         self.kernel = self.prog.proto
         self.kernel.set_args(*self.bufs, np.int32(D), np.int32(H), np.int32(W), *(t(p) for p in pen),
-                             np.int32(self.rows_per))
+                             np.int32(self.rows_per), np.int32(P))
 
     def __call__(self):
         self.ctx.cl.enqueue_nd_range_kernel(self.ctx.queue, self.kernel, (2,), (1,))
@@ -105,25 +106,26 @@ class Proto:
     def output(self):
         out = np.empty_like(self.cost)
         self.ctx.cl.enqueue_copy(self.ctx.queue, out, self.bufs[1])
-        return out
+        return out[:, :, :self.W]
 
 
 def check(ctx) -> int:
     rng = np.random.default_rng(1)
     ok = True
-    for (D, H, W), fio in (((48, 10, 64), False), ((32, 7, 48), False), ((48, 9, 80), True)):
-        p = Proto(ctx, True, fio, D, H, W, rng)
+    for (D, H, W, P), fio in (((48, 10, 64, 64), False), ((32, 7, 48, 53), False), ((48, 9, 80, 85), True)):
+        p = Proto(ctx, True, fio, D, H, W, rng, pitch=P)
         p()
         if fio:  # costs scaled by 512 and rounded (to even) on load; the sum scaled back on store
-            ref = reference(np.round(p.cost * np.float32(512)), p.bigs, p.rows_per)
+            ref = reference(np.round(p.cost[:, :, :W] * np.float32(512)), p.bigs, p.rows_per)
             got = p.output().astype(np.float64) * 512
         else:
-            ref = reference(p.cost, p.bigs, p.rows_per)
+            ref = reference(p.cost[:, :, :W], p.bigs, p.rows_per)
             got = p.output()
         same = np.array_equal(ref, got.astype(np.int64)) and np.array_equal(got, np.round(got))
         ok &= same
         form = "float volumes" if fio else "short volumes"
-        print(f"short lanes, {form}, {D} x {H} x {W}: {'the same integers as the reference' if same else 'DIFFERENT'}")
+        print(f"short lanes, {form}, {D} x {H} x {W} (rows {P} apart): "
+              f"{'the same integers as the reference' if same else 'DIFFERENT'}")
     return 0 if ok else 1
 
 
@@ -132,6 +134,9 @@ def main() -> int:
     ap.add_argument("--check", action="store_true", help="compare the short form with the integer reference")
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--rows", type=int, default=None, help="volume rows (default: stage_alone.py's 367)")
+    ap.add_argument("--pitch", type=int, default=None,
+                    help="the prototypes' row pitch in floats (default: the package's W, 1234; 1232 aligns "
+                         "every 16-float line to 64 bytes)")
     args = ap.parse_args()
     from mccnn_cl.opencl.context import ClContext
 
@@ -152,12 +157,14 @@ def main() -> int:
 
     rng = np.random.default_rng(0)
     Wp, Dp = W // 16 * 16, D // 16 * 16
+    pitch = W if args.pitch is None else args.pitch
     forms = {f"package SGM (paired {sgm.paired}, width {sgm.width}), {D} x {rows} x {W}": (package, 1)}
     for name, short, fio in (("float16 lanes", False, False), ("short16 lanes, short volumes", True, False),
                              ("short16 lanes, float volumes", True, True)):
         for pf in (False, True):
-            label = f"prototype, {name}{', prefetch' if pf else ''}, {Dp} x {rows} x {Wp}, two calls"
-            forms[label] = (Proto(ctx, short, fio, Dp, rows, Wp, rng, pf), 2)
+            label = (f"prototype, {name}{', prefetch' if pf else ''}, {Dp} x {rows} x {Wp} (rows {pitch} apart), "
+                     "two calls")
+            forms[label] = (Proto(ctx, short, fio, Dp, rows, Wp, rng, pf, pitch), 2)
 
     def timed(f, n):
         t = time.perf_counter()
