@@ -35,7 +35,8 @@ class Hyperparameters:
     final left volume C: half the CBCA/SGM time, but left-guided SGM makes
     D^R worse and the left-right check then rejects good pixels);
     ``cross_include_neighbor`` False (code True); ``sgm_variant`` "paper" |
-    "code", ``sgm_p2_times_pi1`` False, ``sgm_outside_large`` True (see
+    "code", ``sgm_p2_times_pi1`` False, ``sgm_outside_large`` True, ``sgm_int16``
+    False (True: SGM's paired sweeps in 16-bit integer steps; see
     :mod:`mccnn_cl.stages.sgm`);
     ``lr_threshold`` 1.0 (code: 1.1, identical on integer maps);
     ``interpolation`` "paper" | "code" (half-pixel direction steps, walk stops
@@ -59,6 +60,7 @@ class Hyperparameters:
     sgm_variant: str = "paper"        # "paper" | "code" (P / (q1 q2) when both gradients are large)
     sgm_p2_times_pi1: bool = False    # P2 = Pi1 * Pi2 instead of Pi2
     sgm_outside_large: bool = True    # pd - r outside the right image counts as a large D2
+    sgm_int16: bool = False           # SGM in 16-bit integer steps where the stage can (docs/method.md)
     right_reference: str = "aggregated"  # D^R: "aggregated" | "derived" (see docs/method.md)
     lr_threshold: float = 1.0         # |d - D^R(pd)| <= this is consistent
     interpolation: str = "paper"      # "paper" | "code"

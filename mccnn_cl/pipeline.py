@@ -612,7 +612,8 @@ class StereoMatcher:
                 rec("right_volume", self.right_ref.volume(C_R, D, H, W))  # C_CBCA again
         C_SGM = rec("C_SGM", self.sgm(C_CBCA, d_J_L, d_J_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                       p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
-                                      p.sgm_outside_large, out=self._take_volume(D, H, W)), vol, self.vdtype)
+                                      p.sgm_outside_large, out=self._take_volume(D, H, W),
+                                      cost_bound=self._sgm_bound()), vol, self.vdtype)
         self._pool.give(C_CBCA)  # C_CNN's buffer, aggregated in place; free for the right SGM
         C = rec("C", self._cbca(C_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm), vol, self.vdtype)
         D_L = rec("D_L", self.wta.left(C, D, H, W), crop, np.int32)
@@ -631,6 +632,14 @@ class StereoMatcher:
                 crop)
         self._pool.give(C)  # the in-order queue runs any later user after subpixel
         return D_SE
+
+    def _sgm_bound(self):
+        """``cost_bound`` for SGM: max |C| of the cost (its floor and ceiling) with
+        ``sgm_int16``, else None (float SGM)."""
+        ceiling = getattr(self.cost, "ceiling", None)
+        if not self.params.sgm_int16 or ceiling is None:
+            return None
+        return max(abs(float(self.cost.floor)), abs(float(ceiling)))
 
     def _arms(self, d_left, d_right, H, W, rec, name):
         """Cross arms of both images, or (None, None) when no CBCA runs
@@ -674,7 +683,8 @@ class StereoMatcher:
         arms_L, arms_R = self._arms(d_K_L, d_K_R, H, W, rec, "cross_R")
         C_R_SGM = rec("C_R_SGM", self.sgm(C_R, d_K_L, d_K_R, D, H, W, p.sgm_pi1, p.sgm_pi2, p.sgm_tau_so,
                                           p.sgm_q1, p.sgm_q2, p.sgm_v, p.sgm_variant, p.sgm_p2_times_pi1,
-                                          p.sgm_outside_large, out=self._take_volume(D, H, W), mirror=mirrored))
+                                          p.sgm_outside_large, out=self._take_volume(D, H, W), mirror=mirrored,
+                                          cost_bound=self._sgm_bound()))
         C_R = rec("C_R", self._cbca(C_R_SGM, arms_L, arms_R, D, H, W, p.cbca_iterations_after, arm),
                   (D, H, W), self.vdtype)
         D_R = self.right_ref.mirror(self.wta.left(C_R, D, H, W), H, W)

@@ -75,13 +75,17 @@ def test_sgm_mirror_reads_follow_the_vector_width():
     # Oclgrind's CBCA: "multi" before (its CPU bit), now the generic column's work-group passes
     # (kernels/cbca_wg.cl), bit-identical to the short and fused kernels (tests/test_cbca_gpu.py)
     ("pocl", dict(prefetch=True, cols=128, fused_rows=True, specialize=True, whole_tiles=True, paired=True,
-                  group_of_one=True, loop_limit=None, width=8, mirror_reads=True, disp_floor=256), "multi", 16),
+                  group_of_one=True, loop_limit=None, width=8, mirror_reads=True, disp_floor=256, int16=True), "multi",
+     16),
     ("llvmpipe", dict(prefetch=True, cols=32, fused_rows=False, specialize=False, whole_tiles=False, paired=False,
-                      group_of_one=True, loop_limit=65535, width=16, mirror_reads=True, disp_floor=64), "short", 4),
+                      group_of_one=True, loop_limit=65535, width=16, mirror_reads=True, disp_floor=64, int16=False),
+     "short", 4),
     ("oclgrind", dict(prefetch=False, cols=32, fused_rows=False, specialize=True, whole_tiles=True, paired=False,
-                      group_of_one=False, loop_limit=None, width=16, mirror_reads=True, disp_floor=64), "workgroup", 4),
+                      group_of_one=False, loop_limit=None, width=16, mirror_reads=True, disp_floor=64, int16=False),
+     "workgroup", 4),
     ("gpu", dict(prefetch=False, cols=32, fused_rows=False, specialize=True, whole_tiles=True, paired=False,
-                 group_of_one=False, loop_limit=None, width=16, mirror_reads=True, disp_floor=64), "workgroup", 4),
+                 group_of_one=False, loop_limit=None, width=16, mirror_reads=True, disp_floor=64, int16=False),
+     "workgroup", 4),
 ])
 def test_rules_per_device(key, sgm, cbca, rn):
     p = DeviceProfile.of(DEVICES[key], cl)

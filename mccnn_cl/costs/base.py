@@ -34,6 +34,8 @@ class MatchingCost:
     margin: int = 0
     local: bool = False
     floor: float = 0.0
+    #: upper bound of the cost, None where none is known (SGM's 16-bit sweeps need |C| bounded)
+    ceiling: float | None = None
     half: bool = False
     vdtype = np.dtype(np.float32)
 

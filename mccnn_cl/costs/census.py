@@ -32,6 +32,7 @@ class CensusCost(MatchingCost):
     margin = MARGIN
     local = True  # a row tile's volume needs only the tile's rows (mccnn_cl.costs.registry)
     floor = 0.0  # lower bound of the cost: a Hamming distance
+    ceiling = float(WINDOW * WINDOW - 1)  # ... of WINDOW^2 - 1 bits
 
     def __init__(self, ctx, half: bool = False, launch_shape=None):
         """``launch_shape``: (levels per work-item, 0 = all; work-group size or

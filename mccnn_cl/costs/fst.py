@@ -84,6 +84,7 @@ class FstCost(ConvNetCost):
     architecture = FST
     local = False  # see mccnn_cl.costs.registry
     floor = -1.0  # lower bound of the cost: -cosine of unit vectors
+    ceiling = 1.0
     label = "fst cost"
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False,

@@ -112,8 +112,9 @@ class PaperCost(ConvNetCost):
     #: per-tile cost (see mccnn_cl.costs.registry): False, the volume is
     #: computed once for the whole image (into host memory when tiled)
     local = False
-    #: lower bound of the cost (a softmax or sigmoid probability)
+    #: lower and upper bound of the cost (a softmax or sigmoid probability)
     floor = 0.0
+    ceiling = 1.0
     label = "network (C_CNN)"
 
     def __init__(self, ctx, weights: Weights, tiles: dict | None = None, half: bool = False,

@@ -14,9 +14,11 @@
  *   SGM_SPECIALIZE    [1] the column kernel's hot rows compiled per output mode
  *   SGM_WHOLE_TILES   [1] sgm_rows' separate path for whole 16 x 16 tiles
  *   SGM_PAIR_CW       [16] columns per chunk of sgm_paired
- *   SGM_PART          [0] which kernels the program holds: 0 all, 1 the
- *                     one-direction kernels (sgm_rows, sgm_columns), 2 the
- *                     paired sweeps only.  A program binary holds compiled
+ *   SGM_PART          [0] which kernels the program holds: 0 all but the
+ *                     16-bit sweeps, 1 the one-direction kernels (sgm_rows,
+ *                     sgm_columns), 2 the paired sweeps only, 3 the paired
+ *                     sweeps in 16-bit lanes only (sgm_paired_q16, at the
+ *                     end; SGM_VW 16, Clang-based compilers).  A program binary holds compiled
  *                     code for each of its kernels (PoCL compiles them all
  *                     when it is asked for one), and sgm_columns alone took
  *                     15 s to compile on a Zen 3: the host builds only the
@@ -290,7 +292,7 @@ static inline __attribute__((always_inline)) void col_row(
 #define COL_ROW(f, md, fl) col_row(cost, out, state, ws, H, W, xw, dmax, y, dy, last, (f), (md), (fl), bigr, \
                                    p1a, p1b, p2a, p2b, m)
 
-#if SGM_PART != 2
+#if SGM_PART == 0 || SGM_PART == 1
 /* Vertical paths, rows j0 .. j0 + nj - 1 of the path (row y = j on
  * top->bottom paths, H - 1 - j on bottom->top ones): one work-item walks
  * SGM_COLS adjacent columns (SGM_G groups of VW on floatV lanes over x, so
@@ -375,7 +377,7 @@ __kernel void sgm_columns(__global const vol_t *cost,  /* D x H x W cost volume 
     for (int g = 0; g < SGM_G; ++g)
         vstoreV(m[g], 0, st_m + g * VW);
 }
-#endif /* SGM_PART != 2 */
+#endif /* SGM_PART == 0 || SGM_PART == 1 */
 
 /* Whole 16 x 16 tiles (16 columns, 16 levels all inside the chunk's valid
  * range) are moved by sgm_rows with plain vector loads and stores one plane
@@ -658,7 +660,7 @@ static inline __attribute__((always_inline)) void write_tile(
     }
 }
 
-#if SGM_PART != 2
+#if SGM_PART == 0 || SGM_PART == 1
 /* Horizontal paths.  One work-item walks one row.  For each chunk of 16
  * x it copies the chunk's costs into a private block transposed to [x][d]
  * (16 x 16 tiles transposed in registers), so that the recurrence at one
@@ -771,9 +773,9 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
         }
     }
 }
-#endif /* SGM_PART != 2 */
+#endif /* SGM_PART == 0 || SGM_PART == 1 */
 
-#if SGM_PART != 1
+#if SGM_PART == 0 || SGM_PART == 2
 /* The vertical recurrence over the rows i < iend of one tile of sgm_paired
  * (levels d0 + i, lanes over VW columns): C_r from the costs r[i], the
  * previous row's C_r in the group's state sg ([D + 2][VW], level d at sg +
@@ -810,9 +812,9 @@ static inline __attribute__((always_inline)) void vertical_tile(
         }
     }
 }
-#endif /* SGM_PART != 1 */
+#endif /* SGM_PART == 0 || SGM_PART == 2 */
 
-#if SGM_PART != 1
+#if SGM_PART == 0 || SGM_PART == 2
 /* Paired sweeps (``sgm_paired``, two work-items, two launches): work-item A
  * walks its rows top to bottom and adds the left->right and top->bottom
  * paths, work-item B walks its rows bottom to top and adds the right->left
@@ -989,4 +991,438 @@ __kernel __attribute__((vec_type_hint(floatV))) void sgm_paired(__global const v
         }
     }
 }
-#endif /* SGM_PART != 1 */
+#endif /* SGM_PART == 0 || SGM_PART == 2 */
+
+#if SGM_PART == 3
+/* Paired sweeps in 16-bit lanes (sgm_paired_q16): sgm_paired's walk, chunks,
+ * tiles and launches, with C_r held as shorts, 16 lanes per AVX2 register
+ * instead of 8 floats (SGM is bound by instructions on CPUs; BENCHMARKS.md,
+ * "SGM in 16-bit lanes").  The host (stages/sgm.py, q16_scale) picks a
+ * power of two s with (2 B + 2 P2) s <= 32000 for costs bounded by |C| <= B;
+ * each cost is loaded as Q(C) = C s rounded to nearest even, clamped to
+ * [-qlim, qlim] (qlim = B s; a NaN cost in a valid cell counts as qlim), the
+ * penalties come as integers (P s rounded, as floats).  On every path C_r
+ * lies in [C, C + P2] and m + P2 <= (B + 2 P2) s, so nothing overflows; C_r
+ * + P1 saturates (levels outside the valid range hold Q_BIG).  A pair's sum
+ * fits a short; launch 0 stores it as a float (an integer), launch 1 adds
+ * the other pair's and multiplies by qfinal = 1 / (4 s), so every output is
+ * exactly (sum of the four integer C_r) / (4 s): float SGM of the costs
+ * Q(C) / s with penalties P s rounded / s gives the same bits.
+ * Clang constructs (PoCL, Intel's runtime, Oclgrind): unaligned short16
+ * access through a 2-byte-aligned typedef (PoCL 3.1 compiles vload16 /
+ * vstore16 of shorts to 16 scalar moves) and __builtin_shufflevector. */
+#if VW != 16
+#error "sgm_paired_q16 needs SGM_VW=16"
+#endif
+#ifndef SGM_PAIR_CW
+#define SGM_PAIR_CW 16
+#endif
+#define PCW SGM_PAIR_CW
+#define Q_BIG ((short)0x7fff)
+#ifndef Q16_PF_OUT
+#define Q16_PF_OUT 1
+#endif
+#ifndef Q16_PF_TAIL
+#define Q16_PF_TAIL 1
+#endif
+typedef short16 __attribute__((aligned(2))) q16_u;
+#define QLD(p) (*(const q16_u *)(p))
+#define QST(v, p) (*(q16_u *)(p) = (v))
+#define QLDG(p) (*(const __global q16_u *)(p))
+#define QSTG(v, p) (*(__global q16_u *)(p) = (v))
+#define QMIN(a, b) select((a), (b), (b) < (a))
+#define QMAX(a, b) select((a), (b), (b) > (a))
+/* saturating add: PoCL 3.1's add_sat on short16 is five instructions per
+ * register, Clang's builtin one (vpaddsw) */
+#if defined(__has_builtin)
+#if __has_builtin(__builtin_elementwise_add_sat)
+#define Q_ADD_SAT(a, b) __builtin_elementwise_add_sat((a), (b))
+#endif
+#endif
+#ifndef Q_ADD_SAT
+#define Q_ADD_SAT(a, b) add_sat((a), (b))
+#endif
+/* where the kernel is compiled straight to x86 with AVX (SGM_CPU_PREFETCH,
+ * PoCL): empty asm statements keep LLVM from merging the transpose's steps */
+#if defined(SGM_CPU_PREFETCH) && (defined(__x86_64__) || defined(__i386__)) && defined(__AVX__)
+#if SGM_CPU_PREFETCH
+#define Q_OPAQUE(v) __asm__("" : "+x"(v))
+#endif
+#endif
+#ifndef Q_OPAQUE
+#define Q_OPAQUE(v) ((void)0)
+#endif
+
+/* Q(v) (above): v s rounded to nearest even by adding 1.5 * 2^23 (|v s| <
+ * 2^22; PoCL's convert_*_rte and rint take ~10 instructions per 8
+ * lanes), clamped to [-qlim, qlim] as an integer: the bits of v s + 1.5 *
+ * 2^23 order like its value, so larger values clamp too; NaN (positive, as
+ * INVALID_COST) gives qlim. */
+static inline __attribute__((always_inline)) short16 q16_load(const float16 v, const float s, const int qlim)
+{
+    const short16 q = convert_short16_sat(as_int16(v * s + 12582912.0f) - 0x4B400000), hi = (short16)((short)qlim);
+    return QMAX(QMIN(q, hi), -hi); /* not clamp(): Oclgrind 21.10 returns garbage for short16 with short bounds */
+}
+
+/* lanes reversed after quantising (the float16 reverse compiled to a chain of
+ * extracts and inserts) */
+static inline __attribute__((always_inline)) short16 q16_reverse(short16 v)
+{
+    Q_OPAQUE(v);
+    return __builtin_shufflevector(v, v, 15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+}
+
+/* load_tile / load_tile_mirror, each line quantised as it is loaded (q16_load) */
+static inline __attribute__((always_inline)) void q16_load_tile(
+    short16 *r, __global const vol_t *cost, const int y, const int x0, const int d0, const int n, const int dmax,
+    const int H, const int W, const int mirror, const float s, const int qlim)
+{
+    const size_t plane = (size_t)H * (size_t)W;
+    if (SGM_WHOLE_TILES && !mirror && n == 16 && d0 + 15 <= dmax) {
+        __global const vol_t *src = cost + VIDX(d0, y, x0, H, W);
+        __attribute__((opencl_unroll_hint))
+        for (int i = 0; i < 16; ++i)
+            r[i] = q16_load(VOL_LOAD16(src + i * plane), s, qlim);
+        return;
+    }
+    if (SGM_WHOLE_TILES && mirror && n == 16 && d0 + 15 <= min(dmax, x0)) {
+        __global const vol_t *src = cost + VIDX(d0, y, W - 16 + d0 - x0, H, W);
+        __attribute__((opencl_unroll_hint))
+        for (int i = 0; i < 16; ++i)
+            r[i] = q16_reverse(q16_load(VOL_LOAD16(src + i * (plane + 1)), s, qlim));
+        return;
+    }
+    float16 rf[16];
+    if (mirror)
+        load_tile_mirror(rf, cost, y, x0, d0, n, dmax, H, W);
+    else
+        load_tile(rf, cost, y, x0, d0, n, dmax, H, W);
+    __attribute__((opencl_unroll_hint))
+    for (int i = 0; i < 16; ++i)
+        r[i] = q16_load(rf[i], s, qlim);
+}
+
+/* vertical_gradients / row_gradients with the flags as shorts (-1 / 0), made
+ * once per chunk instead of converted at every use */
+static inline __attribute__((always_inline)) void q16_flags(const int *f, short *q, const int t_lo, const int t_end)
+{
+    for (int t = t_lo; t < t_end; t += 16)
+        QST(convert_short16(vload16(0, f + t)), q + t);
+}
+
+/* C_r from the cost c, m and C_r(p - r, .) at d - 1, d, d + 1 (as sgm_step_mp2N) */
+static inline __attribute__((always_inline)) short16 q16_step(const short16 c, const short16 m, const short16 lo,
+                                                               const short16 d, const short16 hi, const short16 p1,
+                                                               const short16 mp2)
+{
+    const short16 best = QMIN(QMIN(d, mp2), Q_ADD_SAT(QMIN(lo, hi), p1));
+    return c - m + best;
+}
+
+/* 16 x 16 transpose of shorts in the AVX2 unpack form: 16-, 32- and 64-bit
+ * interleaves within 128-bit halves, then the halves across: 64 shuffles. */
+static inline __attribute__((always_inline)) void q16_transpose(short16 *r)
+{
+    short16 A[16], B[16];
+    __attribute__((opencl_unroll_hint))
+    for (int i = 0; i < 16; ++i)
+        Q_OPAQUE(r[i]);
+    __attribute__((opencl_unroll_hint))
+    for (int i = 0; i < 8; ++i) {
+        A[2 * i] = __builtin_shufflevector(r[2 * i], r[2 * i + 1], 0, 16, 1, 17, 2, 18, 3, 19, 8, 24, 9, 25, 10, 26,
+                                           11, 27);
+        A[2 * i + 1] = __builtin_shufflevector(r[2 * i], r[2 * i + 1], 4, 20, 5, 21, 6, 22, 7, 23, 12, 28, 13, 29,
+                                               14, 30, 15, 31);
+        Q_OPAQUE(A[2 * i]);
+        Q_OPAQUE(A[2 * i + 1]);
+    }
+    __attribute__((opencl_unroll_hint))
+    for (int q = 0; q < 4; ++q) {
+        __attribute__((opencl_unroll_hint))
+        for (int e = 0; e < 2; ++e) {
+            B[4 * q + 2 * e] = __builtin_shufflevector(A[4 * q + e], A[4 * q + 2 + e], 0, 1, 16, 17, 2, 3, 18, 19, 8,
+                                                       9, 24, 25, 10, 11, 26, 27);
+            B[4 * q + 2 * e + 1] = __builtin_shufflevector(A[4 * q + e], A[4 * q + 2 + e], 4, 5, 20, 21, 6, 7, 22,
+                                                           23, 12, 13, 28, 29, 14, 15, 30, 31);
+            Q_OPAQUE(B[4 * q + 2 * e]);
+            Q_OPAQUE(B[4 * q + 2 * e + 1]);
+        }
+    }
+    __attribute__((opencl_unroll_hint))
+    for (int h = 0; h < 2; ++h) {
+        __attribute__((opencl_unroll_hint))
+        for (int j = 0; j < 4; ++j) {
+            A[8 * h + 2 * j] = __builtin_shufflevector(B[8 * h + j], B[8 * h + 4 + j], 0, 1, 2, 3, 16, 17, 18, 19, 8,
+                                                       9, 10, 11, 24, 25, 26, 27);
+            A[8 * h + 2 * j + 1] = __builtin_shufflevector(B[8 * h + j], B[8 * h + 4 + j], 4, 5, 6, 7, 20, 21, 22,
+                                                           23, 12, 13, 14, 15, 28, 29, 30, 31);
+            Q_OPAQUE(A[8 * h + 2 * j]);
+            Q_OPAQUE(A[8 * h + 2 * j + 1]);
+        }
+    }
+    __attribute__((opencl_unroll_hint))
+    for (int c = 0; c < 8; ++c) {
+        r[c] = __builtin_shufflevector(A[c], A[8 + c], 0, 1, 2, 3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 22, 23);
+        r[c + 8] = __builtin_shufflevector(A[c], A[8 + c], 8, 9, 10, 11, 12, 13, 14, 15, 24, 25, 26, 27, 28, 29, 30,
+                                           31);
+    }
+}
+
+/* vertical_tile in 16-bit lanes (sg: the group's state as shorts) */
+static inline __attribute__((always_inline)) void q16_vertical_tile(
+    const short16 *r, const short *bigv, __global short *sg, const int d0, const int iend, const int vfirst,
+    const short16 mv, const short16 p1a, const short16 p1b, const short16 mp2a, const short16 mp2b, short16 *pm1,
+    short16 *pd, short16 *newmv, const int16 xs, const int16 valid_x, const int masked)
+{
+    __attribute__((opencl_unroll_hint))
+    for (int i = 0; i < 16; ++i) {
+        const int d = d0 + i;
+        if (i < iend) {
+            short16 val;
+            if (vfirst) {
+                val = r[i];
+            } else {
+                const short16 big_r = QLD(bigv - d);
+                const short16 pn = QLDG(sg + (d + 1) * 16);
+                val = q16_step(r[i], mv, *pm1, *pd, pn, select(p1a, p1b, big_r), select(mp2a, mp2b, big_r));
+                *pm1 = *pd;
+                *pd = pn;
+            }
+            if (masked)
+                val = select((short16)(Q_BIG), val, convert_short16((xs >= (int16)(d)) & valid_x));
+            QSTG(val, sg + d * 16);
+            *newmv = QMIN(*newmv, val);
+        }
+    }
+}
+
+/* row_chunk in 16-bit lanes (blk, prev, cur as shorts; the penalties integers as floats) */
+static inline __attribute__((always_inline)) void q16_row_chunk(
+    short *blk, short **prev, short **cur, short *m, const int x0, const int n, const int dir, const int D,
+    const int W, __global const float *il, const float tau_so, const float p1_small, const float p1_one,
+    const float p1_both, const float p2_small, const float p2_one, const float p2_both,
+    const short *big_r_rev, const int base, const int rt, __global const vol_t *pf_cost,
+    __global const vol_t *pf_out, const size_t plane, const int dmaxn, const int pf_n,
+    const size_t pf_cstep, const int pf_cdmax)
+{
+    const int16 lane = LANES;
+    const int pf_per = dmaxn / n + 1; /* levels prefetched per pixel */
+    for (int kk = 0; kk < n; ++kk) {
+        const int k = dir > 0 ? kk : n - 1 - kk;
+        const int x = x0 + k;
+        for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
+            __global const vol_t *pc = pf_cost + d * pf_cstep, *po = pf_out + d * plane;
+            const int cst = d <= pf_cdmax;
+            for (int e = 0; e < pf_n; e += LINE_FLOATS) {
+                if (cst)
+                    SGM_PREFETCH_L2(pc + e);
+                if (Q16_PF_OUT)
+                    SGM_PREFETCH_L2(po + e);
+            }
+            if (pf_n > 1 && Q16_PF_TAIL) {
+                if (cst)
+                    SGM_PREFETCH_L2(pc + pf_n - 1);
+                if (Q16_PF_OUT)
+                    SGM_PREFETCH_L2(po + pf_n - 1);
+            }
+        }
+        const int dmax = min(D - 1, x);
+        const int nvec = dmax / 16 + 1;
+        const int first = x == (dir > 0 ? 0 : W - 1);
+        const int px = x - dir;
+        const int big_l = first ? 0 : SGM_LARGE(il[x] - il[px], tau_so);
+        float p1_a, p1_b, p2_a, p2_b;
+        SGM_BY_D1(p1_small, p1_one, p1_both, big_l, p1_a, p1_b);
+        SGM_BY_D1(p2_small, p2_one, p2_both, big_l, p2_a, p2_b);
+        const short mm = *m;
+        const short16 p1v_a = (short16)((short)p1_a), p1v_b = (short16)((short)p1_b);
+        const short16 mp2_a = (short16)((short)(mm + (short)p2_a)), mp2_b = (short16)((short)(mm + (short)p2_b));
+        short *pv = *prev, *cv = *cur;
+        short16 newm = (short16)(Q_BIG);
+        for (int v = 0; v < nvec; ++v) {
+            const int d0 = v * 16;
+            short *bp = blk + k * MAX_DISP + d0;
+            const short16 c = QLD(bp);
+            short16 val;
+            if (first) {
+                val = c;
+            } else {
+                const short16 big_r = QLD(big_r_rev + rt - (x - d0 - base));
+                val = q16_step(c, (short16)(mm), QLD(pv + d0), QLD(pv + d0 + 1), QLD(pv + d0 + 2),
+                               select(p1v_a, p1v_b, big_r), select(mp2_a, mp2_b, big_r));
+            }
+            if (v == nvec - 1)
+                val = select((short16)(Q_BIG), val, convert_short16((int16)(d0) + lane <= (int16)(dmax)));
+            QST(val, cv + d0 + 1);
+            QST(val, bp);
+            newm = QMIN(newm, val);
+        }
+        QST((short16)(Q_BIG), cv + nvec * 16 + 1);
+        const short8 m8 = QMIN(newm.lo, newm.hi);
+        const short4 m4 = QMIN(m8.lo, m8.hi);
+        const short2 m2 = QMIN(m4.lo, m4.hi);
+        *m = m2.y < m2.x ? m2.y : m2.x;
+        *prev = cv;
+        *cur = pv;
+    }
+}
+
+/* write_tile of a pair's sums (r[i] + the group's vertical C_r at add): mode
+ * 0 stores them as floats (NaN where x < d), mode 2 adds the stored sums and
+ * multiplies by qfinal */
+static inline __attribute__((always_inline)) void q16_write_tile(
+    const short16 *r, __global const short *add, __global vol_t *dst, const size_t plane, const int x0,
+    const int d0, const int n, const int dmax, const int mode, const float qfinal)
+{
+    const int16 xs = (int16)(x0) + LANES;
+    const int whole = SGM_WHOLE_TILES && n == 16 && d0 + 15 <= dmax;
+    const int all_valid = whole && x0 >= d0 + 15;
+    __attribute__((opencl_unroll_hint))
+    for (int i = 0; i < 16; ++i) {
+        const int d = d0 + i;
+        if (d > dmax)
+            break;
+        const float16 v = convert_float16(r[i] + QLDG(add + d * 16));
+        __global vol_t *p = dst + i * plane;
+        float16 o;
+        if (all_valid) {
+            o = mode == 0 ? v : (VOL_LOAD16(p) + v) * qfinal;
+        } else {
+            const int16 valid = xs >= (int16)(d);
+            if (mode == 0) {
+                o = select((float16)(INVALID_COST), v, valid);
+            } else {
+                const float16 old = whole ? VOL_LOAD16(p) : vol_load16_partial(p, 0, n, 0.0f);
+                o = select(old, (old + v) * qfinal, valid);
+            }
+        }
+        vol_store16_partial(o, p, whole ? 16 : n);
+    }
+}
+
+/* sgm_paired in 16-bit lanes: the same arguments, plus qscale (s), qlim and
+ * qfinal (above); the penalties are integers (P s rounded); state holds
+ * shorts (half of sgm_paired's). */
+__kernel __attribute__((vec_type_hint(float16))) void sgm_paired_q16(
+    __global const vol_t *cost, __global const float *img_l, __global const float *img_r, __global vol_t *out,
+    __global short *state, const int ws, const int D, const int H, const int W, const int h, const int launch_no,
+    const float ph1_small, const float ph1_one, const float ph1_both, const float ph2_small, const float ph2_one,
+    const float ph2_both, const float pv1_small, const float pv1_one, const float pv1_both, const float pv2_small,
+    const float pv2_one, const float pv2_both, const float tau_so, const int outside_large, const int mirror,
+    const float qscale, const int qlim, const float qfinal)
+{
+    const int role = get_global_id(0);
+    if (role > 1)
+        return;
+    const int dir = role == 0 ? 1 : -1;
+    const int mode = launch_no == 0 ? 0 : 2;
+    const int split = role == 0 ? h : H - h;
+    const int j0 = launch_no == 0 ? 0 : split, j1 = launch_no == 0 ? split : H;
+    __global short *st = state + (size_t)role * (size_t)(D + 2) * (size_t)ws;
+    short blk[PCW * MAX_DISP];
+    short buf_a[MAX_DISP + 2 + 16], buf_b[MAX_DISP + 2 + 16];
+    int big_r_rev[MAX_DISP + PCW];
+    int bigv[MAX_DISP + PCW];
+    short qbig_r_rev[MAX_DISP + PCW], qbigv[MAX_DISP + PCW];
+    const int16 lane = LANES;
+    const size_t plane = (size_t)H * (size_t)W;
+    const int nchunks = (W + PCW - 1) / PCW;
+    for (int j = j0; j < j1; ++j) {
+        const int y = dir > 0 ? j : H - 1 - j;
+        const int vfirst = j == 0;
+        const int py = vfirst ? y : y - dir;
+        __global const float *il = img_l + y * W;
+        __global const float *ir = img_r + y * W;
+        short *prev = buf_a;
+        short *cur = buf_b;
+        for (int i = 0; i < MAX_DISP + 2 + 16; ++i) {
+            buf_a[i] = Q_BIG;
+            buf_b[i] = Q_BIG;
+        }
+        short m = Q_BIG;
+        short16 r[16];
+        for (int ci = 0; ci < nchunks; ++ci) {
+            const int x0 = (dir > 0 ? ci : nchunks - 1 - ci) * PCW;
+            const int n = min(PCW, W - x0);
+            const int dmaxc = min(D - 1, x0 + n - 1);
+            const int ntiles = dmaxc / 16 + 1;
+            if (!vfirst) {
+                const int tlo = (MAX_DISP - dmaxc) / 16 * 16;
+                vertical_gradients(img_r, W, y, py, x0, tlo, MAX_DISP + PCW, tau_so, bigv);
+                q16_flags(bigv, qbigv, tlo, MAX_DISP + PCW);
+            }
+            for (int gx = 0; gx * 16 < n; ++gx) {
+                const int xg = x0 + gx * 16, ng = min(16, n - gx * 16);
+                __global short *sg = st + (size_t)(xg / 16) * (D + 2) * 16;
+                const int16 xs = (int16)(xg) + lane;
+                const int16 valid_x = lane < (int16)(ng);
+                const int dmaxg = min(D - 1, xg + ng - 1);
+                short16 p1a = (short16)(0), p1b = p1a, mv, pd, pm1, mp2a = p1a, mp2b = p1a;
+                if (vfirst) {
+                    for (int d = dmaxg + 1; d <= D; ++d)
+                        QSTG((short16)(Q_BIG), sg + d * 16);
+                    mv = (short16)(Q_BIG);
+                    pd = mv;
+                    pm1 = mv;
+                } else {
+                    float16 f1a, f1b, f2a, f2b;
+                    vertical_penalties(img_l, W, y, py, xg, ng, tau_so, pv1_small, pv1_one, pv1_both, pv2_small,
+                                       pv2_one, pv2_both, &f1a, &f1b, &f2a, &f2b);
+                    p1a = convert_short16(f1a);
+                    p1b = convert_short16(f1b);
+                    mv = QLDG(sg + (D + 1) * 16);
+                    pd = QLDG(sg);
+                    pm1 = (short16)(Q_BIG);
+                    mp2a = mv + convert_short16(f2a);
+                    mp2b = mv + convert_short16(f2b);
+                }
+                short16 newmv = (short16)(Q_BIG);
+                for (int g = 0; g < ntiles; ++g) {
+                    const int d0 = g * 16;
+                    q16_load_tile(r, cost, y, xg, d0, ng, dmaxg, H, W, mirror, qscale, qlim);
+                    const int iend = min(16, dmaxg + 1 - d0);
+                    if (ng == 16 && xg >= d0 + 15)
+                        q16_vertical_tile(r, qbigv + MAX_DISP + gx * 16, sg, d0, iend, vfirst, mv, p1a, p1b, mp2a,
+                                          mp2b, &pm1, &pd, &newmv, xs, valid_x, 0);
+                    else
+                        q16_vertical_tile(r, qbigv + MAX_DISP + gx * 16, sg, d0, iend, vfirst, mv, p1a, p1b, mp2a,
+                                          mp2b, &pm1, &pd, &newmv, xs, valid_x, 1);
+                    q16_transpose(r);
+                    __attribute__((opencl_unroll_hint))
+                    for (int k = 0; k < 16; ++k)
+                        QST(r[k], blk + (gx * 16 + k) * MAX_DISP + d0);
+                }
+                QSTG(newmv, sg + (D + 1) * 16);
+            }
+            const int base = x0 - ntiles * 16, rt = ntiles * 16 + PCW - 1;
+            row_gradients(ir, W, base, ntiles, PCW, dir, tau_so, outside_large, big_r_rev);
+            q16_flags(big_r_rev, qbig_r_rev, 0, ntiles * 16 + PCW);
+            const int cin = ci + 1 < nchunks ? ci + 1 : ci;
+            const int x0n = (dir > 0 ? cin : nchunks - 1 - cin) * PCW;
+            const int nn = min(PCW, W - x0n);
+            const int dmaxn = min(D - 1, x0n + nn - 1);
+            q16_row_chunk(blk, &prev, &cur, &m, x0, n, dir, D, W, il, tau_so, ph1_small, ph1_one, ph1_both,
+                          ph2_small, ph2_one, ph2_both, qbig_r_rev, base, rt,
+                          mirror ? cost + VIDX(0, y, W - x0n - nn, H, W) : cost + VIDX(0, y, x0n, H, W),
+                          out + VIDX(0, y, x0n, H, W), plane, dmaxn, nn, mirror ? plane + 1 : plane,
+                          mirror ? min(dmaxn, x0n) : dmaxn);
+            for (int gx = 0; gx * 16 < n; ++gx) {
+                const int xg = x0 + gx * 16, ng = min(16, n - gx * 16);
+                __global short *sg = st + (size_t)(xg / 16) * (D + 2) * 16;
+                const int dmaxg = min(D - 1, xg + ng - 1);
+                for (int g = 0; g <= dmaxg / 16; ++g) {
+                    const int d0 = g * 16;
+                    __attribute__((opencl_unroll_hint))
+                    for (int k = 0; k < 16; ++k)
+                        r[k] = QLD(blk + (gx * 16 + k) * MAX_DISP + d0);
+                    q16_transpose(r);
+                    q16_write_tile(r, sg, out + VIDX(d0, y, xg, H, W), plane, xg, d0, ng, dmaxg, mode, qfinal);
+                }
+                if (mode == 0)
+                    for (int d = dmaxg + 1; d < D; ++d)
+                        vol_store16_partial((float16)(NAN), out + VIDX(d, y, xg, H, W), ng);
+            }
+        }
+    }
+}
+#endif /* SGM_PART == 3 */

@@ -62,7 +62,10 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: paired sweeps' time level (Zen 3, PoCL, medians of 10-20 alternating rounds: D 73 on 496 x 718
 #: 69.5 ms at MAX_DISP 128 against 69.3 at 256, D 100 87.3 / 85.4 ms, D 16 9.0 / 9.1 ms, D 40 37.2
 #: at 64 against 39.3 ms, faster in 5 of 20); 64 elsewhere (llvmpipe's loop limits are
-#: estimated from MAX_DISP; on GPUs private arrays cost registers or spills).  CBCA: ``cbca_workgroup`` (the GPU-shaped
+#: estimated from MAX_DISP; on GPUs private arrays cost registers or spills); ``sgm_int16``: the
+#: paired sweeps in 16-bit lanes (sgm_paired_q16) where a call asks for them (the
+#: ``sgm_int16`` hyperparameter; written for Clang-based CPU compilers: Mesa's llvmpipe aborted
+#: building it; on GPUs the work-group stage runs anyway).  CBCA: ``cbca_workgroup`` (the GPU-shaped
 #: two passes of kernels/cbca_wg.cl, a work-group per row or column tile and
 #: disparity; before the fused rules), ``cbca_fused`` (both passes in one
 #: launch, one work-item per plane walking it whole), ``cbca_multi`` (several
@@ -113,6 +116,7 @@ RULES = {
     "sgm_disp_floor":          {CPU: 256,   LLVMPIPE: 64,    GPU: 64},
     "sgm_width":               {CPU: 8,     LLVMPIPE: 16,    GPU: 16},
     "sgm_mirror_reads":        {CPU: None,  LLVMPIPE: True,  GPU: True},
+    "sgm_int16":               {CPU: True,  LLVMPIPE: False, GPU: False},
     "cbca_workgroup":          {CPU: False, LLVMPIPE: False, GPU: True},
     "cbca_fused":              {CPU: True,  LLVMPIPE: False, GPU: False},
     "cbca_multi":              {CPU: True,  LLVMPIPE: True,  GPU: False},
@@ -229,7 +233,7 @@ class DeviceProfile:
                     specialize=self.rule("sgm_specialize"), whole_tiles=self.rule("sgm_whole_tiles"),
                     paired=self.compute_units <= self.rule("sgm_paired_max_units"),
                     group_of_one=self.rule("sgm_group_of_one"), width=self.sgm_width(),
-                    mirror_reads=self.sgm_mirror_reads(),
+                    mirror_reads=self.sgm_mirror_reads(), int16=bool(self.rule("sgm_int16")),
                     # under a loop limit the bands are sized from MAX_DISP: the limited column's floor
                     disp_floor=int(self.rule("sgm_disp_floor") if limit is None else RULES["sgm_disp_floor"][LLVMPIPE]))
 

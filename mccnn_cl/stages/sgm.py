@@ -104,6 +104,33 @@ def _max_disp(D, floor=_DISP_ROUND) -> int:
 #: Columns per chunk of the paired sweeps (SGM_PAIR_CW in sgm.cl).
 PAIR_CW = 16
 
+#: The 16-bit sweeps (sgm_paired_q16): the scale s is the largest power of two with
+#: (2 B + 2 P2) s <= Q16_SPAN for costs |C| <= B, so a pair's sum of C_r fits a short.
+Q16_SPAN = 32000
+#: ... and B s must reach this many steps (else the float sweeps run): the cost's resolution.
+Q16_MIN_STEPS = 64
+
+
+def q16_scale(cost_bound, pen_h, pen_v):
+    """The scale s of the 16-bit sweeps for costs bounded by ``|C| <= cost_bound``
+    and the penalty tables ``pen_h``, ``pen_v`` (:func:`penalty_table`): a power
+    of two, or None where the costs would get fewer than Q16_MIN_STEPS steps
+    (or the bound is not a positive finite number)."""
+    b = float(cost_bound) if cost_bound is not None else float("nan")
+    if not (np.isfinite(b) and b > 0):
+        return None
+    p2 = max(float(p) for p in tuple(pen_h[1]) + tuple(pen_v[1]))
+    p1 = max(float(p) for p in tuple(pen_h[0]) + tuple(pen_v[0]))
+    if not (np.isfinite(p2) and np.isfinite(p1) and p2 >= 0 and p1 >= 0):
+        return None
+    s = 2.0 ** np.floor(np.log2(Q16_SPAN / (2.0 * b + 2.0 * p2)))
+    return float(s) if b * s >= Q16_MIN_STEPS else None
+
+
+def q16_round(pen, s):
+    """A penalty table in the 16-bit sweeps' integer steps (P s rounded to nearest even), as float32."""
+    return tuple(tuple(np.float32(np.round(float(p) * s)) for p in half) for half in pen)
+
 
 class SGM:
     """C_SGM of a float32 [D][H][W] cost volume; see the module docstring.
@@ -128,11 +155,20 @@ class SGM:
     none); under a limit the one-direction kernels walk their paths in several
     launches (same results) and the paired sweeps refuse volumes beyond it.
     ``half=True``: volumes stored as half (``VOL_HALF``, kernels/common.h); the
-    recurrences run in float, the partial sums in the output are rounded to half."""
+    recurrences run in float, the partial sums in the output are rounded to half.
+    ``int16``: a call given ``cost_bound`` (``|C| <= cost_bound`` in every valid
+    cell; the pipeline's ``sgm_int16``) runs, where the stage has the paired
+    sweeps and ``int16`` (rule ``sgm_int16``: CPUs), ``sgm_paired_q16``: the recurrences on 16-bit integers, the costs and
+    penalties in steps of 1 / s (:func:`q16_scale`) rounded to nearest even, the
+    result exactly float SGM of those rounded inputs (a NaN or a cost beyond the
+    bound in a valid cell counts as the bound); :attr:`last_scale` is the s of the
+    last call (None: float)."""
 
     def __init__(self, ctx, prefetch=None, half: bool = False, band=None, cols=None, fused_rows=None,
-                 specialize=None, whole_tiles=None, paired=None, loop_limit=None, width=None, mirror_reads=None):
+                 specialize=None, whole_tiles=None, paired=None, loop_limit=None, width=None, mirror_reads=None,
+                 int16=None):
         self.ctx = ctx
+        self.last_scale = None
         if loop_limit is not None and int(loop_limit) < 0:
             raise InputError(f"SGM loop_limit must be >= 0 (0: none), got {loop_limit}")
         rule = ctx.profile.sgm_options(loop_limit)
@@ -147,6 +183,7 @@ class SGM:
         self.fused_rows = bool(pick(fused_rows, "fused_rows"))
         self.paired = bool(pick(paired, "paired"))
         self.mirror_reads = bool(pick(mirror_reads, "mirror_reads"))
+        self.int16 = bool(pick(int16, "int16"))
         width = pick(width, "width")
         if int(width) not in (8, 16):
             raise InputError(f"SGM width must be 8 or 16 floats, got {width}")
@@ -191,7 +228,8 @@ class SGM:
             k = [self.ctx.kernel("sgm.cl", name, MAX_DISP=max_disp, SGM_CPU_PREFETCH=int(self.prefetch),
                                  VOL_HALF=int(self.half), SGM_COLS=self.cols, SGM_SPECIALIZE=int(self.specialize),
                                  SGM_WHOLE_TILES=int(self.whole_tiles), SGM_PAIR_CW=PAIR_CW,
-                                 SGM_VW=self.width, SGM_PART=2 if names == ("sgm_paired",) else 1)
+                                 SGM_VW=16 if names == ("sgm_paired_q16",) else self.width,
+                                 SGM_PART={("sgm_paired",): 2, ("sgm_paired_q16",): 3}.get(names, 1))
                  for name in names]
             k = [(kern, self.ctx.profile.line_group(self.ctx, kern, self._group_of_one)) for kern in k]
             self._kernels[(max_disp, names)] = k
@@ -214,7 +252,7 @@ class SGM:
 
     def __call__(self, d_cost, d_img_left, d_img_right, D, H, W, pi1=1.0, pi2=32.0, tau_so=0.0625,
                  q1=4.0, q2=10.0, v=2.0, variant="paper", p2_times_pi1=False, outside_large=True,
-                 out=None, mirror=False):
+                 out=None, mirror=False, cost_bound=None):
         """Enqueue the four directions; returns ``out`` (allocated when None,
         must not be ``d_cost``) holding C_SGM, NaN where invalid.
 
@@ -224,6 +262,7 @@ class SGM:
         mirror C in place, a volume read and written, and again back); the
         same bits as SGM of the mirrored volume."""
         D, H, W = check_call(d_cost, D, H, W, out, mirror, self.paired)
+        self.last_scale = None
         if out is None:
             out = self.ctx.empty(volume_bytes(self.half) * D * H * W, "SGM output volume")
         dims = (np.int32(D), np.int32(H), np.int32(W))
@@ -237,14 +276,23 @@ class SGM:
                 raise InputError(f"SGM paired sweeps over {D} x {H} x {W} exceed the loop limit of "
                                  f"{self._loop_limit} iterations per work-item (loop_limit; llvmpipe's on "
                                  f"Rusticl): use paired=False there")
-            ((k_pair, _),) = self._kernel(D, ("sgm_paired",))
+            scale = q16_scale(cost_bound, pen_h, pen_v) if self.int16 else None
+            self.last_scale = scale
             ws = round_up(W, PAIR_CW)
             state = self._scratch("_state", state_bytes(D, W, paired=True), "SGM path state")
+            if scale is not None:
+                ((k_pair, _),) = self._kernel(D, ("sgm_paired_q16",))
+                pen_h, pen_v = q16_round(pen_h, scale), q16_round(pen_v, scale)
+                extra = (np.float32(scale), np.int32(np.floor(float(cost_bound) * scale)), np.float32(0.25 / scale))
+                what = "SGM (paired sweeps, 16-bit)"
+            else:
+                ((k_pair, _),) = self._kernel(D, ("sgm_paired",))
+                extra, what = (), "SGM (paired sweeps)"
             for launch_no in (0, 1):
-                launch(self.ctx, "SGM (paired sweeps)", k_pair, (2,), *bufs, state,
+                launch(self.ctx, what, k_pair, (2,), *bufs, state,
                        np.int32(ws), *dims, np.int32(H // 2), np.int32(launch_no), *pen_h[0], *pen_h[1],
                        *pen_v[0], *pen_v[1], np.float32(tau_so), np.int32(bool(outside_large)),
-                       np.int32(bool(mirror)), local_size=(1,))
+                       np.int32(bool(mirror)), *extra, local_size=(1,))
             return out
         (k_rows, l_rows), (k_cols, l_cols) = self._kernel(D, ("sgm_rows", "sgm_columns"))
         ws = round_up(W, self.cols)

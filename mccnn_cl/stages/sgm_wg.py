@@ -135,10 +135,11 @@ class SGMWorkGroup:
 
     def __call__(self, d_cost, d_img_left, d_img_right, D, H, W, pi1=1.0, pi2=32.0, tau_so=0.0625,
                  q1=4.0, q2=10.0, v=2.0, variant="paper", p2_times_pi1=False, outside_large=True,
-                 out=None, mirror=False):
+                 out=None, mirror=False, cost_bound=None):
         """Enqueue the four directions; returns ``out`` (allocated when None,
         must not be ``d_cost``) holding C_SGM, NaN where invalid.  ``mirror``:
-        as SGM's, refused here."""
+        as SGM's, refused here.  ``cost_bound`` (SGM's 16-bit sweeps): ignored,
+        the work-group paths run in float."""
         D, H, W = check_call(d_cost, D, H, W, out, mirror, self.reads_mirrored)
         pen = {False: penalty_table(pi1, pi2, q1, q2, v, False, variant, p2_times_pi1),
                True: penalty_table(pi1, pi2, q1, q2, v, True, variant, p2_times_pi1)}
