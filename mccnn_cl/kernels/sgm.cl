@@ -429,6 +429,43 @@ static inline __attribute__((always_inline)) void row_gradients(
     }
 }
 
+/* The prefetches row_chunk spreads over a chunk's pixels (see there): levels
+ * d0 .. d1 - 1 of pf_cost (a line per pf_cstep, only while d <= pf_cdmax,
+ * where the cost's line lies in its row) and of pf_out (a plane apart), pf_n
+ * cells each (the lines at 0, 16, ... and pf_n - 1); into L2 only with l2.
+ * Also q16_row_chunk's. */
+static inline __attribute__((always_inline)) void prefetch_levels(
+    __global const vol_t *pf_cost, __global const vol_t *pf_out, const size_t plane, const int d0, const int d1,
+    const int pf_n, const int l2, const size_t pf_cstep, const int pf_cdmax)
+{
+    for (int d = d0; d < d1; ++d) {
+        __global const vol_t *pc = pf_cost + d * pf_cstep, *po = pf_out + d * plane;
+        const int cst = d <= pf_cdmax; /* the cost's line lies in its row */
+        for (int e = 0; e < pf_n; e += LINE_FLOATS) {
+            if (l2) {
+                if (cst)
+                    SGM_PREFETCH_L2(pc + e);
+                SGM_PREFETCH_L2(po + e);
+            } else {
+                if (cst)
+                    SGM_PREFETCH(pc + e);
+                SGM_PREFETCH(po + e);
+            }
+        }
+        if (pf_n > 1) {
+            if (l2) {
+                if (cst)
+                    SGM_PREFETCH_L2(pc + pf_n - 1);
+                SGM_PREFETCH_L2(po + pf_n - 1);
+            } else {
+                if (cst)
+                    SGM_PREFETCH(pc + pf_n - 1);
+                SGM_PREFETCH(po + pf_n - 1);
+            }
+        }
+    }
+}
+
 /* Horizontal recurrence over the n pixels x0 .. x0 + n - 1 of one chunk, in
  * the path's order dir (sgm_rows, sgm_paired).  blk holds the chunk as
  * [k][d] (MAX_DISP floats per pixel): costs in, C_r out (lanes d > x
@@ -451,32 +488,8 @@ static inline __attribute__((always_inline)) void row_chunk(
     for (int kk = 0; kk < n; ++kk) {
         const int k = dir > 0 ? kk : n - 1 - kk;
         const int x = x0 + k;
-        for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
-            __global const vol_t *pc = pf_cost + d * pf_cstep, *po = pf_out + d * plane;
-            const int cst = d <= pf_cdmax; /* the cost's line lies in its row */
-            for (int e = 0; e < pf_n; e += LINE_FLOATS) {
-                if (l2) {
-                    if (cst)
-                        SGM_PREFETCH_L2(pc + e);
-                    SGM_PREFETCH_L2(po + e);
-                } else {
-                    if (cst)
-                        SGM_PREFETCH(pc + e);
-                    SGM_PREFETCH(po + e);
-                }
-            }
-            if (pf_n > 1) {
-                if (l2) {
-                    if (cst)
-                        SGM_PREFETCH_L2(pc + pf_n - 1);
-                    SGM_PREFETCH_L2(po + pf_n - 1);
-                } else {
-                    if (cst)
-                        SGM_PREFETCH(pc + pf_n - 1);
-                    SGM_PREFETCH(po + pf_n - 1);
-                }
-            }
-        }
+        prefetch_levels(pf_cost, pf_out, plane, kk * pf_per, min(kk * pf_per + pf_per, dmaxn + 1), pf_n, l2,
+                        pf_cstep, pf_cdmax);
         const int dmax = min(D - 1, x);
         const int nvec = dmax / VW + 1;
         const int first = x == (dir > 0 ? 0 : W - 1); /* first pixel of the path: C_r = C */
@@ -1019,12 +1032,6 @@ __kernel __attribute__((vec_type_hint(floatV))) void sgm_paired(__global const v
 #endif
 #define PCW SGM_PAIR_CW
 #define Q_BIG ((short)0x7fff)
-#ifndef Q16_PF_OUT
-#define Q16_PF_OUT 1
-#endif
-#ifndef Q16_PF_TAIL
-#define Q16_PF_TAIL 1
-#endif
 typedef short16 __attribute__((aligned(2))) q16_u;
 #define QLD(p) (*(const q16_u *)(p))
 #define QST(v, p) (*(q16_u *)(p) = (v))
@@ -1210,22 +1217,8 @@ static inline __attribute__((always_inline)) void q16_row_chunk(
     for (int kk = 0; kk < n; ++kk) {
         const int k = dir > 0 ? kk : n - 1 - kk;
         const int x = x0 + k;
-        for (int d = kk * pf_per; d < min(kk * pf_per + pf_per, dmaxn + 1); ++d) {
-            __global const vol_t *pc = pf_cost + d * pf_cstep, *po = pf_out + d * plane;
-            const int cst = d <= pf_cdmax;
-            for (int e = 0; e < pf_n; e += LINE_FLOATS) {
-                if (cst)
-                    SGM_PREFETCH_L2(pc + e);
-                if (Q16_PF_OUT)
-                    SGM_PREFETCH_L2(po + e);
-            }
-            if (pf_n > 1 && Q16_PF_TAIL) {
-                if (cst)
-                    SGM_PREFETCH_L2(pc + pf_n - 1);
-                if (Q16_PF_OUT)
-                    SGM_PREFETCH_L2(po + pf_n - 1);
-            }
-        }
+        prefetch_levels(pf_cost, pf_out, plane, kk * pf_per, min(kk * pf_per + pf_per, dmaxn + 1), pf_n, 1,
+                        pf_cstep, pf_cdmax);
         const int dmax = min(D - 1, x);
         const int nvec = dmax / 16 + 1;
         const int first = x == (dir > 0 ? 0 : W - 1);
