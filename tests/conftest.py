@@ -60,9 +60,7 @@ CL_IMPLS = {
     # PoCL made to build AVX2 code (POCL_KERNELLIB_NAME=avx2): the code a Zen 3
     # or Haswell-class CPU runs, on whatever x86-64 machine has AVX2
     "pocl-avx2": {"platform": "Portable Computing Language", "device": "haswell"},
-    # Intel's CPU runtime always returns a build log, which pyopencl reports as
-    # a CompilerWarning: filtered for this implementation only.
-    "intel": {"platform": "Intel(R) OpenCL", "filterwarnings": ["ignore::pyopencl.CompilerWarning"]},
+    "intel": {"platform": "Intel(R) OpenCL"},
     # Oclgrind never aborts: it logs to OCLGRIND_LOG (set per run, see
     # impl_environ) and a test fails when that log grows.
     "oclgrind": {"platform": "Oclgrind"},
@@ -184,8 +182,6 @@ def pytest_configure(config):
         raise pytest.UsageError(f"--cl-impl {impl}: {exc}") from None
     os.environ.update(env)
     config._mccnn_cl_impl_env = env
-    for flt in CL_IMPLS[impl].get("filterwarnings", []):
-        config.addinivalue_line("filterwarnings", flt)
 
 
 def pytest_collection_finish(session):

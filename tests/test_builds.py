@@ -347,3 +347,47 @@ def test_two_processes_storing_one_binary_at_once(tmp_path):
     payload = binaries._unpack(data)
     assert payload in (b"\x01" * (1 << 20), b"\x02" * (1 << 20))
     assert os.listdir(tmp_path / "binaries" / "aa") == ["aa" + "0" * 62 + ".bin"]
+
+
+def test_build_logs_go_to_debug(monkeypatch, caplog, recwarn):
+    """A successful build's log (PyOpenCL's CompilerWarning) reaches the debug log,
+    not the caller, unless COMPILER_OUTPUT; other warnings pass through."""
+    import logging
+    import warnings
+
+    from pyopencl import CompilerWarning
+
+    def build():
+        warnings.warn("Non-empty compiler output encountered", CompilerWarning)
+        warnings.warn("something else", UserWarning)
+        return 3
+
+    monkeypatch.setattr(clmod, "COMPILER_OUTPUT", False)
+    with caplog.at_level(logging.DEBUG, logger=clmod.__name__):
+        assert clmod._build_quietly(build) == 3
+    assert [str(w.message) for w in recwarn] == ["something else"]
+    assert any("Non-empty compiler output" in r.getMessage() for r in caplog.records)
+    recwarn.clear()
+    monkeypatch.setattr(clmod, "COMPILER_OUTPUT", True)
+    assert clmod._build_quietly(build) == 3
+    assert sorted(w.category.__name__ for w in recwarn) == ["CompilerWarning", "UserWarning"]
+
+
+def test_library_build_log_is_quiet(ctx, monkeypatch, caplog, recwarn):
+    """A real build whose log is not empty (a ``#warning``; PoCL on AVX2 CPUs logs
+    ABI notes for sgm.cl's 16-float vectors, Intel's runtime logs every program):
+    through the Python API the caller gets no CompilerWarning, the debug log has
+    it; with COMPILER_OUTPUT (--verbose) the caller gets it."""
+    import logging
+
+    monkeypatch.setenv("MCCNN_BINARY_CACHE", "off")
+    src = '#warning "a note from the compiler"\n__kernel void k(__global float *a) { a[0] = 1.0f; }\n'
+    for verbose in (False, True):
+        monkeypatch.setattr(clmod, "COMPILER_OUTPUT", verbose)
+        recwarn.clear()
+        caplog.clear()
+        with caplog.at_level(logging.DEBUG, logger=clmod.__name__):
+            ctx._make_program("note.cl", src, ["-I", ctx.kernel_dir, f"-DFRESH={verbose:d}{id(src)}"])
+        compiler = [w for w in recwarn if w.category.__name__ == "CompilerWarning"]
+        logged = [r for r in caplog.records if "build log" in r.getMessage()]
+        assert (len(compiler), len(logged)) == ((1, 0) if verbose else (0, 1))

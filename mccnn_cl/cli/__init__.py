@@ -244,12 +244,7 @@ def main(argv=None) -> int:
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
         from ..opencl import context as cl
 
-        cl.COMPILER_OUTPUT = True  # the compiler's "N warnings generated." lines
-    else:
-        # Some runtimes (Intel's CPU runtime) always return a build log, which
-        # PyOpenCL reports as a CompilerWarning per program: noise on a terminal.
-        # --verbose keeps them; build *failures* are errors either way.
-        warnings.filterwarnings("ignore", message="Non-empty compiler output encountered")
+        cl.COMPILER_OUTPUT = True  # the compiler's "N warnings generated." lines and build logs
     _one_line_warnings()
     try:
         code = int(_implementation(args)(args) or 0)

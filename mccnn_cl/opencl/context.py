@@ -33,6 +33,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 import weakref
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -335,28 +336,59 @@ def _filter_compiler_output(text: str) -> str:
 
 def _build_quietly(build):
     """Run ``build()`` with file descriptor 2 captured; what it wrote goes back
-    to stderr less the compiler's summary lines.  Builds are serialised (the
+    to stderr less the compiler's summary lines, and the build log of a build
+    that succeeded (PyOpenCL's CompilerWarning) goes to this module's debug log
+    instead of the caller's terminal, unless :data:`COMPILER_OUTPUT`.  A failed
+    build raises with its log either way.  Builds are serialised (the
     descriptor is the process's)."""
     with _BUILD_LOCK:
-        try:
-            sys.stderr.flush()
-            saved = os.dup(2)
-        except (OSError, ValueError):
+        return _logs_to_debug(lambda: _stderr_filtered(build))
+
+
+def _logs_to_debug(build):
+    """``build()`` with PyOpenCL's CompilerWarnings logged at debug level (the
+    other warnings it raises are re-issued as they came)."""
+    if COMPILER_OUTPUT:
+        return build()
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
             return build()
-        try:
-            with tempfile.TemporaryFile() as tmp:
-                os.dup2(tmp.fileno(), 2)
-                try:
-                    return build()
-                finally:
-                    os.dup2(saved, 2)
-                    tmp.seek(0)
-                    rest = _filter_compiler_output(tmp.read().decode("utf-8", "replace"))
-                    if rest:
-                        sys.stderr.write(rest)
-                        sys.stderr.flush()
-        finally:
-            os.close(saved)
+    finally:  # the caller's filters are back: what is not a build log goes through them
+        for w in caught:
+            if _is_compiler_warning(w.category):
+                log.debug("build log (MCCNN_COMPILER_OUTPUT=1 or --verbose shows it): %s", w.message)
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+
+
+def _is_compiler_warning(category) -> bool:
+    """PyOpenCL's CompilerWarning (named, so that pyopencl need not be imported here)."""
+    return category.__name__ == "CompilerWarning" and category.__module__.split(".")[0] == "pyopencl"
+
+
+def _stderr_filtered(build):
+    """``build()`` with file descriptor 2 captured, written back less the
+    compiler's summary lines."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        return build()
+    try:
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                return build()
+            finally:
+                os.dup2(saved, 2)
+                tmp.seek(0)
+                rest = _filter_compiler_output(tmp.read().decode("utf-8", "replace"))
+                if rest:
+                    sys.stderr.write(rest)
+                    sys.stderr.flush()
+    finally:
+        os.close(saved)
 
 
 def _format_define(value) -> str:
