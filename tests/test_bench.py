@@ -349,6 +349,21 @@ def test_script_docstrings_name_tools_benchmarks():
     assert not stale, stale
 
 
+def test_scripts_find_the_shared_data_one_way(monkeypatch, tmp_path):
+    """Every script finds the shared data through _paths.data_dir: $MCCNN_DATA, else
+    ../shared/data beside the repository (no script with its own variable or path)."""
+    own = [p.name for p in sorted(SCRIPTS.glob("*.py")) if p.name != "_paths.py"
+           and ('"shared"' in p.read_text() or "MCCNN_SHARED_DATA" in p.read_text()
+                or 'environ.get("MCCNN_DATA"' in p.read_text())]
+    assert not own, own
+    paths = _script("_paths", monkeypatch)
+    monkeypatch.setenv("MCCNN_DATA", str(tmp_path))
+    assert paths.data_dir() == tmp_path and paths.data_dir("x") == Path("x")
+    monkeypatch.delenv("MCCNN_DATA")
+    assert paths.data_dir() == paths.REPO.parent / "shared" / "data"
+    assert (paths.REPO / "tools" / "benchmarks" / "_paths.py").is_file()
+
+
 def test_confidence_floor_is_one_read_at_the_copy_rate(monkeypatch):
     mod = _script("bench_confidence", monkeypatch)
     # bench's convention: copy_bw counts read + write, a read of V bytes moves V

@@ -13,10 +13,12 @@ pair :func:`mccnn_cl.evaluation.datasets.discover` finds; the stated range is
 :func:`mccnn_cl.evaluation.scoring.default_range`: KITTI 228 levels, calib.txt
 ndisp (widened to MiddEval3's vmin/vmax), ETH3D :data:`ETH3D_NDISP`).  EVERY=N
 takes every Nth pair.  Errors on every ground-truth pixel: 3-px for KITTI,
-bad-2.0 otherwise.  Data: MCCNN_SHARED_DATA, default ../shared/data."""
+bad-2.0 otherwise.  Data: $MCCNN_DATA, default ../shared/data."""
 import json, os, sys, time
 from pathlib import Path
 import numpy as np
+
+from _paths import data_dir  # noqa: E402
 from mccnn_cl import StereoMatcher
 from mccnn_cl.opencl.context import ClContext
 from mccnn_cl.evaluation.datasets import discover, to_gray_u8 as to_gray
@@ -74,7 +76,7 @@ if len(sys.argv) > 2 and sys.argv[1] == "table":
     print(table([json.loads(line) for line in Path(sys.argv[2]).read_text().splitlines() if line.strip()]))
     sys.exit(0)
 
-SD = Path(os.environ.get("MCCNN_SHARED_DATA", Path(__file__).resolve().parents[2] / ".." / "shared" / "data"))
+SD = data_dir()
 FAMILIES = ("kitti2012", "kitti2015", "middlebury", "middeval3", "eth3d")
 cost = sys.argv[1]
 out_path = Path(sys.argv[2])

@@ -17,6 +17,8 @@ import time
 
 import numpy as np
 
+from _paths import data_dir  # noqa: E402
+
 from mccnn_cl.benchmark import copy_baseline, traffic_floor
 from mccnn_cl.opencl.context import ClContext
 from mccnn_cl.evaluation.datasets import discover
@@ -24,7 +26,7 @@ from mccnn_cl.imageops import to_gray
 from mccnn_cl.costs.census import CensusCost
 from mccnn_cl.stages.confidence import Confidence
 
-DATA = os.environ.get("MCCNN_DATA", os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "data"))
+DATA = str(data_dir())
 
 
 def read_floor(volume_bytes, copy_bw) -> float:

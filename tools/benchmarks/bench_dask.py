@@ -29,13 +29,12 @@ import os
 import platform
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[2]  # the repository root (this file: tools/benchmarks/)
+from _paths import data_dir  # noqa: E402
 #: the shared data: $MCCNN_DATA, default ../shared/data beside the repository root
-DATA = Path(os.environ.get("MCCNN_DATA", REPO.parent / "shared" / "data"))
+DATA = data_dir()
 SHARED = DATA / "kitti2015" / "training"
 FRAMES = ("000000", "000001", "e00001", "e00002", "e00003", "e00004", "e00006", "e00007", "e00008", "e00010")
 

@@ -195,7 +195,9 @@ def main(argv=None):
     from mccnn_cl.models import resolve
     from mccnn_cl.weights import Weights
 
-    data = os.environ.get("MCCNN_DATA", os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "data"))
+    from _paths import data_dir
+
+    data = str(data_dir())
     pair = datasets.load_kitti2015(os.path.join(data, "kitti2015", "training"), "000000")
     left, right = to_gray(pair.left, "left"), to_gray(pair.right, "right")
     H, W = left.shape

@@ -16,15 +16,16 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from pathlib import Path
 
 import numpy as np
+
+from _paths import data_dir  # noqa: E402
 
 from mccnn_cl.opencl.context import ClContext
 from mccnn_cl.evaluation.datasets import discover
 from mccnn_cl.pipeline import StereoMatcher
 
-DATA = Path(os.environ.get("MCCNN_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
+DATA = data_dir()
 
 
 def error(disp, gt, mask, thr):

@@ -23,13 +23,12 @@ import json
 import os
 import sys
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("MCCNN_DATA", REPO.parent / "shared" / "data"))
+from _paths import data_dir  # noqa: E402
+DATA = data_dir()
 
 # Groups of mccnn_cl.benchmark.STAGE_GROUP (the one stage-name table) -> rows of the paper's table.
 ROWS = {"cost": "matching cost", "CBCA": "CBCA", "SGM": "SGM", "rest": "everything else"}

@@ -48,12 +48,11 @@ import json
 import os
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("MCCNN_DATA", REPO.parent / "shared" / "data"))
+from _paths import data_dir  # noqa: E402
+DATA = data_dir()
 
 MARGIN = 4  # half the 9x9 patch: the cost volume covers (H - 8) x (W - 8)
 

@@ -16,13 +16,13 @@ import cv2
 from mccnn_cl import StereoMatcher
 from mccnn_cl.opencl.context import ClContext
 
-REPO = Path(__file__).resolve().parents[2]  # the repository root
+from _paths import data_dir  # noqa: E402
 
 
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--weights", default="general-fst")
-    ap.add_argument("--data", default=str(REPO.parent / "shared" / "data"))
+    ap.add_argument("--data", default=str(data_dir()), help="shared data (default: $MCCNN_DATA, else ../shared/data)")
     ap.add_argument("--rounds", type=int, default=5)
     args = ap.parse_args()
     k = Path(args.data) / "kitti2015" / "training"

@@ -13,6 +13,8 @@ import sys
 import time
 
 import numpy as np
+
+from _paths import data_dir  # noqa: E402
 from mccnn_cl.io import read_image
 from mccnn_cl.pipeline import StereoMatcher
 from mccnn_cl.cli.commands import _gray
@@ -22,7 +24,7 @@ from mccnn_cl.stages.sgm import SGM
 
 args = [a for a in sys.argv[1:] if not a.startswith("--data")]
 data = next((a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--data=")),
-            os.environ.get("MCCNN_DATA", os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "data")))
+            str(data_dir()))
 L = os.path.join(data, "kitti2015", "training", "image_2", "000000_10.png")
 R = L.replace("image_2", "image_3")
 ga,gb=_gray(read_image(L)),_gray(read_image(R))

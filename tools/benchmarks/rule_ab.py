@@ -27,7 +27,7 @@ from mccnn_cl.benchmark import GROUPS, group_timings
 from mccnn_cl.opencl.context import ClContext
 from mccnn_cl.opencl.device import RULES
 
-REPO = Path(__file__).resolve().parents[2]  # the repository root
+from _paths import data_dir  # noqa: E402
 
 
 def _value(text: str):
@@ -43,7 +43,7 @@ def main():
     ap.add_argument("values", nargs="+", type=_value)
     ap.add_argument("--weights", default="general-fst")
     ap.add_argument("--cost", choices=("cnn", "census"), default="cnn")
-    ap.add_argument("--data", default=str(REPO.parent / "shared" / "data"))
+    ap.add_argument("--data", default=str(data_dir()), help="shared data (default: $MCCNN_DATA, else ../shared/data)")
     ap.add_argument("--rounds", type=int, default=5)
     args = ap.parse_args()
     k = Path(args.data) / "kitti2015" / "training"

@@ -61,8 +61,8 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("MCCNN_DATA", REPO.parent / "shared" / "data"))
+from _paths import REPO, data_dir  # noqa: E402
+DATA = data_dir()
 KITTI = DATA / "kitti2015" / "training"
 
 # What each implementation's device description must contain (isolation check).

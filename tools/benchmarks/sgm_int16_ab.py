@@ -14,7 +14,6 @@ One SGM call is one reference's (the pipeline makes two).
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -34,7 +33,9 @@ def main() -> int:
 
     from mccnn_cl.pipeline import StereoMatcher
 
-    data = Path(os.environ.get("MCCNN_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
+    from _paths import data_dir
+
+    data = data_dir()
     left = Path(args.pair) if args.pair else data / "kitti2015" / "training" / "image_2" / "000000_10.png"
     right = Path(str(left).replace("image_2", "image_3"))
     L, R = cv2.imread(str(left)), cv2.imread(str(right))

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 from pathlib import Path
 
@@ -32,7 +31,9 @@ from mccnn_cl.evaluation.metrics import sparsification
 from mccnn_cl.pipeline import StereoMatcher
 from mccnn_cl.visualize import colorize, label
 
-DATA = Path(os.environ.get("MCCNN_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
+from _paths import data_dir  # noqa: E402
+
+DATA = data_dir()
 
 RUNS = (("KITTI 2015 000000, census (3-px)", "kitti", "census"),
         ("Cones, census (bad-2.0)", "cones", "census"),

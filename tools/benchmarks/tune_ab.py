@@ -22,7 +22,6 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 import mccnn_cl
 from mccnn_cl import StereoMatcher
@@ -30,9 +29,8 @@ from mccnn_cl.opencl import tune
 from mccnn_cl.benchmark import (copy_bandwidth, floors as bench_floors, group_timings, host_gemm_applies,
                                 numpy_gemm_rate, volume_bytes)
 from mccnn_cl.opencl.context import ClContext
-from mccnn_cl.opencl.device import RULES
 
-REPO = Path(__file__).resolve().parents[2]  # the repository root
+from _paths import data_dir  # noqa: E402
 
 
 def floors(m, shape, vol, copy_bw, gemm):
@@ -44,7 +42,7 @@ def floors(m, shape, vol, copy_bw, gemm):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--data", default=str(REPO.parent / "shared" / "data"))
+    ap.add_argument("--data", default=str(data_dir()), help="shared data (default: $MCCNN_DATA, else ../shared/data)")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--one-off", type=int, default=3, metavar="N",
                     help="fresh `mccnn-cl match` processes to time, each against the steady call just before it")
