@@ -65,61 +65,16 @@ static inline __attribute__((always_inline)) V step(V c, V m, V lo, V d, V hi, V
     return c - m + best;
 }
 
-#if defined(__x86_64__) && defined(__AVX__)
-#define OPQ(v) __asm__("" : "+x"(v))
-#else
-#define OPQ(v) ((void)0)
-#endif
-/* 16 x 16 transpose of shorts in the AVX2 unpack form: 16-, 32- and 64-bit
- * interleaves within 128-bit halves (vpunpck[lh]wd / dq / qdq), then the
- * halves across (vperm2i128): 64 shuffles.  OPQ keeps LLVM from merging
- * the steps (as T8_OPAQUE in kernels/common.h). */
-static inline __attribute__((always_inline)) void tr16s(short16 *r)
-{
-    short16 A[16], B[16];
-    __attribute__((opencl_unroll_hint))
-    for (int i = 0; i < 16; ++i)
-        OPQ(r[i]);
-    __attribute__((opencl_unroll_hint))
-    for (int i = 0; i < 8; ++i) {
-        A[2 * i] = __builtin_shufflevector(r[2 * i], r[2 * i + 1], 0, 16, 1, 17, 2, 18, 3, 19, 8, 24, 9, 25, 10, 26, 11, 27);
-        A[2 * i + 1] = __builtin_shufflevector(r[2 * i], r[2 * i + 1], 4, 20, 5, 21, 6, 22, 7, 23, 12, 28, 13, 29, 14, 30, 15, 31);
-        OPQ(A[2 * i]);
-        OPQ(A[2 * i + 1]);
-    }
-    __attribute__((opencl_unroll_hint))
-    for (int q = 0; q < 4; ++q) {
-        B[4 * q] = __builtin_shufflevector(A[4 * q], A[4 * q + 2], 0, 1, 16, 17, 2, 3, 18, 19, 8, 9, 24, 25, 10, 11, 26, 27);
-        B[4 * q + 1] = __builtin_shufflevector(A[4 * q], A[4 * q + 2], 4, 5, 20, 21, 6, 7, 22, 23, 12, 13, 28, 29, 14, 15, 30, 31);
-        B[4 * q + 2] = __builtin_shufflevector(A[4 * q + 1], A[4 * q + 3], 0, 1, 16, 17, 2, 3, 18, 19, 8, 9, 24, 25, 10, 11, 26, 27);
-        B[4 * q + 3] = __builtin_shufflevector(A[4 * q + 1], A[4 * q + 3], 4, 5, 20, 21, 6, 7, 22, 23, 12, 13, 28, 29, 14, 15, 30, 31);
-        OPQ(B[4 * q]);
-        OPQ(B[4 * q + 1]);
-        OPQ(B[4 * q + 2]);
-        OPQ(B[4 * q + 3]);
-    }
-    __attribute__((opencl_unroll_hint))
-    for (int h = 0; h < 2; ++h) {
-        __attribute__((opencl_unroll_hint))
-        for (int j = 0; j < 4; ++j) {
-            A[8 * h + 2 * j] = __builtin_shufflevector(B[8 * h + j], B[8 * h + 4 + j], 0, 1, 2, 3, 16, 17, 18, 19, 8, 9, 10, 11, 24, 25, 26, 27);
-            A[8 * h + 2 * j + 1] = __builtin_shufflevector(B[8 * h + j], B[8 * h + 4 + j], 4, 5, 6, 7, 20, 21, 22, 23, 12, 13, 14, 15, 28, 29, 30, 31);
-            OPQ(A[8 * h + 2 * j]);
-            OPQ(A[8 * h + 2 * j + 1]);
-        }
-    }
-    __attribute__((opencl_unroll_hint))
-    for (int c = 0; c < 8; ++c) {
-        r[c] = __builtin_shufflevector(A[c], A[8 + c], 0, 1, 2, 3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 22, 23);
-        r[c + 8] = __builtin_shufflevector(A[c], A[8 + c], 8, 9, 10, 11, 12, 13, 14, 15, 24, 25, 26, 27, 28, 29, 30, 31);
-    }
-}
+/* the 16 x 16 transpose of shorts (q16_transpose), with its asm barriers on
+ * x86 with AVX: the package's header (kernels/q16.h), as sgm_paired_q16 uses it */
+#define Q16_CPU_ASM 1
+#include "q16.h"
 
 /* float16: the even/odd form of MCCNN_TRANSPOSE (kernels/common.h) */
 static inline __attribute__((always_inline)) void tr16(V *r)
 {
 #if PROTO_SHORT
-    tr16s(r);
+    q16_transpose(r);
     return;
 #endif
     __attribute__((opencl_unroll_hint))

@@ -37,7 +37,7 @@ def build(ctx, short, float_io=False, prefetch=False):
     with warnings.catch_warnings():  # PoCL's notes on 16-float vectors without AVX-512 (as the package)
         warnings.simplefilter("ignore", ctx.cl.CompilerWarning)
         return ctx.cl.Program(ctx.context, src).build(
-            options=[f"-DPROTO_SHORT={int(short)}", f"-DFLOAT_IO={int(float_io)}", f"-DPROTO_PREFETCH={int(prefetch)}",
+            options=["-I", ctx.kernel_dir, f"-DPROTO_SHORT={int(short)}", f"-DFLOAT_IO={int(float_io)}", f"-DPROTO_PREFETCH={int(prefetch)}",
                      "-DMAXD=256"])
 
 
