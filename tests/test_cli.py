@@ -439,3 +439,29 @@ def test_counted_says_one_and_many():
     assert [counted(n, "build") for n in (0, 2, 17)] == ["0 builds", "2 builds", "17 builds"]
     assert counted(1, "stored binary", "stored binaries") == "1 stored binary"
     assert counted(12, "stored binary", "stored binaries") == "12 stored binaries"
+
+
+def test_verbose_ends_with_the_command(capsys, monkeypatch):
+    """--verbose shows build logs for its command only: main() run in a process that goes on
+    (a notebook, a test, a Dask worker) leaves the library quiet afterwards, also after an error."""
+    import logging
+
+    from mccnn_cl.cli import main
+    from mccnn_cl.opencl import context as cl
+
+    monkeypatch.setattr(cl, "COMPILER_OUTPUT", False)
+    monkeypatch.setattr(logging.getLogger(), "handlers", list(logging.getLogger().handlers))  # basicConfig's
+    seen = []
+    monkeypatch.setattr("mccnn_cl.cli._implementation", lambda args: lambda a: seen.append(cl.COMPILER_OUTPUT))
+    assert main(["--verbose", "models"]) == 0 and seen == [True]
+    assert cl.COMPILER_OUTPUT is False
+
+    def fails(args):
+        seen.append(cl.COMPILER_OUTPUT)
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr("mccnn_cl.cli._implementation", lambda args: fails)
+    assert main(["--verbose", "models"]) == 1 and seen == [True, True]
+    assert cl.COMPILER_OUTPUT is False
+    assert main(["models"]) == 1 and seen == [True, True, False]
+    capsys.readouterr()

@@ -240,12 +240,21 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)  # --help, --version: argparse prints, ignoring a reader gone, and exits 0
     verbose = bool(getattr(args, "verbose", False))
+    from ..opencl import context as cl
+
+    compiler_output = cl.COMPILER_OUTPUT  # restored at the end: main may run in a process that goes on
     if verbose:
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-        from ..opencl import context as cl
-
         cl.COMPILER_OUTPUT = True  # the compiler's "N warnings generated." lines and build logs
     _one_line_warnings()
+    try:
+        return _run(args, verbose)
+    finally:
+        cl.COMPILER_OUTPUT = compiler_output
+
+
+def _run(args, verbose) -> int:
+    """The command's exit status, its errors reported in one line (a traceback with ``verbose``)."""
     try:
         code = int(_implementation(args)(args) or 0)
         sys.stdout.flush()  # what is still buffered: a reader gone by now is a broken pipe too
