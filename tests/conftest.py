@@ -50,6 +50,7 @@ FULL_DATA_REASON = "needs the full data set: set MCCNN_DATA to a data folder (CI
 # (it is neither a cost, a disparity nor the NaN marking invalid cells), so an
 # element left unwritten makes the comparison fail.
 POISON = np.float32(-1.2345e30)
+POISON_F16 = np.float16(-65504.0)  # half volumes' poison: the most negative finite half
 
 # One entry per OpenCL implementation the suite knows how to isolate:
 # ``platform`` is a substring of its CL_PLATFORM_NAME.  The environment each

@@ -222,3 +222,16 @@ def test_ctrl_c_interrupts_a_wait(ctx, request, tmp_path):
         if p.poll() is None:
             p.kill()
             p.wait()
+
+
+def test_fill_refuses_a_value_its_type_cannot_hold(ctx):
+    """A finite value that float16 cannot hold would poison with an infinity, silently."""
+    buf = ctx.empty(64)
+    with pytest.raises(ValueError, match="does not fit float16"):
+        ctx.fill(buf, -1.2345e30, 64, np.float16)
+    ctx.fill(buf, -65504.0, 64, np.float16)
+    ctx.fill(buf, np.inf, 64, np.float16)  # an infinity asked for is one
+    got = ctx.from_device(buf, (32,), np.float16)
+    assert np.isposinf(got).all()
+    ctx.fill(buf, -1.2345e30, 64)
+    assert (ctx.from_device(buf, (16,)) == np.float32(-1.2345e30)).all()

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import POISON
+from conftest import POISON, POISON_F16
 from mccnn_cl.errors import InputError
 from mccnn_cl.reference.aggregation import SGM_DIRECTIONS, sgm, sgm_direction
 from mccnn_cl.reference.disparity import right_cost_volume
@@ -236,7 +236,7 @@ def test_paired_sweeps_read_the_volume_mirrored(ctx, D, H, W):
     for c, mirror in ((mirrored(cost), False), (dirty, True)):
         c16 = c.astype(np.float16)
         d_out = ctx.empty(c16.nbytes)
-        ctx.fill(d_out, np.float16(-65504.0), c16.nbytes, np.float16)
+        ctx.fill(d_out, POISON_F16, c16.nbytes, np.float16)
         SGM(ctx, half=True, paired=True, width=8)(ctx.to_device(c16), ctx.to_device(img_l), ctx.to_device(img_r),
                                                   D, H, W, out=d_out, mirror=mirror)
         halves.append(ctx.from_device(d_out, cost.shape, np.float16))
@@ -319,7 +319,7 @@ def test_vector_widths_are_bit_identical(ctx, D, H, W):
     halves = []
     for width in (16, 8):
         d_out = ctx.empty(cost.size * 2)
-        ctx.fill(d_out, POISON, cost.size * 2, np.float16)
+        ctx.fill(d_out, POISON_F16, cost.size * 2, np.float16)
         SGM(ctx, half=True, paired=True, width=width)(d_cost, ctx.to_device(img_l), ctx.to_device(img_r), D, H, W,
                                                       out=d_out)
         halves.append(ctx.from_device(d_out, cost.shape, np.float16))
@@ -361,7 +361,7 @@ def run_form(ctx, form, cost, img_l, img_r):
     dtype = np.float16 if form.get("half") else np.float32
     c = cost.astype(dtype)
     d_out = ctx.empty(c.nbytes)
-    ctx.fill(d_out, np.float16(-65504.0) if dtype == np.float16 else POISON, c.nbytes, dtype)
+    ctx.fill(d_out, POISON_F16 if dtype == np.float16 else POISON, c.nbytes, dtype)
     SGM(ctx, **form)(ctx.to_device(c), ctx.to_device(img_l), ctx.to_device(img_r), D, H, W, out=d_out)
     return ctx.from_device(d_out, cost.shape, dtype)
 

@@ -629,8 +629,13 @@ class ClContext:
         return out
 
     def fill(self, buf, value, nbytes: int, dtype=np.float32) -> None:
-        """Fill a buffer with a scalar (used to poison outputs in tests)."""
-        pattern = np.array([value], dtype=dtype)
+        """Fill a buffer with a scalar (used to poison outputs in tests); a
+        finite ``value`` that ``dtype`` cannot hold raises ValueError (it would
+        become an infinity)."""
+        with np.errstate(over="ignore"):
+            pattern = np.array([value], dtype=dtype)
+        if np.issubdtype(pattern.dtype, np.floating) and np.isinf(pattern[0]) and np.isfinite(value):
+            raise ValueError(f"fill value {value!r} does not fit {np.dtype(dtype).name}")
         self.cl.enqueue_fill_buffer(self.queue, buf, pattern, 0, int(nbytes))
 
     def finish(self) -> None:
