@@ -465,3 +465,21 @@ def test_verbose_ends_with_the_command(capsys, monkeypatch):
     assert cl.COMPILER_OUTPUT is False
     assert main(["models"]) == 1 and seen == [True, True, False]
     capsys.readouterr()
+
+
+def test_match_says_when_it_built_programs(crops, tmp_path, monkeypatch, capsys):
+    """On a terminal, a match that built OpenCL programs from source says so once and names
+    `mccnn-cl tune`; not in a pipe or log, nor with the binary cache off."""
+    from mccnn_cl.cli import common, main
+
+    monkeypatch.setenv("MCCNN_CACHE_DIR", str(tmp_path / "cache"))  # no stored binaries
+    args = ["match", str(crops / "ts_l.png"), str(crops / "ts_r.png"), "--cost", "census", "--max-disp", "16"]
+    notes = []
+    for tty, cache in ((True, "on"), (False, "on"), (True, "off")):
+        monkeypatch.setattr(common, "_tty", lambda tty=tty: tty)
+        monkeypatch.setenv("MCCNN_BINARY_CACHE", cache)
+        assert main([*args, "-o", str(tmp_path / f"d_{tty}_{cache}.pfm")]) == 0
+        err = capsys.readouterr().err
+        notes.append([line for line in err.splitlines() if line.startswith("mccnn-cl: note:")])
+    assert len(notes[0]) == 1 and "from source" in notes[0][0] and "mccnn-cl tune" in notes[0][0], notes
+    assert notes[1:] == [[], []]

@@ -31,6 +31,7 @@ from .common import (  # noqa: F401 (re-exported: the commands' helpers)
     CONFIDENCE_FORMATS,
     LABEL_FORMATS,
     PNG_MAX_DISPARITY,
+    _builds_note,
     _say,
     _positive,
     _load_weights,
@@ -167,6 +168,7 @@ def cmd_match(args):
             progress.close()
     if batch:
         _say(f"wrote {len(jobs)} disparity maps to {args.output_dir}")
+    _builds_note(ctx)
     return 0
 
 

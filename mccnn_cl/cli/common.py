@@ -371,6 +371,18 @@ def _tty() -> bool:
         return False
 
 
+def _builds_note(ctx) -> None:
+    """On a terminal, after a command: say that this process built OpenCL programs from
+    source (each fresh process repeats it until ``mccnn-cl tune`` stores the binaries)."""
+    from ..opencl import binaries
+
+    if ctx is None or not ctx.builds or not binaries.enabled() or not _tty():
+        return
+    print(f"mccnn-cl: note: this run built {counted(ctx.builds, 'OpenCL program')} from source (making "
+          f"programs took {ctx.build_seconds:.1f} s); `mccnn-cl tune` stores the default methods' binaries, "
+          "which later runs load in milliseconds (docs/tuning.md)", file=sys.stderr)
+
+
 def _gray(img):
     from ..evaluation.datasets import to_gray_u8
     return to_gray_u8(img)
