@@ -634,12 +634,8 @@ class StereoMatcher:
         return D_SE
 
     def _sgm_bound(self):
-        """``cost_bound`` for SGM: max |C| of the cost (its floor and ceiling) with
-        ``sgm_int16``, else None (float SGM)."""
-        ceiling = getattr(self.cost, "ceiling", None)
-        if not self.params.sgm_int16 or ceiling is None:
-            return None
-        return max(abs(float(self.cost.floor)), abs(float(ceiling)))
+        """``cost_bound`` for SGM: the cost's max |C| with ``sgm_int16``, else None (float SGM)."""
+        return self.cost.magnitude_bound() if self.params.sgm_int16 else None
 
     def _arms(self, d_left, d_right, H, W, rec, name):
         """Cross arms of both images, or (None, None) when no CBCA runs

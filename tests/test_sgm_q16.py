@@ -120,6 +120,19 @@ def test_q16_scale():
         assert q16_scale(bad, *census) is None
 
 
+def test_magnitude_bound_of_each_cost():
+    """cost_bound of the 16-bit sweeps: max |floor|, |ceiling| of the cost; None without a ceiling."""
+    from mccnn_cl.costs.base import MatchingCost
+    from mccnn_cl.costs.census import CensusCost
+    from mccnn_cl.costs.fst import FstCost
+    from mccnn_cl.costs.network import PaperCost
+
+    assert CensusCost.magnitude_bound(CensusCost.__new__(CensusCost)) == 80.0
+    assert FstCost.magnitude_bound(FstCost.__new__(FstCost)) == 1.0
+    assert PaperCost.magnitude_bound(PaperCost.__new__(PaperCost)) == 1.0
+    assert MatchingCost().magnitude_bound() is None
+
+
 def test_q16_falls_back_to_float_without_a_bound(ctx):
     """No cost_bound: the float sweeps, bit for bit."""
     rng = np.random.default_rng(2)

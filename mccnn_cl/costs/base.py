@@ -39,6 +39,13 @@ class MatchingCost:
     half: bool = False
     vdtype = np.dtype(np.float32)
 
+    def magnitude_bound(self) -> float | None:
+        """max |C| over every valid cell (from ``floor`` and ``ceiling``), None where
+        the cost has no known ceiling: SGM's 16-bit sweeps' ``cost_bound``."""
+        if self.ceiling is None:
+            return None
+        return max(abs(float(self.floor)), abs(float(self.ceiling)))
+
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
         key = cls.__dict__.get("kind") or cls.__dict__.get("architecture")

@@ -45,9 +45,9 @@ def main() -> int:
     C = np.ascontiguousarray(m.compute(L, R, return_intermediates=True).intermediates["C_CBCA"], dtype=np.float32)
     D, H, W = C.shape
     ctx, p, stage = m.ctx, m.params, m.sgm
-    if getattr(m.cost, "ceiling", None) is None or not getattr(stage, "int16", False):
-        sys.exit(f"no 16-bit SGM here: stage {type(stage).__name__}, cost bound {getattr(m.cost, 'ceiling', None)}")
-    bound = max(abs(float(m.cost.floor)), abs(float(m.cost.ceiling)))
+    bound = m.cost.magnitude_bound()
+    if bound is None or not getattr(stage, "int16", False):
+        sys.exit(f"no 16-bit SGM here: stage {type(stage).__name__}, cost bound {bound}")
     rng = np.random.default_rng(0)  # timing only: the gradients' images need not be the pair's
     d_l, d_r = (ctx.to_device(rng.random((H, W), dtype=np.float32)) for _ in range(2))
     d_c, d_out = ctx.to_device(C), ctx.empty(C.nbytes, "SGM output")
