@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-import cv2
 import numpy as np
 
 from _paths import data_dir
@@ -35,10 +34,15 @@ def main() -> int:
     from mccnn_cl.benchmark import group_timings
     from mccnn_cl.pipeline import StereoMatcher
 
+    from mccnn_cl.errors import InputError
+    from mccnn_cl.evaluation.datasets import load_kitti2015
+
     k = data_dir(args.data) / "kitti2015" / "training"
-    L, R = cv2.imread(str(k / "image_2" / "000000_10.png")), cv2.imread(str(k / "image_3" / "000000_10.png"))
-    if L is None or R is None:
-        sys.exit(f"KITTI 2015 000000 not found under {k} (set MCCNN_DATA or --data)")
+    try:
+        pair = load_kitti2015(k, "000000")
+    except (InputError, OSError) as exc:
+        sys.exit(f"KITTI 2015 000000 not readable under {k} (set MCCNN_DATA or --data): {exc}")
+    L, R = pair.left, pair.right
     widths = [int(w) for w in args.widths.split(",")]
     if max(widths) > L.shape[1]:
         sys.exit(f"widths up to {L.shape[1]}")
