@@ -31,23 +31,9 @@ def run_q16(ctx, cost, img_l, img_r, bound, mirror=False, **kw):
     return ctx.from_device(d_out, cost.shape), stage.last_scale
 
 
-def rounded_reference(monkeypatch, cost, img_l, img_r, bound, s, **kw):
-    """Float SGM (the reference) of the costs clamped to the bound and rounded to steps of 1 / s, with
-    every penalty rounded likewise (as the host rounds the penalty table)."""
-    real = agg.sgm_penalties
-
-    def rounded(*a, **k):
-        p1, p2 = real(*a, **k)
-        return (float(np.round(np.float32(p1) * s) / s), float(np.round(np.float32(p2) * s) / s))
-
-    monkeypatch.setattr(agg, "sgm_penalties", rounded)
-    c = np.round(np.clip(cost, -bound, bound) * np.float32(s)) / np.float32(s)
-    return agg.sgm(c.astype(np.float32), img_l, img_r, **kw)
-
-
 @pytest.mark.parametrize("D,H,W", [(20, 9, 37), (40, 6, 70), (37, 5, 45), (5, 1, 40), (4, 12, 1), (1, 1, 1),
                                    (33, 4, 64), (64, 3, 48)])
-def test_q16_is_float_sgm_of_the_rounded_inputs(ctx, monkeypatch, D, H, W):
+def test_q16_is_float_sgm_of_the_rounded_inputs(ctx, D, H, W):
     """Odd sizes, D > W, a single row or column, partial chunks and tiles: the same bits as the
     reference on the rounded inputs, NaN exactly where x < d."""
     rng = np.random.default_rng(D * 131 + H * 7 + W)
@@ -56,10 +42,9 @@ def test_q16_is_float_sgm_of_the_rounded_inputs(ctx, monkeypatch, D, H, W):
     for kw in (KW, dict(pi1=4.0, pi2=55.72, tau_so=0.02, q1=3.0, q2=2.5, v=1.5, variant="code"),
                dict(pi1=1.0, pi2=32.0, tau_so=0.0625, q1=4.0, q2=10.0, v=2.0, variant="paper")):
         got, s = run_q16(ctx, cost, img_l, img_r, 1.0, **kw)
-        want = rounded_reference(monkeypatch, cost, img_l, img_r, 1.0, s, **kw)
+        want = agg.sgm_q16(cost, img_l, img_r, 1.0, s, **kw)
         np.testing.assert_array_equal(np.isnan(got), invalid_mask(D, H, W))
         np.testing.assert_array_equal(got[~np.isnan(got)], want[~np.isnan(want)], err_msg=str(kw))
-        monkeypatch.undo()
 
 
 def test_q16_mirrored_reads_are_the_explicit_mirror(ctx):
@@ -89,7 +74,7 @@ def test_q16_clamps_costs_beyond_the_bound_and_nan_counts_as_the_bound(ctx):
     np.testing.assert_array_equal(a.view(np.uint32), b.view(np.uint32))
 
 
-def test_q16_on_a_kitti_crop_is_close_to_float_sgm(ctx, shared_data, monkeypatch):
+def test_q16_on_a_kitti_crop_is_close_to_float_sgm(ctx, shared_data):
     """Real images, an fst-like cost (absolute differences mapped to [-1, 1]): exact against the rounded
     reference, and within a few steps of 1 / s of float SGM of the unrounded costs."""
     img_l, img_r = kitti_crop(shared_data, 150, 400, 12, 60)
@@ -99,9 +84,8 @@ def test_q16_on_a_kitti_crop_is_close_to_float_sgm(ctx, shared_data, monkeypatch
     for d in range(D):
         cost[d, :, d:] = 2.0 * np.abs(img_l[:, d:] - img_r[:, :W - d]) - 1.0
     got, s = run_q16(ctx, cost, img_l, img_r, 1.0, **KW)
-    want = rounded_reference(monkeypatch, cost, img_l, img_r, 1.0, s, **KW)
+    want = agg.sgm_q16(cost, img_l, img_r, 1.0, s, **KW)
     np.testing.assert_array_equal(got[~np.isnan(got)], want[~np.isnan(want)])
-    monkeypatch.undo()
     exact = agg.sgm(cost, img_l, img_r, **KW)
     assert np.nanmax(np.abs(got - exact)) < 8.0 / s
 

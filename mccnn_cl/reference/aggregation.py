@@ -119,13 +119,15 @@ SGM_DIRECTIONS = ((1, 0), (-1, 0), (0, 1), (0, -1))
 
 
 def sgm_penalties(d1, d2, pi1=1.0, pi2=32.0, tau_so=0.0625, q1=4.0, q2=10.0, v=2.0,
-                  vertical=False, variant="paper", p2_times_pi1=False):
+                  vertical=False, variant="paper", p2_times_pi1=False, step_scale=None):
     """(P1, P2) for gradients D1 (left image) and D2 (right image).
 
     ``variant="paper"``: divide both by q1 when exactly one gradient is
     >= tau_so, by q2 when both are.  ``variant="code"`` (released code): by q1
     when one is, by q1*q2 when both are.  ``p2_times_pi1``: P2 = Pi1*Pi2
     instead of Pi2 (same at Pi1 = 1).  P1 is divided by v on vertical paths.
+    ``step_scale`` s: each penalty rounded to a step of 1 / s (its float32 times
+    s rounded to nearest even, as the 16-bit sweeps' host rounds the table).
     """
     big = int(not (d1 < tau_so)) + int(not (d2 < tau_so))
     if big == 0:
@@ -138,6 +140,8 @@ def sgm_penalties(d1, d2, pi1=1.0, pi2=32.0, tau_so=0.0625, q1=4.0, q2=10.0, v=2
     p2 = (pi1 * pi2 if p2_times_pi1 else pi2) / f
     if vertical:
         p1 = p1 / v
+    if step_scale is not None:
+        p1, p2 = (float(np.round(np.float32(p) * step_scale) / step_scale) for p in (p1, p2))
     return p1, p2
 
 
@@ -195,9 +199,19 @@ def sgm_direction(cost, img_l, img_r, r, outside_large=True, **penalties):
 
 
 def sgm(cost, img_l, img_r, pi1=1.0, pi2=32.0, tau_so=0.0625, q1=4.0, q2=10.0, v=2.0,
-        variant="paper", p2_times_pi1=False, outside_large=True):
-    """C_SGM = mean of C_r over the four directions (float32, NaN where invalid)."""
+        variant="paper", p2_times_pi1=False, outside_large=True, step_scale=None):
+    """C_SGM = mean of C_r over the four directions (float32, NaN where invalid);
+    ``step_scale``: the penalties rounded (:func:`sgm_penalties`)."""
     pen = dict(pi1=pi1, pi2=pi2, tau_so=tau_so, q1=q1, q2=q2, v=v, variant=variant,
-               p2_times_pi1=p2_times_pi1)
+               p2_times_pi1=p2_times_pi1, step_scale=step_scale)
     total = sum(sgm_direction(cost, img_l, img_r, r, outside_large, **pen) for r in SGM_DIRECTIONS)
     return (total / 4.0).astype(np.float32)
+
+
+def sgm_q16(cost, img_l, img_r, bound, s, **kw):
+    """What SGM's 16-bit sweeps (sgm_paired_q16, scale ``s``, costs bounded by
+    ``bound``) compute: float SGM of the costs clamped to [-bound, bound] and
+    rounded to steps of 1 / s, with every penalty rounded likewise."""
+    s32 = np.float32(s)
+    c = np.round(np.clip(np.asarray(cost, dtype=np.float32), -bound, bound) * s32) / s32
+    return sgm(c.astype(np.float32), img_l, img_r, step_scale=s, **kw)
