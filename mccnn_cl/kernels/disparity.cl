@@ -163,43 +163,69 @@ __kernel void disparity_lr_check(
  * cannot overlap then), else cell by cell, and sets the cells 16k .. 16k+15
  * below d to NaN; each cell has one owner, so no two work-items touch the
  * same cell.  Global size (ceil(W / 16), H, D), or (H, D) with MIRROR_LINES
- * (rule ``mirror_lines``: a work-item per line on CPUs). */
+ * (rule ``mirror_lines``: a work-item per line on CPUs), which sets the
+ * cells below d, swaps the line's whole blocks, then the pairs left. */
 #ifndef MIRROR_LINES
 #define MIRROR_LINES 0
 #endif
+/* Swap the whole block of pairs k0 .. k0 + 15 of a line (cells d + k0 .. d + k0 + 15 and
+ * W - 16 - k0 .. W - 1 - k0), reversed in registers: the two blocks cannot overlap.  Plain
+ * 16-float stores where the volume is float (not the partial-store helper). */
+static inline void mirror_block(__global vol_t *line, const int d, const int k0, const int W)
+{
+    const float16 a = VOL_LOAD16(line + d + k0);
+    const float16 b = VOL_LOAD16(line + W - 16 - k0);
+#if VOL_HALF
+    vol_store16_partial(b.sFEDCBA9876543210, line + d + k0, 16);
+    vol_store16_partial(a.sFEDCBA9876543210, line + W - 16 - k0, 16);
+#else
+    vstore16(b.sFEDCBA9876543210, 0, line + d + k0);
+    vstore16(a.sFEDCBA9876543210, 0, line + W - 16 - k0);
+#endif
+}
+
 __kernel void disparity_right_volume(
     __global vol_t *cost, /* in: C_L, out: mirrored C_R; D x H x W */
     const int D,          /* disparity levels */
     const int H,          /* rows */
     const int W)          /* columns */
 {
-    /* MIRROR_LINES 1: one work-item walks every 16-pair block of its line (global
-     * size (H, D)); a KITTI-sized volume on 2 Zen 3 cores, 29-33 ms against
-     * 41-51 ms a work-item per block (BENCHMARKS.md), the same bits */
+    /* MIRROR_LINES 1: one work-item walks its whole line (global size (H, D)):
+     * the cells below d, the whole blocks, then the pairs left one by one; a
+     * KITTI-sized volume on 2 Zen 3 cores, 29-33 ms against 41-51 ms a
+     * work-item per block (BENCHMARKS.md), the same bits */
     const int y = get_global_id(MIRROR_LINES ? 0 : 1);
     const int d = get_global_id(MIRROR_LINES ? 1 : 2);
     const int kfirst = MIRROR_LINES ? 0 : (int)get_global_id(0) * 16;
-    const int kend = MIRROR_LINES ? W : kfirst + 16;
     if (kfirst >= W || y >= H || d >= D)
         return;
     __global vol_t *line = cost + VIDX(d, y, 0, H, W);
     const int npairs = (W - d) / 2; /* pairs on the line */
-    for (int k0 = kfirst; k0 < kend; k0 += 16) {
-        for (int x = k0; x < min(k0 + 16, min(d, W)); ++x) /* below d: invalid */
-            VOL_SET(line, x, INVALID_COST);
-        if (k0 + 16 <= npairs) {
-            const float16 a = VOL_LOAD16(line + d + k0);
-            const float16 b = VOL_LOAD16(line + W - 16 - k0);
-            vol_store16_partial(b.sFEDCBA9876543210, line + d + k0, 16);
-            vol_store16_partial(a.sFEDCBA9876543210, line + W - 16 - k0, 16);
-        } else {
-            for (int i = k0; i < npairs; ++i) {
-                const float a = VOL_GET(line, d + i);
-                VOL_SET(line, d + i, VOL_GET(line, W - 1 - i));
-                VOL_SET(line, W - 1 - i, a);
-            }
+#if MIRROR_LINES
+    for (int x = 0; x < min(d, W); ++x) /* below d: invalid */
+        VOL_SET(line, x, INVALID_COST);
+    int k0 = 0;
+    for (; k0 + 16 <= npairs; k0 += 16)
+        mirror_block(line, d, k0, W);
+    for (int i = k0; i < npairs; ++i) {
+        const float a = VOL_GET(line, d + i);
+        VOL_SET(line, d + i, VOL_GET(line, W - 1 - i));
+        VOL_SET(line, W - 1 - i, a);
+    }
+#else
+    const int k0 = kfirst;
+    for (int x = k0; x < min(k0 + 16, min(d, W)); ++x) /* below d: invalid */
+        VOL_SET(line, x, INVALID_COST);
+    if (k0 + 16 <= npairs) {
+        mirror_block(line, d, k0, W);
+    } else {
+        for (int i = k0; i < npairs; ++i) {
+            const float a = VOL_GET(line, d + i);
+            VOL_SET(line, d + i, VOL_GET(line, W - 1 - i));
+            VOL_SET(line, W - 1 - i, a);
         }
     }
+#endif
 }
 
 /* out(y, x) = in(y, W-1-x) for an int32 map.  Global size (W, H). */
