@@ -21,7 +21,7 @@ TOL = 1e-5
 
 
 def fitting_block(ctx, cin, npad, rn, rt=4, xa=4):
-    """(RT, XA) with RT reduced until a work-group's local memory fits the device (~81 KiB at
+    """(RT, XA) with RT reduced until a work-group's local memory fits the device (~32 KiB at
     64 maps and RT 4: CPU runtimes have 256 KiB to 1 MiB, Oclgrind 32 KiB, GPUs 48-64 KiB)."""
     while rt > 1 and winograd_local_bytes(cin, npad, rn, rt) > ctx.local_mem:
         rt -= 1
@@ -44,12 +44,14 @@ def run_layer(ctx, x, W, b, relu, rt, xa, rn, row0=0):
     return ctx.from_device(d_out, ((h - 2) * (w - 2), cout))
 
 
+@pytest.mark.parametrize("cin,cout", [(16, 16), (16, 48), (48, 16)])
 @pytest.mark.parametrize("rt,xa,rn,relu", [(4, 4, 16, True), (4, 1, 16, False), (2, 8, 8, True), (3, 2, 8, False)])
-def test_winograd_layer_matches_a_float64_convolution(ctx, rt, xa, rn, relu):
+def test_winograd_layer_matches_a_float64_convolution(ctx, rt, xa, rn, relu, cin, cout):
     """Fresh random maps of odd and even sizes (partial last tiles in both directions; RT not
-    dividing a tile row), either row anchor: every output written and within TOL."""
-    rng = np.random.default_rng(rt * 100 + xa * 10 + rn)
-    cin = cout = 16
+    dividing a tile row), either row anchor: every output written and within TOL.  The channel
+    counts give a work-group (cout / RN members, which share the input transform RN channels
+    each in turn) more members than channel groups to transform, fewer, and as many."""
+    rng = np.random.default_rng(rt * 100 + xa * 10 + rn + cin + 7 * cout)
     for h, w in ((13, 21), (12, 20), (3, 3), (4, 37)):
         x = rng.standard_normal((h, w, cin)).astype(np.float32)
         W = (rng.standard_normal((cout, cin, 3, 3)) / 12).astype(np.float32)
@@ -146,7 +148,8 @@ def test_layers_that_cannot_run_by_winograd_stay_direct(ctx, monkeypatch):
     w = resolve("general-fst")
     cin, npad = w.conv[1][0].shape[1], 64
     need = winograd_local_bytes(cin, npad, 16, 4)
-    assert need == 4 * 4 * (16 * 64 + 16 + 16 * 16) * 4  # ~81 KiB: V's tiles padded by 16 floats
+    # ~32 KiB: V's tiles padded by 16 floats, shared by the group, and each work-item's products
+    assert need == 4 * (16 * 64 + 16 + 4 * 16 * 16) * 4
     monkeypatch.setattr(type(ctx), "local_mem", property(lambda self: need - 4))
     assert all(l[0].wino is None for l in ConvStack(ctx, w, 16, 4, local_tiles=False, winograd=(4, 4)).layers)
     monkeypatch.undo()

@@ -101,9 +101,10 @@ def launch_winograd(ctx, kern, rt: int, rn: int, d_in, w_in: int, d_u, d_b, d_ou
 
 
 def winograd_local_bytes(cin: int, npad: int, rn: int, rt: int) -> int:
-    """Local memory of a network_conv_wino work-group: per channel group RT tiles' 16
-    transformed patches (CIN, each tile padded by 16 floats) and products (RN)."""
-    return (npad // rn) * rt * (16 * cin + 16 + 16 * rn) * 4
+    """Local memory of a network_conv_wino work-group: RT tiles' 16 transformed patches
+    (CIN, each tile padded by 16 floats), shared by the group, and per channel group the
+    tiles' products (RN)."""
+    return rt * (16 * cin + 16 + (npad // rn) * 16 * rn) * 4
 
 
 def fit_tile(ctx, what, sizes, forced, local_bytes, local_size, build, shrink):

@@ -5,15 +5,19 @@
  * ConvStack; the "winograd" path of CPU devices, rule network_winograd).
  *
  * Work-item (g, quad, ty): output channels g*RN .. g*RN+RN-1 of RT consecutive
- * 2 x 2 output tiles of tile row ty.  It transforms its tiles' 4 x 4 input
- * patches (all CIN channels, B^T d B) into its own region of local memory
- * (V[RT][16][CIN], each tile padded, WINO_VT; no other work-item reads it, so
- * no barrier), runs the 16 products M_xi = V_xi U_xi, XA of the 16 xi at a
- * time over RT tiles (XA x RT register accumulators of RN floats; U = G g G^T
- * precomputed on the host, [16][CIN][NP]), keeps M in local memory
- * ([RT][16][RN]) and applies the
- * output transform (A^T M A), bias and ReLU.  Launch: global (NP/RN,
- * ceil(tw/RT), th), local (NP/RN, 1, 1).
+ * 2 x 2 output tiles of tile row ty.  The work-group (the NP/RN channel groups
+ * of the same tiles) transforms the tiles' 4 x 4 input patches (all CIN
+ * channels, B^T d B) once into local memory shared by the group (V[RT][16][CIN],
+ * each tile padded, WINO_VT), each work-item RN channels at a time in turn,
+ * then waits at one barrier; each work-item then runs the 16 products M_xi =
+ * V_xi U_xi of its channels, XA of the 16 xi at a time over RT tiles (XA x RT
+ * register accumulators of RN floats; U = G g G^T precomputed on the host,
+ * [16][CIN][NP]), keeps M in its own local memory ([RT][16][RN]) and applies
+ * the output transform (A^T M A), bias and ReLU.  (Each work-item transformed
+ * every channel for itself before: NP/RN times the work.  A 64 -> 64 layer on
+ * a KITTI-sized map, Zen 3, RN 16: the transforms and stores 26-29 against
+ * 38-42 ms, the same bits.)  Launch: global (NP/RN, ceil(tw/RT), th), local
+ * (NP/RN, 1, 1).
  *
  * Row anchor p (0 or 1): tile row ty covers output rows 2 ty - p and
  * 2 ty - p + 1, so a map cut from a larger one at an odd row (a band, a row
@@ -23,8 +27,8 @@
  * row, and only the first output row reads that one, so every output gets
  * the very operations of the whole map's computation (tests/test_winograd.py).
  * th = ceil((h_out + p) / 2), tw = ceil(w_out / 2).  Needs KS 3, CIN a
- * multiple of RN, and (NP/RN) x RT (16 CIN + 16 + 16 RN) x 4 bytes of local
- * memory (~81 KiB for 64 -> 64 maps at RT 4: CPU devices, whose local memory
+ * multiple of RN, and RT (16 CIN + 16 + (NP/RN) 16 RN) x 4 bytes of local
+ * memory (~32 KiB for 64 -> 64 maps at RT 4: CPU devices, whose local memory
  * is ordinary memory).
  */
 #include "common.h"
@@ -51,15 +55,16 @@ __kernel void network_conv_wino(__global const float *in, int w_in, int h_in,
                              __global const float *bias, __global float *out, int w_out, int h_out, int tw, int th,
                              int p)
 {
-    __local float vloc[NP / RN][RT * WINO_VT + RT * 16 * RN];
+    __local float V[RT * WINO_VT];                /* the group's transformed patches */
+    __local float mloc[NP / RN][RT * 16 * RN];    /* each work-item's products */
     const int g = get_global_id(0), qd = get_global_id(1), ty = get_global_id(2);
     const int nq = (tw + RT - 1) / RT;
-    if (g >= NP / RN || qd >= nq || ty >= th) return;
-    __local float *V = vloc[get_local_id(0)];
-    __local float *Mq = V + RT * WINO_VT;
+    /* the whole group has one (qd, ty): it reaches the barrier together or not at all */
+    if (qd >= nq || ty >= th) return;
+    __local float *Mq = mloc[get_local_id(0)];
     for (int t = 0; t < RT; ++t) {
         const int tx = min(RT * qd + t, tw - 1);
-        for (int c0 = 0; c0 < CIN; c0 += RN) {
+        for (int c0 = g * RN; c0 < CIN; c0 += NP) { /* RN channels per group member in turn */
             VT d[4][4];
 #pragma unroll
             for (int i = 0; i < 4; ++i)
@@ -84,6 +89,7 @@ __kernel void network_conv_wino(__global const float *in, int w_in, int h_in,
             }
         }
     }
+    barrier(CLK_LOCAL_MEM_FENCE);
     const int n0 = g * RN;
     for (int h = 0; h < 16 / XA; ++h) {
         VT acc[XA][RT];
