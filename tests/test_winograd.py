@@ -45,7 +45,8 @@ def run_layer(ctx, x, W, b, relu, rt, xa, rn, row0=0):
 
 
 @pytest.mark.parametrize("cin,cout", [(16, 16), (16, 48), (48, 16)])
-@pytest.mark.parametrize("rt,xa,rn,relu", [(4, 4, 16, True), (4, 1, 16, False), (2, 8, 8, True), (3, 2, 8, False)])
+@pytest.mark.parametrize("rt,xa,rn,relu", [(4, 4, 16, True), (4, 1, 16, False), (6, 1, 16, True), (2, 8, 8, True),
+                                         (3, 2, 8, False)])
 def test_winograd_layer_matches_a_float64_convolution(ctx, rt, xa, rn, relu, cin, cout):
     """Fresh random maps of odd and even sizes (partial last tiles in both directions; RT not
     dividing a tile row), either row anchor: every output written and within TOL.  The channel
