@@ -501,29 +501,43 @@ static inline __attribute__((always_inline)) void row_chunk(
         const float mm = *m;
         const float mp2_a = mm + p2_a, mp2_b = mm + p2_b; /* m + P2 (sgm_step_mp2N) */
         float *pv = *prev, *cv = *cur;
+        const int *br = big_r_rev + rt - (x - base); /* lanes d0 .. at br + d0 */
         floatV newm = (floatV)(INFINITY);
-        for (int v = 0; v < nvec; ++v) {
-            const int d0 = v * VW;
-            float *bp = blk + k * MAX_DISP + d0;
-            const floatV c = vloadV(0, bp);
-            floatV val;
-            if (first) {
-                val = c;
-            } else {
-                /* D2 large at pd = x - d, lanes d0 .. d0 + 15 */
-                const intV big_r = vloadV(0, big_r_rev + rt - (x - d0 - base));
-                const floatV pm = vloadV(0, pv + d0);     /* d - 1 */
-                const floatV pd = vloadV(0, pv + d0 + 1); /* d */
-                const floatV pn = vloadV(0, pv + d0 + 2); /* d + 1 */
-                val = sgm_step_mp2V(c, (floatV)(mm), pm, pd, pn, SGM_BY_D2_V((floatV)(p1_a), (floatV)(p1_b), big_r),
-                                    SGM_BY_D2_V((floatV)(mp2_a), (floatV)(mp2_b), big_r));
-            }
-            if (v == nvec - 1) /* only the last vector has lanes d > dmax */
-                val = select((floatV)(INFINITY), val, (intV)(d0) + lane <= (intV)(dmax));
-            vstoreV(val, 0, cv + d0 + 1);
-            vstoreV(val, 0, bp); /* lanes d > dmax: discarded at write-back */
-            newm = fmin_aV(newm, val);
+        /* the path's first pixel, the vectors before the last, and the last one (the only one
+         * with lanes d > dmax) each in a loop of its own: no test of either in the hot loop */
+#define ROW_STEP(v, FIRST, LAST)                                                                        \
+    do {                                                                                                \
+        const int d0 = (v) * VW;                                                                        \
+        float *bp = blk + k * MAX_DISP + d0;                                                            \
+        const floatV c = vloadV(0, bp);                                                                 \
+        floatV val;                                                                                     \
+        if (FIRST) {                                                                                    \
+            val = c;                                                                                    \
+        } else { /* D2 large at pd = x - d, lanes d0 .. d0 + 15 */                                      \
+            const intV big_r = vloadV(0, br + d0);                                                      \
+            const floatV pm = vloadV(0, pv + d0);     /* d - 1 */                                        \
+            const floatV pd = vloadV(0, pv + d0 + 1); /* d */                                            \
+            const floatV pn = vloadV(0, pv + d0 + 2); /* d + 1 */                                        \
+            val = sgm_step_mp2V(c, (floatV)(mm), pm, pd, pn,                                            \
+                                SGM_BY_D2_V((floatV)(p1_a), (floatV)(p1_b), big_r),                      \
+                                SGM_BY_D2_V((floatV)(mp2_a), (floatV)(mp2_b), big_r));                   \
+        }                                                                                               \
+        if (LAST)                                                                                       \
+            val = select((floatV)(INFINITY), val, (intV)(d0) + lane <= (intV)(dmax));                   \
+        vstoreV(val, 0, cv + d0 + 1);                                                                   \
+        vstoreV(val, 0, bp); /* lanes d > dmax: discarded at write-back */                              \
+        newm = fmin_aV(newm, val);                                                                      \
+    } while (0)
+        if (first) {
+            for (int v = 0; v < nvec - 1; ++v)
+                ROW_STEP(v, 1, 0);
+            ROW_STEP(nvec - 1, 1, 1);
+        } else {
+            for (int v = 0; v < nvec - 1; ++v)
+                ROW_STEP(v, 0, 0);
+            ROW_STEP(nvec - 1, 0, 1);
         }
+#undef ROW_STEP
         vstoreV((floatV)(INFINITY), 0, cv + nvec * VW + 1); /* d beyond the valid range */
 #if VW == 16
         const float8 m8 = fmin(newm.lo, newm.hi);
