@@ -809,9 +809,10 @@ __kernel void sgm_rows(__global const vol_t *cost,  /* D x H x W cost volume (Na
  * d * VW, overwritten) and its minimum mv (mp2a, mp2b: mv + P2 for a small
  * and a large D2, sgm_step_mp2N); pm1 and pd carry levels d - 1
  * and d from row to row; bigv[-d]: the lanes' D2 flags at level d; newmv
- * gathers the minimum.  masked = 0 where every lane of the tile is valid
- * (no select of +INFINITY for x < d or for lanes past the image): a
- * constant at each call, so that each call compiles to its own loop. */
+ * gathers the minimum.  masked = 0 for a whole tile of a row after the
+ * path's first (every lane valid, so no select of +INFINITY for x < d or for
+ * lanes past the image; all VW levels; vfirst 0): a constant at each call,
+ * so that call compiles to straight code without those tests. */
 static inline __attribute__((always_inline)) void vertical_tile(
     const floatV *r, const int *bigv, __global float *sg, const int d0, const int iend, const int vfirst,
     const floatV mv, const floatV p1a, const floatV p1b, const floatV mp2a, const floatV mp2b, floatV *pm1,
@@ -820,9 +821,9 @@ static inline __attribute__((always_inline)) void vertical_tile(
     __attribute__((opencl_unroll_hint))
     for (int i = 0; i < VW; ++i) { /* a constant trip count keeps r[] in registers */
         const int d = d0 + i;
-        if (i < iend) {
+        if (!masked || i < iend) {
             floatV val;
-            if (vfirst) {
+            if (masked && vfirst) {
                 val = r[i];
             } else {
                 const intV big_r = vloadV(0, bigv - d);
@@ -972,8 +973,8 @@ __kernel __attribute__((vec_type_hint(floatV))) void sgm_paired(__global const v
                     else
                         load_tile(r, cost, y, xg, d0, ng, dmaxg, H, W);
                     const int iend = min(VW, dmaxg + 1 - d0);
-                    /* the validity select only for a tile with an invalid lane */
-                    if (ng == VW && xg >= d0 + VW - 1)
+                    /* the validity select, the first row and a partial tile only where they occur */
+                    if (!vfirst && ng == VW && xg >= d0 + VW - 1 && iend == VW)
                         vertical_tile(r, bigv + MAX_DISP + gx * VW, sg, d0, iend, vfirst, mv, p1a, p1b, mp2a, mp2b,
                                       &pm1, &pd, &newmv, xs, valid_x, 0);
                     else
