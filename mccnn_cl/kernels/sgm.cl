@@ -1137,7 +1137,7 @@ static inline __attribute__((always_inline)) short16 q16_step(const short16 c, c
     return c - m + best;
 }
 
-/* vertical_tile in 16-bit lanes (sg: the group's state as shorts) */
+/* vertical_tile in 16-bit lanes (sg: the group's state as shorts; masked as there) */
 static inline __attribute__((always_inline)) void q16_vertical_tile(
     const short16 *r, const short *bigv, __global short *sg, const int d0, const int iend, const int vfirst,
     const short16 mv, const short16 p1a, const short16 p1b, const short16 mp2a, const short16 mp2b, short16 *pm1,
@@ -1146,9 +1146,9 @@ static inline __attribute__((always_inline)) void q16_vertical_tile(
     __attribute__((opencl_unroll_hint))
     for (int i = 0; i < 16; ++i) {
         const int d = d0 + i;
-        if (i < iend) {
+        if (!masked || i < iend) { /* masked 0: all 16 levels of a row after the first (vertical_tile) */
             short16 val;
-            if (vfirst) {
+            if (masked && vfirst) {
                 val = r[i];
             } else {
                 const short16 big_r = QLD(bigv - d);
@@ -1193,25 +1193,38 @@ static inline __attribute__((always_inline)) void q16_row_chunk(
         const short16 p1v_a = (short16)((short)p1_a), p1v_b = (short16)((short)p1_b);
         const short16 mp2_a = (short16)((short)(mm + (short)p2_a)), mp2_b = (short16)((short)(mm + (short)p2_b));
         short *pv = *prev, *cv = *cur;
+        const short *br = big_r_rev + rt - (x - base); /* lanes d0 .. at br + d0 */
         short16 newm = (short16)(Q_BIG);
-        for (int v = 0; v < nvec; ++v) {
-            const int d0 = v * 16;
-            short *bp = blk + k * MAX_DISP + d0;
-            const short16 c = QLD(bp);
-            short16 val;
-            if (first) {
-                val = c;
-            } else {
-                const short16 big_r = QLD(big_r_rev + rt - (x - d0 - base));
-                val = q16_step(c, (short16)(mm), QLD(pv + d0), QLD(pv + d0 + 1), QLD(pv + d0 + 2),
-                               select(p1v_a, p1v_b, big_r), select(mp2_a, mp2_b, big_r));
-            }
-            if (v == nvec - 1)
-                val = select((short16)(Q_BIG), val, convert_short16((int16)(d0) + lane <= (int16)(dmax)));
-            QST(val, cv + d0 + 1);
-            QST(val, bp);
-            newm = QMIN(newm, val);
+        /* as in row_chunk: the first pixel and the last vector in loops of their own */
+#define Q16_ROW_STEP(v, FIRST, LAST)                                                                   \
+    do {                                                                                                \
+        const int d0 = (v) * 16;                                                                        \
+        short *bp = blk + k * MAX_DISP + d0;                                                            \
+        const short16 c = QLD(bp);                                                                      \
+        short16 val;                                                                                    \
+        if (FIRST) {                                                                                    \
+            val = c;                                                                                    \
+        } else {                                                                                        \
+            const short16 big_r = QLD(br + d0);                                                         \
+            val = q16_step(c, (short16)(mm), QLD(pv + d0), QLD(pv + d0 + 1), QLD(pv + d0 + 2),          \
+                           select(p1v_a, p1v_b, big_r), select(mp2_a, mp2_b, big_r));                   \
+        }                                                                                               \
+        if (LAST)                                                                                       \
+            val = select((short16)(Q_BIG), val, convert_short16((int16)(d0) + lane <= (int16)(dmax)));  \
+        QST(val, cv + d0 + 1);                                                                          \
+        QST(val, bp);                                                                                   \
+        newm = QMIN(newm, val);                                                                         \
+    } while (0)
+        if (first) {
+            for (int v = 0; v < nvec - 1; ++v)
+                Q16_ROW_STEP(v, 1, 0);
+            Q16_ROW_STEP(nvec - 1, 1, 1);
+        } else {
+            for (int v = 0; v < nvec - 1; ++v)
+                Q16_ROW_STEP(v, 0, 0);
+            Q16_ROW_STEP(nvec - 1, 0, 1);
         }
+#undef Q16_ROW_STEP
         QST((short16)(Q_BIG), cv + nvec * 16 + 1);
         const short8 m8 = QMIN(newm.lo, newm.hi);
         const short4 m4 = QMIN(m8.lo, m8.hi);
@@ -1336,7 +1349,7 @@ __kernel __attribute__((vec_type_hint(float16))) void sgm_paired_q16(
                     const int d0 = g * 16;
                     q16_load_tile(r, cost, y, xg, d0, ng, dmaxg, H, W, mirror, qscale, qlim);
                     const int iend = min(16, dmaxg + 1 - d0);
-                    if (ng == 16 && xg >= d0 + 15)
+                    if (!vfirst && ng == 16 && xg >= d0 + 15 && iend == 16)
                         q16_vertical_tile(r, qbigv + MAX_DISP + gx * 16, sg, d0, iend, vfirst, mv, p1a, p1b, mp2a,
                                           mp2b, &pm1, &pd, &newmv, xs, valid_x, 0);
                     else
