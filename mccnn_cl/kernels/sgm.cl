@@ -818,6 +818,9 @@ static inline __attribute__((always_inline)) void vertical_tile(
     const floatV mv, const floatV p1a, const floatV p1b, const floatV mp2a, const floatV mp2b, floatV *pm1,
     floatV *pd, floatV *newmv, const intV xs, const intV valid_x, const int masked)
 {
+    /* the tile's flags and state from base pointers, each level at a constant offset */
+    const int *bq = bigv - d0;
+    __global float *sq = sg + d0 * VW;
     __attribute__((opencl_unroll_hint))
     for (int i = 0; i < VW; ++i) { /* a constant trip count keeps r[] in registers */
         const int d = d0 + i;
@@ -826,8 +829,8 @@ static inline __attribute__((always_inline)) void vertical_tile(
             if (masked && vfirst) {
                 val = r[i];
             } else {
-                const intV big_r = vloadV(0, bigv - d);
-                const floatV pn = vloadV(0, sg + (d + 1) * VW); /* C_r(p - r, d + 1) */
+                const intV big_r = vloadV(0, bq - i);
+                const floatV pn = vloadV(0, sq + (i + 1) * VW); /* C_r(p - r, d + 1) */
                 val = sgm_step_mp2V(r[i], mv, *pm1, *pd, pn, SGM_BY_D2_V(p1a, p1b, big_r),
                                     SGM_BY_D2_V(mp2a, mp2b, big_r));
                 *pm1 = *pd;
@@ -835,7 +838,7 @@ static inline __attribute__((always_inline)) void vertical_tile(
             }
             if (masked)
                 val = select((floatV)(INFINITY), val, (xs >= (intV)(d)) & valid_x);
-            vstoreV(val, 0, sg + d * VW);
+            vstoreV(val, 0, sq + i * VW);
             *newmv = fmin_aV(*newmv, val);
         }
     }
@@ -1143,6 +1146,8 @@ static inline __attribute__((always_inline)) void q16_vertical_tile(
     const short16 mv, const short16 p1a, const short16 p1b, const short16 mp2a, const short16 mp2b, short16 *pm1,
     short16 *pd, short16 *newmv, const int16 xs, const int16 valid_x, const int masked)
 {
+    const short *bq = bigv - d0; /* as in vertical_tile: constant offsets per level */
+    __global short *sq = sg + d0 * 16;
     __attribute__((opencl_unroll_hint))
     for (int i = 0; i < 16; ++i) {
         const int d = d0 + i;
@@ -1151,15 +1156,15 @@ static inline __attribute__((always_inline)) void q16_vertical_tile(
             if (masked && vfirst) {
                 val = r[i];
             } else {
-                const short16 big_r = QLD(bigv - d);
-                const short16 pn = QLDG(sg + (d + 1) * 16);
+                const short16 big_r = QLD(bq - i);
+                const short16 pn = QLDG(sq + (i + 1) * 16);
                 val = q16_step(r[i], mv, *pm1, *pd, pn, select(p1a, p1b, big_r), select(mp2a, mp2b, big_r));
                 *pm1 = *pd;
                 *pd = pn;
             }
             if (masked)
                 val = select((short16)(Q_BIG), val, convert_short16((xs >= (int16)(d)) & valid_x));
-            QSTG(val, sg + d * 16);
+            QSTG(val, sq + i * 16);
             *newmv = QMIN(*newmv, val);
         }
     }
