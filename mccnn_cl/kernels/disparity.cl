@@ -192,8 +192,8 @@ __kernel void disparity_right_volume(
 {
     /* MIRROR_LINES 1: one work-item walks its whole line (global size (H, D)):
      * the cells below d, the whole blocks, then the pairs left one by one; a
-     * KITTI-sized volume on 2 Zen 3 cores, 29-33 ms against 41-51 ms a
-     * work-item per block (BENCHMARKS.md), the same bits */
+     * KITTI-sized volume on 2 Zen 3 cores, 28-34 ms (the tuner's run: 18
+     * against 25 ms a work-item per block; BENCHMARKS.md), the same bits */
     const int y = get_global_id(MIRROR_LINES ? 0 : 1);
     const int d = get_global_id(MIRROR_LINES ? 1 : 2);
     const int kfirst = MIRROR_LINES ? 0 : (int)get_global_id(0) * 16;

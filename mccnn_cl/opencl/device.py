@@ -81,7 +81,7 @@ LLVMPIPE_LOOP_LIMIT = 65535
 #: ``network_winograd`` (the conv stack's 3 x 3 layers by Winograd's F(2x2, 3x3),
 #: kernels/network_conv_wino.cl: (RT tiles, XA products) per work-item, XA 0 = 4 where the
 #: kernels get 16-float vectors (:attr:`DeviceProfile.wide_vectors`), else 1; None: the
-#: direct GEMM; CPU devices only (~81 KiB of local memory a work-group): a 64 -> 64 layer of
+#: direct GEMM; CPU devices only (~32 KiB of local memory a work-group): a 64 -> 64 layer of
 #: general-fst on a KITTI-sized map took 101 against 158 ms at (4, 4) with AVX-512 code, 113
 #: against 168 ms at (4, 1) with AVX2 code, BENCHMARKS.md);
 #: ``network_local_tiles`` (the conv stack and the L4 split as a local-memory tiled
