@@ -22,3 +22,19 @@ def data_dir(given=None) -> Path:
         return Path(given)
     env = os.environ.get("MCCNN_DATA")
     return Path(env) if env else REPO.parent / "shared" / "data"
+
+
+def kitti_000000(given=None):
+    """KITTI 2015 training frame 000000 (the benchmarks' pair) through the package's loader,
+    under :func:`data_dir` (``given``: a ``--data`` argument); exits with a message naming
+    the folder when it cannot be read."""
+    import sys
+
+    from mccnn_cl.errors import InputError
+    from mccnn_cl.evaluation.datasets import load_kitti2015
+
+    k = data_dir(given) / "kitti2015" / "training"
+    try:
+        return load_kitti2015(k, "000000")
+    except (InputError, OSError) as exc:
+        sys.exit(f"KITTI 2015 000000 not readable under {k} (set MCCNN_DATA or --data): {exc}")

@@ -22,7 +22,7 @@ import time
 
 import pyopencl as cl
 
-from _paths import data_dir  # noqa: E402
+from _paths import kitti_000000  # noqa: E402
 
 
 def _value(text: str):
@@ -48,15 +48,9 @@ def main() -> int:
     args = ap.parse_args()
 
     from mccnn_cl import StereoMatcher
-    from mccnn_cl.errors import InputError
-    from mccnn_cl.evaluation.datasets import load_kitti2015
     from mccnn_cl.opencl.context import ClContext
 
-    k = data_dir(args.data) / "kitti2015" / "training"
-    try:
-        pair = load_kitti2015(k, "000000")
-    except (InputError, OSError) as exc:
-        sys.exit(f"KITTI 2015 000000 not readable under {k} (set MCCNN_DATA or --data): {exc}")
+    pair = kitti_000000(args.data)
 
     events = []
     enqueue, call = cl.enqueue_nd_range_kernel, cl.Kernel.__call__

@@ -18,7 +18,7 @@ import sys
 
 import numpy as np
 
-from _paths import data_dir
+from _paths import kitti_000000
 
 
 def main() -> int:
@@ -34,14 +34,7 @@ def main() -> int:
     from mccnn_cl.benchmark import group_timings
     from mccnn_cl.pipeline import StereoMatcher
 
-    from mccnn_cl.errors import InputError
-    from mccnn_cl.evaluation.datasets import load_kitti2015
-
-    k = data_dir(args.data) / "kitti2015" / "training"
-    try:
-        pair = load_kitti2015(k, "000000")
-    except (InputError, OSError) as exc:
-        sys.exit(f"KITTI 2015 000000 not readable under {k} (set MCCNN_DATA or --data): {exc}")
+    pair = kitti_000000(args.data)
     L, R = pair.left, pair.right
     widths = [int(w) for w in args.widths.split(",")]
     if max(widths) > L.shape[1]:
