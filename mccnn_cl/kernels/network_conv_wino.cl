@@ -13,10 +13,9 @@
  * V_xi U_xi of its channels, XA of the 16 xi at a time over RT tiles (XA x RT
  * register accumulators of RN floats; U = G g G^T precomputed on the host,
  * [16][CIN][NP]), keeps M in its own local memory ([RT][16][RN]) and applies
- * the output transform (A^T M A), bias and ReLU.  (Each work-item transformed
- * every channel for itself before: NP/RN times the work.  A 64 -> 64 layer on
- * a KITTI-sized map, Zen 3, RN 16: the transforms and stores 26-29 against
- * 38-42 ms, the same bits.)  Launch: global (NP/RN, ceil(tw/RT), th), local
+ * the output transform (A^T M A), bias and ReLU.  Sharing the transform
+ * spares the group NP/RN - 1 copies of it (BENCHMARKS.md, Machine C's
+ * thirteenth session).  Launch: global (NP/RN, ceil(tw/RT), th), local
  * (NP/RN, 1, 1).
  *
  * Row anchor p (0 or 1): tile row ty covers output rows 2 ty - p and
