@@ -169,19 +169,23 @@ __kernel void disparity_lr_check(
 #define MIRROR_LINES 0
 #endif
 /* Swap the whole block of pairs k0 .. k0 + 15 of a line (cells d + k0 .. d + k0 + 15 and
- * W - 16 - k0 .. W - 1 - k0), reversed in registers: the two blocks cannot overlap.  Plain
- * 16-float stores where the volume is float (not the partial-store helper). */
+ * W - 16 - k0 .. W - 1 - k0), reversed in registers: the two blocks cannot overlap. */
 static inline void mirror_block(__global vol_t *line, const int d, const int k0, const int W)
 {
     const float16 a = VOL_LOAD16(line + d + k0);
     const float16 b = VOL_LOAD16(line + W - 16 - k0);
-#if VOL_HALF
     vol_store16_partial(b.sFEDCBA9876543210, line + d + k0, 16);
     vol_store16_partial(a.sFEDCBA9876543210, line + W - 16 - k0, 16);
-#else
-    vstore16(b.sFEDCBA9876543210, 0, line + d + k0);
-    vstore16(a.sFEDCBA9876543210, 0, line + W - 16 - k0);
-#endif
+}
+
+/* Swap the pairs i0 .. npairs - 1 of a line (cell d + i with cell W - 1 - i) one by one. */
+static inline void mirror_pairs(__global vol_t *line, const int d, const int i0, const int npairs, const int W)
+{
+    for (int i = i0; i < npairs; ++i) {
+        const float a = VOL_GET(line, d + i);
+        VOL_SET(line, d + i, VOL_GET(line, W - 1 - i));
+        VOL_SET(line, W - 1 - i, a);
+    }
 }
 
 __kernel void disparity_right_volume(
@@ -207,24 +211,15 @@ __kernel void disparity_right_volume(
     int k0 = 0;
     for (; k0 + 16 <= npairs; k0 += 16)
         mirror_block(line, d, k0, W);
-    for (int i = k0; i < npairs; ++i) {
-        const float a = VOL_GET(line, d + i);
-        VOL_SET(line, d + i, VOL_GET(line, W - 1 - i));
-        VOL_SET(line, W - 1 - i, a);
-    }
+    mirror_pairs(line, d, k0, npairs, W);
 #else
     const int k0 = kfirst;
     for (int x = k0; x < min(k0 + 16, min(d, W)); ++x) /* below d: invalid */
         VOL_SET(line, x, INVALID_COST);
-    if (k0 + 16 <= npairs) {
+    if (k0 + 16 <= npairs)
         mirror_block(line, d, k0, W);
-    } else {
-        for (int i = k0; i < npairs; ++i) {
-            const float a = VOL_GET(line, d + i);
-            VOL_SET(line, d + i, VOL_GET(line, W - 1 - i));
-            VOL_SET(line, W - 1 - i, a);
-        }
-    }
+    else
+        mirror_pairs(line, d, k0, npairs, W);
 #endif
 }
 
