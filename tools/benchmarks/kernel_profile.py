@@ -25,19 +25,6 @@ import pyopencl as cl
 from _paths import kitti_000000  # noqa: E402
 
 
-def _value(text: str):
-    low = text.lower()
-    if low in ("true", "false"):
-        return low == "true"
-    try:
-        return int(text)
-    except ValueError:
-        try:
-            return float(text)
-        except ValueError:
-            return text
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--weights", default="general-fst", help="network (default: general-fst)")
@@ -48,6 +35,7 @@ def main() -> int:
     args = ap.parse_args()
 
     from mccnn_cl import StereoMatcher
+    from mccnn_cl.hyperparameters import parse_settings
     from mccnn_cl.opencl.context import ClContext
 
     pair = kitti_000000(args.data)
@@ -67,7 +55,7 @@ def main() -> int:
 
     cl.enqueue_nd_range_kernel, cl.Kernel.__call__ = enqueue_kept, call_kept
     ctx = ClContext(profiling=True)
-    hp = dict((s.partition("=")[0], _value(s.partition("=")[2])) for s in args.set)
+    hp = parse_settings(args.set)
     if args.cost == "census":
         m = StereoMatcher(device=ctx, cost="census", **hp)
     else:

@@ -32,6 +32,7 @@ def main() -> int:
     ap.add_argument("--data", default=None, help="shared data (default: $MCCNN_DATA, else ../shared/data)")
     args = ap.parse_args()
     from mccnn_cl.benchmark import group_timings
+    from mccnn_cl.hyperparameters import parse_settings
     from mccnn_cl.pipeline import StereoMatcher
 
     pair = kitti_000000(args.data)
@@ -39,12 +40,7 @@ def main() -> int:
     widths = [int(w) for w in args.widths.split(",")]
     if max(widths) > L.shape[1]:
         sys.exit(f"widths up to {L.shape[1]}")
-    hp = {}
-    for s in args.set:
-        name, _, value = s.partition("=")
-        hp[name] = {"true": True, "false": False}.get(value.lower(), None)
-        if hp[name] is None:
-            hp[name] = float(value) if "." in value else int(value)
+    hp = parse_settings(args.set)
     m = StereoMatcher(cost="census", **hp) if args.cost == "census" else StereoMatcher(weights=args.weights, **hp)
     crops = {w: (np.ascontiguousarray(L[:, :w]), np.ascontiguousarray(R[:, :w])) for w in widths}
     for w in widths:  # programs and buffers of every width made before timing
